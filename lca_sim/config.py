@@ -1,0 +1,139 @@
+"""Loading robot configs and scenarios from YAML files (the I/O edge of lca_sim).
+
+Shipped files live in the package (`lca_sim.data`, mapped from the top-level config/ folder),
+so they are found after a plain, non-editable install as well as in a source checkout.
+A name such as `default` is a shipped file; anything with a path separator or a .yaml suffix is a
+path.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from lca_sim.errors import ConfigError, UnknownNameError
+from lca_sim.params import RobotParams, parse_robot
+from lca_sim.scenario import Scenario, parse_scenario
+
+_CONFIG_PACKAGE = "lca_sim.data"
+
+
+def config_dir() -> Path:
+    """The folder holding the shipped configs (robots/, scenarios/, urdf/, ...).
+
+    An installed package has them as `lca_sim.data`; a source checkout or an editable install
+    (which maps only the real package folders) reads the top-level config/ folder directly.
+    """
+    try:
+        return Path(str(importlib.resources.files(_CONFIG_PACKAGE)))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / "config"
+
+
+def shipped_names(kind: str) -> tuple[str, ...]:
+    """Names of the shipped files of one kind: `robots` or `scenarios`."""
+    folder = config_dir() / kind
+    return tuple(sorted(p.stem for p in folder.glob("*.yaml")))
+
+
+def resolve(name_or_path: str, kind: str) -> Path:
+    """A shipped name (`default`) or a file path, as a path to an existing file."""
+    looks_like_path = "/" in name_or_path or name_or_path.endswith((".yaml", ".yml"))
+    if looks_like_path:
+        path = Path(name_or_path)
+        if not path.is_file():
+            raise ConfigError(str(path), "", "file not found")
+        return path
+    path = config_dir() / kind / f"{name_or_path}.yaml"
+    if not path.is_file():
+        raise UnknownNameError(kind.rstrip("s"), name_or_path, shipped_names(kind))
+    return path
+
+
+def read_yaml(path: Path) -> Any:
+    """Parse one YAML file; syntax errors become a one-line ConfigError with the line number."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(path), "", f"cannot read the file ({exc.strerror})") from exc
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(str(path), where, f"expected valid YAML ({problem})") from exc
+
+
+def _merge(base: Any, override: Any) -> Any:
+    """Deep-merge mappings; any other value in `override` replaces the base value."""
+    if isinstance(base, Mapping) and isinstance(override, Mapping):
+        merged = dict(base)
+        for key, value in override.items():
+            merged[key] = _merge(base[key], value) if key in base else value
+        return merged
+    return override
+
+
+def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> tuple[Any, Path]:
+    """Read a robot YAML, following `base:` (a shipped name or a path relative to the file).
+
+    Returns the merged document and the path that defines `robot.urdf`'s folder.
+    """
+    if path.resolve() in seen:
+        raise ConfigError(str(path), "base", "expected no cycle of base files")
+    data = read_yaml(path)
+    if not isinstance(data, Mapping) or "base" not in data:
+        return data, path
+    base_ref = data["base"]
+    if not isinstance(base_ref, str):
+        raise ConfigError(str(path), "base", f"expected a robot name or a path, got {base_ref!r}")
+    if "/" in base_ref or base_ref.endswith((".yaml", ".yml")):
+        base_path = (path.parent / base_ref).resolve()
+        if not base_path.is_file():
+            raise ConfigError(str(path), "base", f"file not found: {base_path}")
+    else:
+        try:
+            base_path = resolve(base_ref, "robots")
+        except UnknownNameError as exc:
+            raise ConfigError(str(path), "base", str(exc)) from exc
+    base_data, urdf_home = _read_with_base(base_path, (*seen, path.resolve()))
+    override = {k: v for k, v in data.items() if k != "base"}
+    robot_override = override.get("robot")
+    if isinstance(robot_override, Mapping) and "urdf" in robot_override:
+        urdf_home = path
+    return _merge(base_data, override), urdf_home
+
+
+def load_robot(name_or_path: str = "default") -> RobotParams:
+    """Load and validate a robot config: a shipped name (`default`, `reversible`) or a path.
+
+    Raises:
+        ConfigError: the file, the key and what was expected, in one line.
+        UnknownNameError: an unknown shipped name (the message lists the valid ones).
+
+    """
+    path = resolve(name_or_path, "robots")
+    data, urdf_home = _read_with_base(path)
+    robot = data.get("robot") if isinstance(data, Mapping) else None
+    urdf_ref = robot.get("urdf") if isinstance(robot, Mapping) else None
+    if not isinstance(urdf_ref, str):
+        raise ConfigError(str(path), "robot.urdf", "expected the path of the gantry URDF")
+    urdf_path = (urdf_home.parent / urdf_ref).resolve()
+    try:
+        urdf_xml = urdf_path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(
+            str(path), "robot.urdf", f"cannot read {urdf_path} ({exc.strerror})"
+        ) from exc
+    return parse_robot(data, str(path), urdf_xml)
+
+
+def load_scenario(name_or_path: str, axis_names: tuple[str, ...]) -> Scenario:
+    """Load and validate a scenario: a shipped name (`fig9_open_loop_pivot`) or a path."""
+    path = resolve(name_or_path, "scenarios")
+    return parse_scenario(read_yaml(path), str(path), axis_names)

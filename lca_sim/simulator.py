@@ -1,0 +1,331 @@
+"""The drive-chain simulator: model built once, explicit state, fixed-step stepper.
+
+Like Drake's System / Context / Simulator split: `RobotParams` is the immutable model
+description, `PlantState` an explicit state value that can be read and restored, and `Simulator`
+the stepper that owns the scratch buffers (Pinocchio `Data`, kernel arrays) and advances by its
+fixed `dt_s`. Nothing here reads a clock or touches a file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from lca_sim import kernel
+from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
+from lca_sim.gantry import Gantry
+from lca_sim.params import RobotParams
+from lca_sim.state_machine import FIRST_MOVING_STATE, MotionState
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+# Per-axis signals a step exposes, in kernel row order, with their SI unit suffix.
+SIGNAL_NAMES: tuple[str, ...] = (
+    "motor_velocity_rad_s",
+    "current_a",
+    "voltage_v",
+    "motor_torque_nm",
+    "load_torque_nm",
+    "friction_torque_nm",
+    "eta_m",
+    "eta_l",
+    "motor_power_w",
+    "load_power_w",
+    "gear_loss_w",
+    "friction_loss_w",
+    "electrical_power_w",
+    "copper_loss_w",
+    "motor_acceleration_rad_s2",
+)
+assert len(SIGNAL_NAMES) == kernel.N_SIGNALS
+
+
+class InputError(LcaHilError, ValueError):
+    """A command given to the simulator is not usable (wrong length, NaN or infinite)."""
+
+
+@dataclass(frozen=True, slots=True)
+class PlantState:
+    """The full state of the plant: enough to restore a run exactly.
+
+    Attributes:
+        time_s: simulated time.
+        position: joint positions (rad, m for the lift), in axis order.
+        velocity: joint velocities (rad/s, m/s).
+        current_a: armature currents.
+        motion: upper-level state per axis (Fig. 6).
+        drive: lower-level drive-state index per axis (names in `Simulator.state_names`).
+
+    """
+
+    time_s: float
+    position: tuple[float, ...]
+    velocity: tuple[float, ...]
+    current_a: tuple[float, ...]
+    motion: tuple[MotionState, ...]
+    drive: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class AxisSignals:
+    """What one step exposes for every axis (copies; SI units, motor side for torques).
+
+    Efficiencies are NaN while an axis is stopped: it is locked and eq. (10) does not apply.
+    Powers: motor_power_w = tau_m w_m is the power the motor sends into the gear,
+    load_power_w = tau_l w_m the power the gear delivers to the load (both negative when the
+    flow reverses); gear_loss_w and friction_loss_w are what the efficiencies and eq. (4) burn.
+    """
+
+    motion: tuple[MotionState, ...]
+    drive: tuple[str, ...]
+    values: Mapping[str, FloatArray]
+
+    def __getitem__(self, name: str) -> FloatArray:
+        """One signal for all axes, by its name in `SIGNAL_NAMES`."""
+        try:
+            return self.values[name]
+        except KeyError:
+            raise UnknownNameError("signal", name, SIGNAL_NAMES) from None
+
+
+class Simulator:
+    """Fixed-step simulator of the four coupled drive chains (eq. 8-10).
+
+    Args:
+        robot: validated robot parameters.
+        dt_s: the fixed integration step (default 0.1 ms).
+
+    The simulator starts at rest at q = 0 with zero current; use `reset` for other states.
+
+    """
+
+    def __init__(self, robot: RobotParams, dt_s: float = 1e-4) -> None:
+        if not (dt_s > 0.0 and np.isfinite(dt_s)):
+            raise ConfigError(robot.source, "dt_s", f"expected a positive step, got {dt_s!r}")
+        self.robot = robot
+        self.dt_s = float(dt_s)
+        self._gantry = Gantry(robot.urdf_xml, robot.gravity_m_s2, robot.source)
+        if self._gantry.joint_names != robot.axis_names:
+            raise ConfigError(
+                robot.source,
+                "axes",
+                f"expected the URDF's joints {list(self._gantry.joint_names)} in that order, "
+                f"got {list(robot.axis_names)}",
+            )
+        self.axis_names: tuple[str, ...] = robot.axis_names
+        self.n_axes = len(robot.axes)
+        self.state_names: tuple[str, ...] = robot.state_machine.state_names
+        self.prismatic: tuple[bool, ...] = tuple(j.prismatic for j in self._gantry.joints)
+        self._params = _params_array(robot, self._gantry)
+        self._rules = robot.state_machine.rule_codes()
+        self._eta = _eta_array(robot)
+        self._irreversible = robot.state_machine.irreversible_stop
+        self._state = np.zeros((kernel.N_STATE, self.n_axes))
+        self._modes = np.zeros((kernel.N_MODES, self.n_axes), dtype=np.int64)
+        self._signals = np.zeros((kernel.N_SIGNALS, self.n_axes))
+        self._command = np.zeros(self.n_axes)
+        self._time_s = 0.0
+        self.reset()
+
+    # --- state -----------------------------------------------------------------------------
+
+    def reset(
+        self,
+        position: Mapping[str, float] | Sequence[float] | None = None,
+        velocity: Mapping[str, float] | Sequence[float] | None = None,
+        voltage_v: Sequence[float] | FloatArray | None = None,
+    ) -> None:
+        """Start again at t = 0 from a pose and velocity, with zero armature current.
+
+        A nonzero initial velocity starts the axis in DIRECT or REVERSE motion; a zero one starts
+        it stopped. Positions outside the joint's end stops are an error.
+        """
+        q = self._per_axis(position, "position")
+        v = self._per_axis(velocity, "velocity")
+        lo = self._params[kernel.P_POSITION_MIN]
+        hi = self._params[kernel.P_POSITION_MAX]
+        for a, name in enumerate(self.axis_names):
+            if not lo[a] <= q[a] <= hi[a]:
+                raise InputError(
+                    f"initial position of {name} = {q[a]:g} is outside [{lo[a]:g}, {hi[a]:g}]"
+                )
+        self._state[kernel.X_POSITION] = q
+        self._state[kernel.X_VELOCITY] = v
+        self._state[kernel.X_CURRENT] = 0.0
+        self._modes[kernel.Z_MOTION] = np.sign(v).astype(np.int64)
+        self._modes[kernel.Z_DRIVE] = 0
+        self._time_s = 0.0
+        self._evaluate(np.zeros(self.n_axes) if voltage_v is None else voltage_v)
+
+    def set_state(self, state: PlantState) -> None:
+        """Restore a state captured by `state` (for lockstep rewinds and determinism checks)."""
+        self._state[kernel.X_POSITION] = state.position
+        self._state[kernel.X_VELOCITY] = state.velocity
+        self._state[kernel.X_CURRENT] = state.current_a
+        self._modes[kernel.Z_MOTION] = [int(m) for m in state.motion]
+        self._modes[kernel.Z_DRIVE] = state.drive
+        self._time_s = state.time_s
+        self._evaluate(self._command.copy())
+
+    @property
+    def state(self) -> PlantState:
+        """A snapshot of the current state."""
+        return PlantState(
+            time_s=self._time_s,
+            position=tuple(float(x) for x in self._state[kernel.X_POSITION]),
+            velocity=tuple(float(x) for x in self._state[kernel.X_VELOCITY]),
+            current_a=tuple(float(x) for x in self._state[kernel.X_CURRENT]),
+            motion=tuple(MotionState(int(m)) for m in self._modes[kernel.Z_MOTION]),
+            drive=tuple(int(d) for d in self._modes[kernel.Z_DRIVE]),
+        )
+
+    @property
+    def time_s(self) -> float:
+        """Simulated time."""
+        return self._time_s
+
+    @property
+    def signals(self) -> AxisSignals:
+        """A snapshot of everything the last step exposed, per axis."""
+        return AxisSignals(
+            motion=tuple(MotionState(int(m)) for m in self._modes[kernel.Z_MOTION]),
+            drive=tuple(self.state_names[int(d)] for d in self._modes[kernel.Z_DRIVE]),
+            values={name: self._signals[row].copy() for row, name in enumerate(SIGNAL_NAMES)},
+        )
+
+    # Read-only views for recorders that copy every step (no allocation).
+    @property
+    def state_array(self) -> FloatArray:
+        """View of [position, velocity, current] x axes; do not write."""
+        view = self._state.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def mode_array(self) -> IntArray:
+        """View of [motion, drive] x axes; do not write."""
+        view = self._modes.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def signal_array(self) -> FloatArray:
+        """View of the signals, rows in `SIGNAL_NAMES` order; do not write."""
+        view = self._signals.view()
+        view.flags.writeable = False
+        return view
+
+    # --- stepping --------------------------------------------------------------------------
+
+    def step(self, voltage_v: Sequence[float] | FloatArray) -> None:
+        """Advance one `dt_s` with the given amplifier voltage commands (V, saturated inside).
+
+        Raises:
+            InputError: wrong length, NaN or infinite command; the state is left unchanged.
+
+        """
+        command = np.asarray(voltage_v, dtype=np.float64)
+        if command.shape != (self.n_axes,):
+            raise InputError(f"expected {self.n_axes} voltages, got shape {command.shape}")
+        mass, nle = self._gantry.dynamics_terms(
+            self._state[kernel.X_POSITION], self._state[kernel.X_VELOCITY]
+        )
+        code = kernel.step(
+            mass, nle, command, self._state, self._modes, self._params, self._rules, self._eta,
+            self._irreversible, self.dt_s, self._signals,
+        )  # fmt: skip
+        if code != kernel.OK:
+            raise InputError(f"voltage commands must be finite, got {command.tolist()}")
+        self._command = command
+        self._time_s += self.dt_s
+
+    def _evaluate(self, voltage_v: Sequence[float] | FloatArray) -> None:
+        """Fill the signals for the current state without advancing time (a zero-length step)."""
+        command = np.asarray(voltage_v, dtype=np.float64)
+        if command.shape != (self.n_axes,) or not np.all(np.isfinite(command)):
+            raise InputError(f"expected {self.n_axes} finite voltages, got {command.tolist()}")
+        mass, nle = self._gantry.dynamics_terms(
+            self._state[kernel.X_POSITION], self._state[kernel.X_VELOCITY]
+        )
+        kernel.step(
+            mass, nle, command, self._state, self._modes, self._params, self._rules, self._eta,
+            self._irreversible, 0.0, self._signals,
+        )  # fmt: skip
+        self._command = command
+
+    # --- helpers ---------------------------------------------------------------------------
+
+    @property
+    def gantry(self) -> Gantry:
+        """The rigid-body model (for energy checks); its scratch data is shared with the stepper."""
+        return self._gantry
+
+    def drive_state_index(self, name: str) -> int:
+        """The index of a drive state, by name."""
+        try:
+            return self.state_names.index(name)
+        except ValueError:
+            raise UnknownNameError("drive state", name, self.state_names) from None
+
+    def is_moving_state(self, index: int) -> bool:
+        """True for the drive states of DIRECT / REVERSE motion (not the stop sub-states)."""
+        return index >= FIRST_MOVING_STATE
+
+    def _per_axis(
+        self, values: Mapping[str, float] | Sequence[float] | None, what: str
+    ) -> FloatArray:
+        out = np.zeros(self.n_axes)
+        if values is None:
+            return out
+        if isinstance(values, Mapping):
+            for name, value in values.items():
+                if name not in self.axis_names:
+                    raise UnknownNameError("axis", name, self.axis_names)
+                out[self.axis_names.index(name)] = float(value)
+        else:
+            if len(values) != self.n_axes:
+                raise InputError(f"expected {self.n_axes} initial {what} values, got {len(values)}")
+            out[:] = [float(x) for x in values]
+        if not np.all(np.isfinite(out)):
+            raise InputError(f"initial {what} must be finite, got {out.tolist()}")
+        return out
+
+
+def _params_array(robot: RobotParams, gantry: Gantry) -> FloatArray:
+    params = np.zeros((kernel.N_PARAMS, len(robot.axes)))
+    machine = robot.state_machine
+    for a, (axis, joint) in enumerate(zip(robot.axes, gantry.joints, strict=True)):
+        m, f = axis.motor, axis.friction
+        params[kernel.P_GEAR_RATIO, a] = axis.gear_ratio
+        params[kernel.P_RESISTANCE_OHM, a] = m.resistance_ohm
+        params[kernel.P_INDUCTANCE_H, a] = m.inductance_h
+        params[kernel.P_TORQUE_CONSTANT, a] = m.torque_constant_nm_per_a
+        params[kernel.P_ROTOR_INERTIA, a] = m.rotor_inertia_kg_m2
+        params[kernel.P_VOLTAGE_LIMIT_V, a] = m.voltage_limit_v
+        params[kernel.P_STATIC_DIRECT, a] = f.static_direct_nm
+        params[kernel.P_STATIC_REVERSE, a] = f.static_reverse_nm
+        params[kernel.P_COULOMB_DIRECT, a] = f.coulomb_direct_nm
+        params[kernel.P_COULOMB_REVERSE, a] = f.coulomb_reverse_nm
+        params[kernel.P_VISCOUS_DIRECT, a] = f.viscous_direct_nm_s_per_rad
+        params[kernel.P_VISCOUS_REVERSE, a] = f.viscous_reverse_nm_s_per_rad
+        params[kernel.P_POSITION_MIN, a] = joint.position_min
+        params[kernel.P_POSITION_MAX, a] = joint.position_max
+        params[kernel.P_VELOCITY_EPS, a] = machine.velocity_eps_rad_s
+        params[kernel.P_TORQUE_EPS, a] = machine.motor_torque_eps_nm
+    return params
+
+
+def _eta_array(robot: RobotParams) -> FloatArray:
+    rules = robot.state_machine.rules
+    eta = np.ones((len(robot.axes), 2, len(rules), 2))
+    for a, axis in enumerate(robot.axes):
+        for k, direction in enumerate((MotionState.DIRECT, MotionState.REVERSE)):
+            for r, rule in enumerate(rules):
+                entry = axis.efficiency[(direction, rule.name)]
+                eta[a, k, r, 0] = entry.eta_m
+                eta[a, k, r, 1] = entry.eta_l
+    return eta

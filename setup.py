@@ -1,0 +1,56 @@
+"""Build script of the lca_hil ROS 2 package (ament_python), also installable with pip."""
+
+from pathlib import Path
+
+from setuptools import setup
+
+PACKAGE = "lca_hil"
+HERE = Path(__file__).parent
+
+
+def _config_files(sub: str) -> list[str]:
+    return sorted(str(p) for p in (HERE / "config" / sub).glob("*") if p.is_file())
+
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="HIL simulator for robot drive chains with irreversible gears (LCA robot)",
+    long_description=(HERE / "README.md").read_text(encoding="utf-8"),
+    long_description_content_type="text/markdown",
+    license="Apache-2.0",
+    python_requires=">=3.11",
+    packages=["lca_sim", "lca_sim.data", "lca_control"],
+    # The shipped configs live in the top-level config/ folder (the ROS convention) and are also
+    # package data of lca_sim.data, so a non-editable install finds them.
+    package_dir={"lca_sim.data": "config"},
+    package_data={"lca_sim.data": ["robots/*.yaml", "scenarios/*.yaml", "urdf/*.urdf"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
+        ("share/" + PACKAGE, ["package.xml"]),
+        ("share/" + PACKAGE + "/config/robots", _config_files("robots")),
+        ("share/" + PACKAGE + "/config/scenarios", _config_files("scenarios")),
+        ("share/" + PACKAGE + "/config/urdf", _config_files("urdf")),
+    ],
+    install_requires=[
+        "numpy>=1.26",
+        "numba>=0.60",
+        "pin>=3.0",
+        "python-can>=4.3",
+        "PyYAML>=6.0",
+        "matplotlib>=3.8",
+        "setuptools<80",
+    ],
+    extras_require={
+        # ROS 2 Jazzy from PyPI wheels: always through the ros-jazzy-* names.
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        "test": ["pytest>=8", "hypothesis>=6", "ruff>=0.6", "mypy>=1.10", "types-PyYAML"],
+        "bench": ["mujoco>=3.1"],
+    },
+    entry_points={
+        "console_scripts": [
+            "lca-sim = lca_sim.cli:main",
+        ],
+    },
+    zip_safe=False,
+)
