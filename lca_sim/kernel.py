@@ -342,7 +342,6 @@ def step(
             eta_m[a] = np.nan
             eta_l[a] = np.nan
             friction = static_friction(tau_m[a], params, a)
-            acc[a] = 0.0
 
         i_a = state[X_CURRENT, a]
         signals[S_MOTOR_VELOCITY, a] = w_new

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# The test command: set up .venv if needed, then lint (ruff), type-check (mypy, strict on the
+# core) and run the test suite (pytest). Extra arguments go to pytest.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$root/scripts/setup.sh"
+# shellcheck source=scripts/env.sh
+source "$root/scripts/env.sh"
+venv="${LCA_HIL_VENV:-$root/.venv}"
+cd "$root"
+echo "== ruff"
+"$venv/bin/ruff" check .
+"$venv/bin/ruff" format --check .
+echo "== mypy"
+"$venv/bin/mypy"
+echo "== pytest"
+"$venv/bin/python" -m pytest "$@"
