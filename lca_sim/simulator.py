@@ -21,7 +21,6 @@ from lca_sim.params import RobotParams
 from lca_sim.state_machine import FIRST_MOVING_STATE, MotionState
 
 FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 # Per-axis signals a step exposes, in kernel row order, with their SI unit suffix.
 SIGNAL_NAMES: tuple[str, ...] = (
@@ -121,13 +120,20 @@ class Simulator:
         self.state_names: tuple[str, ...] = robot.state_machine.state_names
         self.prismatic: tuple[bool, ...] = tuple(j.prismatic for j in self._gantry.joints)
         self._params = _params_array(robot, self._gantry)
-        self._rules = robot.state_machine.rule_codes()
-        self._eta = _eta_array(robot)
-        self._irreversible = robot.state_machine.irreversible_stop
-        self._state = np.zeros((kernel.N_STATE, self.n_axes))
-        self._modes = np.zeros((kernel.N_MODES, self.n_axes), dtype=np.int64)
-        self._signals = np.zeros((kernel.N_SIGNALS, self.n_axes))
+        self._model = kernel.pack_model(
+            self._params,
+            robot.state_machine.rule_codes(),
+            _eta_array(robot),
+            robot.state_machine.irreversible_stop,
+        )
+        self._work = np.zeros((kernel.work_rows(self.n_axes), self.n_axes))
+        # Views into the work array, made once: the hot path only indexes them.
+        self._position = self._work[kernel.X_POSITION]
+        self._velocity = self._work[kernel.X_VELOCITY]
+        self._signals = self._work[kernel.FIRST_SIGNAL : kernel.FIRST_SIGNAL + kernel.N_SIGNALS]
         self._command = np.zeros(self.n_axes)
+        self._command_shape = (self.n_axes,)
+        self._dynamics = self._gantry.dynamics_terms
         self._time_s = 0.0
         self.reset()
 
@@ -153,21 +159,20 @@ class Simulator:
                 raise InputError(
                     f"initial position of {name} = {q[a]:g} is outside [{lo[a]:g}, {hi[a]:g}]"
                 )
-        self._state[kernel.X_POSITION] = q
-        self._state[kernel.X_VELOCITY] = v
-        self._state[kernel.X_CURRENT] = 0.0
-        self._modes[kernel.Z_MOTION] = np.sign(v).astype(np.int64)
-        self._modes[kernel.Z_DRIVE] = 0
+        self._work[:] = 0.0
+        self._work[kernel.X_POSITION] = q
+        self._work[kernel.X_VELOCITY] = v
+        self._work[kernel.X_MOTION] = np.sign(v)
         self._time_s = 0.0
         self._evaluate(np.zeros(self.n_axes) if voltage_v is None else voltage_v)
 
     def set_state(self, state: PlantState) -> None:
         """Restore a state captured by `state` (for lockstep rewinds and determinism checks)."""
-        self._state[kernel.X_POSITION] = state.position
-        self._state[kernel.X_VELOCITY] = state.velocity
-        self._state[kernel.X_CURRENT] = state.current_a
-        self._modes[kernel.Z_MOTION] = [int(m) for m in state.motion]
-        self._modes[kernel.Z_DRIVE] = state.drive
+        self._work[kernel.X_POSITION] = state.position
+        self._work[kernel.X_VELOCITY] = state.velocity
+        self._work[kernel.X_CURRENT] = state.current_a
+        self._work[kernel.X_MOTION] = [int(m) for m in state.motion]
+        self._work[kernel.X_DRIVE] = state.drive
         self._time_s = state.time_s
         self._evaluate(self._command.copy())
 
@@ -176,11 +181,11 @@ class Simulator:
         """A snapshot of the current state."""
         return PlantState(
             time_s=self._time_s,
-            position=tuple(float(x) for x in self._state[kernel.X_POSITION]),
-            velocity=tuple(float(x) for x in self._state[kernel.X_VELOCITY]),
-            current_a=tuple(float(x) for x in self._state[kernel.X_CURRENT]),
-            motion=tuple(MotionState(int(m)) for m in self._modes[kernel.Z_MOTION]),
-            drive=tuple(int(d) for d in self._modes[kernel.Z_DRIVE]),
+            position=tuple(float(x) for x in self._work[kernel.X_POSITION]),
+            velocity=tuple(float(x) for x in self._work[kernel.X_VELOCITY]),
+            current_a=tuple(float(x) for x in self._work[kernel.X_CURRENT]),
+            motion=tuple(MotionState(int(m)) for m in self._work[kernel.X_MOTION]),
+            drive=tuple(int(d) for d in self._work[kernel.X_DRIVE]),
         )
 
     @property
@@ -192,8 +197,8 @@ class Simulator:
     def signals(self) -> AxisSignals:
         """A snapshot of everything the last step exposed, per axis."""
         return AxisSignals(
-            motion=tuple(MotionState(int(m)) for m in self._modes[kernel.Z_MOTION]),
-            drive=tuple(self.state_names[int(d)] for d in self._modes[kernel.Z_DRIVE]),
+            motion=tuple(MotionState(int(m)) for m in self._work[kernel.X_MOTION]),
+            drive=tuple(self.state_names[int(d)] for d in self._work[kernel.X_DRIVE]),
             values={name: self._signals[row].copy() for row, name in enumerate(SIGNAL_NAMES)},
         )
 
@@ -201,14 +206,26 @@ class Simulator:
     @property
     def state_array(self) -> FloatArray:
         """View of [position, velocity, current] x axes; do not write."""
-        view = self._state.view()
+        view = self._work[: kernel.X_CURRENT + 1].view()
         view.flags.writeable = False
         return view
 
     @property
-    def mode_array(self) -> IntArray:
-        """View of [motion, drive] x axes; do not write."""
-        view = self._modes.view()
+    def mode_array(self) -> FloatArray:
+        """View of [motion (0, +1, -1), drive-state index] x axes, as exact floats; read only."""
+        view = self._work[kernel.X_MOTION : kernel.X_DRIVE + 1].view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def position_limits(self) -> tuple[tuple[float, float], ...]:
+        """The joint end stops (min, max) per axis, from the URDF (rad, or m for the lift)."""
+        return tuple((j.position_min, j.position_max) for j in self._gantry.joints)
+
+    @property
+    def model_array(self) -> FloatArray:
+        """The packed constants the kernel runs on (`kernel.pack_model`); read only."""
+        view = self._model.view()
         view.flags.writeable = False
         return view
 
@@ -228,16 +245,13 @@ class Simulator:
             InputError: wrong length, NaN or infinite command; the state is left unchanged.
 
         """
-        command = np.asarray(voltage_v, dtype=np.float64)
-        if command.shape != (self.n_axes,):
+        command = voltage_v
+        if type(command) is not np.ndarray or command.dtype != np.float64:
+            command = np.asarray(voltage_v, dtype=np.float64)
+        if command.shape != self._command_shape:
             raise InputError(f"expected {self.n_axes} voltages, got shape {command.shape}")
-        mass, nle = self._gantry.dynamics_terms(
-            self._state[kernel.X_POSITION], self._state[kernel.X_VELOCITY]
-        )
-        code = kernel.step(
-            mass, nle, command, self._state, self._modes, self._params, self._rules, self._eta,
-            self._irreversible, self.dt_s, self._signals,
-        )  # fmt: skip
+        mass, nle = self._dynamics(self._position, self._velocity)
+        code = kernel.step(mass, nle, command, self._work, self._model, self.dt_s)
         if code != kernel.OK:
             raise InputError(f"voltage commands must be finite, got {command.tolist()}")
         self._command = command
@@ -248,13 +262,8 @@ class Simulator:
         command = np.asarray(voltage_v, dtype=np.float64)
         if command.shape != (self.n_axes,) or not np.all(np.isfinite(command)):
             raise InputError(f"expected {self.n_axes} finite voltages, got {command.tolist()}")
-        mass, nle = self._gantry.dynamics_terms(
-            self._state[kernel.X_POSITION], self._state[kernel.X_VELOCITY]
-        )
-        kernel.step(
-            mass, nle, command, self._state, self._modes, self._params, self._rules, self._eta,
-            self._irreversible, 0.0, self._signals,
-        )  # fmt: skip
+        mass, nle = self._dynamics(self._position, self._velocity)
+        kernel.step(mass, nle, command, self._work, self._model, 0.0)
         self._command = command
 
     # --- helpers ---------------------------------------------------------------------------

@@ -20,7 +20,8 @@ from lca_sim.state_machine import MotionState
 
 
 def _rule_name(robot: RobotParams, direction: int, tau_m: float, tau_l: float) -> str:
-    rule = kernel.classify(direction, tau_m, tau_l, robot.state_machine.rule_codes())
+    model = Simulator(robot).model_array
+    rule = kernel.classify(direction, tau_m, tau_l, model)
     return robot.state_machine.rules[rule].name
 
 
@@ -79,8 +80,7 @@ def test_gear_losses_never_negative(
     from lca_sim import load_robot
 
     robot = load_robot("default")
-    rule = kernel.classify(direction, tau_m, tau_l, robot.state_machine.rule_codes())
-    name = robot.state_machine.rules[rule].name
+    name = _rule_name(robot, direction, tau_m, tau_l)
     for axis in robot.axes:
         eff = axis.efficiency[(MotionState(direction), name)]
         w = direction * speed_rad_s
@@ -142,37 +142,48 @@ class OneAxis:
         p[kernel.P_POSITION_MAX] = self.q_max
         p[kernel.P_VELOCITY_EPS] = machine.velocity_eps_rad_s
         p[kernel.P_TORQUE_EPS] = machine.motor_torque_eps_nm
-        self.params = p
         eta = np.ones((1, 2, len(machine.rules), 2))
         for k, direction in enumerate((MotionState.DIRECT, MotionState.REVERSE)):
             for r, rule in enumerate(machine.rules):
                 entry = pivot.efficiency[(direction, rule.name)]
                 eta[0, k, r] = (entry.eta_m, entry.eta_l)
-        self.eta = eta
-        self.signals = np.zeros((kernel.N_SIGNALS, 1))
-        self.drive = 0
+        self.model = kernel.pack_model(p, machine.rule_codes(), eta, self.irreversible)
+        self.work = np.zeros((kernel.work_rows(1), 1))
+        self.work[kernel.X_POSITION] = self.position
+        self.work[kernel.X_VELOCITY] = self.velocity_rad_s
+        self.work[kernel.X_MOTION] = self.motion
 
     def step_with_torque(self, tau_m_nm: float, dt_s: float = 1e-4) -> None:
         """One step with the current (and so tau_m) held at the value given."""
-        k_t = self.params[kernel.P_TORQUE_CONSTANT, 0]
-        r_ohm = self.params[kernel.P_RESISTANCE_OHM, 0]
-        self.current_a = tau_m_nm / k_t
+        k_t = self.model[kernel.P_TORQUE_CONSTANT, 0]
+        r_ohm = self.model[kernel.P_RESISTANCE_OHM, 0]
+        self.work[kernel.X_CURRENT] = tau_m_nm / k_t
         # The voltage that keeps the current exactly where it is (steady state of L di/dt).
-        volts = r_ohm * self.current_a + k_t * self.velocity_rad_s
-        state = np.array([[self.position], [self.velocity_rad_s], [self.current_a]])
-        modes = np.array([[self.motion], [self.drive]], dtype=np.int64)
+        volts = (
+            r_ohm * tau_m_nm / k_t
+            + k_t * self.model[kernel.P_GEAR_RATIO, 0] * self.work[kernel.X_VELOCITY, 0]
+        )
         code = kernel.step(
-            np.array([[self.inertia_kg_m2]]), np.array([self.tau_l_nm]), np.array([volts]),
-            state, modes, self.params, self.robot.state_machine.rule_codes(), self.eta,
-            self.irreversible, dt_s, self.signals,
-        )  # fmt: skip
+            np.array([[self.inertia_kg_m2]]),
+            np.array([self.tau_l_nm]),
+            np.array([volts]),
+            self.work,
+            self.model,
+            dt_s,
+        )
         assert code == kernel.OK
-        self.position, self.velocity_rad_s, self.current_a = state[:, 0]
-        self.motion, self.drive = int(modes[0, 0]), int(modes[1, 0])
+        self.position = float(self.work[kernel.X_POSITION, 0])
+        self.velocity_rad_s = float(self.work[kernel.X_VELOCITY, 0])
+        self.current_a = float(self.work[kernel.X_CURRENT, 0])
+        self.motion = int(self.work[kernel.X_MOTION, 0])
 
     def state_name(self) -> str:
         """The current drive state's name."""
-        return self.robot.state_machine.state_names[self.drive]
+        return self.robot.state_machine.state_names[int(self.work[kernel.X_DRIVE, 0])]
+
+    def signal(self, row: int) -> float:
+        """One signal of the last step (a `kernel.S_*` row)."""
+        return float(self.work[row, 0])
 
 
 def _breakaway_torque(robot: RobotParams, direction: int, tau_l: float) -> float:
@@ -280,11 +291,11 @@ def test_stop_state_reports_eq3_static_friction(default_robot: RobotParams) -> N
     for tau_m in (0.5 * static, 0.9 * static):
         axis = OneAxis(default_robot, tau_l_nm=5.0)  # a heavy load keeps it stopped
         axis.step_with_torque(tau_m)
-        assert axis.signals[kernel.S_FRICTION_TORQUE, 0] == pytest.approx(tau_m)
+        assert axis.signal(kernel.S_FRICTION_TORQUE) == pytest.approx(tau_m)
     axis = OneAxis(default_robot, tau_l_nm=5.0)
     axis.step_with_torque(3.0 * static)
-    assert axis.signals[kernel.S_FRICTION_TORQUE, 0] == pytest.approx(static)
-    assert math.isnan(axis.signals[kernel.S_ETA_M, 0])
+    assert axis.signal(kernel.S_FRICTION_TORQUE) == pytest.approx(static)
+    assert math.isnan(axis.signal(kernel.S_ETA_M))
 
 
 def test_state_names_cover_stop_and_moving_states(default_robot: RobotParams) -> None:
