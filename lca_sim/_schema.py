@@ -127,6 +127,12 @@ def check_number(
     min_exclusive: bool = False,
 ) -> float:
     """Validate one finite real number (YAML int or float, not bool) against optional bounds."""
+    if isinstance(value, str):
+        # YAML 1.1 reads 1e-4 (no dot) as a string; accept what is plainly a number.
+        try:
+            value = float(value)
+        except ValueError:
+            raise ConfigError(source, key, f"expected a number, got {value!r}") from None
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ConfigError(source, key, f"expected a number, got {value!r}")
     number = float(value)

@@ -25,6 +25,10 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
 
+class OutputError(LcaHilError):
+    """The --out folder cannot take the results."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of lca-sim."""
     parser = argparse.ArgumentParser(prog="lca-sim", description=__doc__.split("\n\n")[0])
@@ -59,6 +63,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {out}: expected a folder, but it is a file")
     robot = load_robot(args.robot)
     sim = Simulator(robot, dt_s=_scenario_dt(args.scenario, robot.axis_names))
     scenario = load_scenario(args.scenario, robot.axis_names)
@@ -70,13 +77,18 @@ def _run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     result = run_scenario(sim, scenario)
     wall_s = time.perf_counter() - start
-    out: Path = args.out
-    write_csv(result, out / "result.csv")
-    written = [out / "result.csv"]
-    if not args.no_plot:
-        title = f"{robot.name}: {Path(scenario.source).stem}"
-        write_plot(result, out / "result.png", title)
-        written.append(out / "result.png")
+    try:
+        write_csv(result, out / "result.csv")
+        written = [out / "result.csv"]
+        if args.no_plot:
+            # A plot from an earlier run would no longer match result.csv.
+            (out / "result.png").unlink(missing_ok=True)
+        else:
+            title = f"{robot.name}: {Path(scenario.source).stem}"
+            write_plot(result, out / "result.png", title)
+            written.append(out / "result.png")
+    except OSError as exc:
+        raise OutputError(f"--out {out}: cannot write ({exc.strerror or exc})") from exc
     print(
         f"simulated {scenario.duration_s:g} s in {wall_s:.2f} s "
         f"(real-time factor {scenario.duration_s / wall_s:.1f}, "

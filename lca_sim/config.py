@@ -9,10 +9,13 @@ path.
 from __future__ import annotations
 
 import importlib.resources
+import os
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import pinocchio as pin
 import yaml
 
 from lca_sim.errors import ConfigError, UnknownNameError
@@ -54,18 +57,41 @@ def resolve(name_or_path: str, kind: str) -> Path:
     return path
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, where a key given twice in one mapping is an error.
+
+    A robot file with two `gear_ratio:` lines must not quietly use the second.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} is given twice", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def read_yaml(path: Path) -> Any:
     """Parse one YAML file; syntax errors become a one-line ConfigError with the line number."""
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(path), "", f"cannot read the file ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(path), "", f"expected UTF-8 text ({exc.reason})") from exc
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        context = getattr(exc, "context_mark", None)
+        if context is not None and mark is not None and context.line != mark.line:
+            problem += f", in what starts at line {context.line + 1}"
         raise ConfigError(str(path), where, f"expected valid YAML ({problem})") from exc
 
 
@@ -119,7 +145,10 @@ def load_robot(name_or_path: str = "default") -> RobotParams:
     """
     path = resolve(name_or_path, "robots")
     data, urdf_home = _read_with_base(path)
-    robot = data.get("robot") if isinstance(data, Mapping) else None
+    if not isinstance(data, Mapping):
+        kind = "nothing (an empty file)" if data is None else type(data).__name__
+        raise ConfigError(str(path), "", f"expected a mapping with robot, axes, ..., got {kind}")
+    robot = data.get("robot")
     urdf_ref = robot.get("urdf") if isinstance(robot, Mapping) else None
     if not isinstance(urdf_ref, str):
         raise ConfigError(str(path), "robot.urdf", "expected the path of the gantry URDF")
@@ -130,7 +159,37 @@ def load_robot(name_or_path: str = "default") -> RobotParams:
         raise ConfigError(
             str(path), "robot.urdf", f"cannot read {urdf_path} ({exc.strerror})"
         ) from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(path), "robot.urdf", f"expected UTF-8 text in {urdf_path}") from exc
+    _check_urdf(urdf_xml, str(path), urdf_path)
     return parse_robot(data, str(path), urdf_xml)
+
+
+def _check_urdf(urdf_xml: str, source: str, urdf_path: Path) -> None:
+    """Let Pinocchio parse the URDF once, with the native parser's stderr chatter captured.
+
+    urdfdom prints its diagnostics straight to file descriptor 2; a user should see one clear
+    line instead, so they are collected and folded into the ConfigError.
+    """
+    with tempfile.TemporaryFile(mode="w+b") as capture:
+        saved = os.dup(2)
+        try:
+            os.dup2(capture.fileno(), 2)
+            try:
+                pin.buildModelFromXML(urdf_xml)
+                error = None
+            except (RuntimeError, ValueError) as exc:
+                error = str(exc)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        chatter = capture.read().decode("utf-8", "replace").strip().split("\n")[0].strip()
+    if error is not None:
+        detail = error.strip().splitlines()[0] if error.strip() else chatter
+        if chatter and chatter not in detail:
+            detail = f"{detail}; {chatter}"
+        raise ConfigError(source, "robot.urdf", f"expected a valid URDF in {urdf_path} ({detail})")
 
 
 def load_scenario(name_or_path: str, axis_names: tuple[str, ...]) -> Scenario:

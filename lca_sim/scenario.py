@@ -216,6 +216,16 @@ def run_scenario(sim: Simulator, scenario: Scenario) -> ScenarioResult:
     """
     if abs(sim.dt_s - scenario.dt_s) > 1e-15:
         raise ConfigError(scenario.source, "dt_s", f"expected the simulator's step {sim.dt_s:g}")
+    for name, q, (q_min, q_max) in zip(
+        sim.axis_names, scenario.initial_position, sim.position_limits, strict=True
+    ):
+        if not q_min <= q <= q_max:
+            raise ConfigError(
+                scenario.source,
+                f"initial.position.{name}",
+                f"expected a position within the joint's end stops [{q_min:g}, {q_max:g}], "
+                f"got {q:g}",
+            )
     n_steps = scenario.n_steps
     every = scenario.record_every
     n_axes = sim.n_axes

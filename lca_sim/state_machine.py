@@ -192,6 +192,7 @@ def parse_state_machine(reader: MappingReader) -> StateMachineParams:
                         f"{motor.name.lower()}, load {load.name.lower()}, "
                         f"dominant {dominant.name.lower()}",
                     )
+    reader.finish()
     return StateMachineParams(velocity_eps, torque_eps, irreversible, tuple(rules))
 
 
