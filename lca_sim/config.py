@@ -8,7 +8,7 @@ path.
 
 from __future__ import annotations
 
-import importlib.resources
+import importlib
 import os
 import tempfile
 from collections.abc import Mapping
@@ -28,13 +28,17 @@ _CONFIG_PACKAGE = "lca_sim.data"
 def config_dir() -> Path:
     """The folder holding the shipped configs (robots/, scenarios/, urdf/, ...).
 
-    An installed package has them as `lca_sim.data`; a source checkout or an editable install
-    (which maps only the real package folders) reads the top-level config/ folder directly.
+    An installed package has them as the data package `lca_sim.data` (a namespace package, so
+    its `__path__` is searched); a source checkout reads the top-level config/ folder directly.
     """
     try:
-        return Path(str(importlib.resources.files(_CONFIG_PACKAGE)))
+        package = importlib.import_module(_CONFIG_PACKAGE)
     except ModuleNotFoundError:
-        return Path(__file__).resolve().parent.parent / "config"
+        package = None
+    for entry in getattr(package, "__path__", []):
+        if (Path(entry) / "robots").is_dir():
+            return Path(entry)
+    return Path(__file__).resolve().parent.parent / "config"
 
 
 def shipped_names(kind: str) -> tuple[str, ...]:
