@@ -44,7 +44,8 @@ setup(
     extras_require={
         # ROS 2 Jazzy from PyPI wheels: always through the ros-jazzy-* names.
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
-        "test": ["pytest>=8", "hypothesis>=6", "ruff>=0.6", "mypy>=1.10", "types-PyYAML"],
+        # Linters pinned: a new release must not turn a clean tree red on a fresh machine.
+        "test": ["pytest>=8", "hypothesis>=6", "ruff==0.17.6", "mypy==2.4.1", "types-PyYAML"],
         "bench": ["mujoco>=3.1"],
     },
     entry_points={
