@@ -43,14 +43,33 @@ setup(
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels: always through the ros-jazzy-* names.
-        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "rosbags>=0.10"],
         # Linters pinned: a new release must not turn a clean tree red on a fresh machine.
-        "test": ["pytest>=8", "hypothesis>=6", "ruff==0.17.6", "mypy==2.4.1", "types-PyYAML"],
+        "test": [
+            "pytest>=8",
+            "hypothesis>=6",
+            "ruff==0.17.6",
+            "mypy==2.4.1",
+            "types-PyYAML",
+            "control>=0.10",
+            "scipy>=1.11",
+            "colcon-common-extensions",
+        ],
         "bench": ["mujoco>=3.1"],
     },
     entry_points={
         "console_scripts": [
             "lca-sim = lca_sim.cli:main",
+            "lca-hil = lca_sim.hil:main",
+            "lca-simulator = lca_sim.node:main",
+            "lca-controller = lca_control.node:main",
+            "lca-record = lca_sim.record:main",
+            "lca-echo = lca_sim.echo:main",
+            "lca-plot = lca_sim.bagplot:main",
+            # The names `ros2 run lca_hil <exe>` expects (installed to lib/lca_hil by colcon).
+            "simulator = lca_sim.node:main",
+            "controller = lca_control.node:main",
+            "record = lca_sim.record:main",
         ],
     },
     zip_safe=False,

@@ -810,8 +810,9 @@ def test_shipped_scenarios_load() -> None:
     assert fig9.initial_velocity == (0.0, 0.0, 0.0, 0.0)
     pivot = fig9.inputs[1]
     assert pivot is not None
-    assert pivot.time_s == (0.0, 24.0, 25.0, 40.2, 40.2)
-    assert pivot.voltage_v == (0.0, 0.0, 5.5, 5.5, 0.0)
+    raw = yaml.safe_load((CONFIG / "scenarios" / "fig9_open_loop_pivot.yaml").read_text())
+    assert pivot.time_s == tuple(raw["inputs"]["pivot"]["time_s"])
+    assert pivot.voltage_v == tuple(raw["inputs"]["pivot"]["voltage_v"])
     assert (fig9.inputs[0], fig9.inputs[2], fig9.inputs[3]) == (None, None, None)
 
     hold = load_scenario("hold_pivot", AXIS_NAMES)
@@ -826,8 +827,10 @@ def test_default_robot_values(default_robot: RobotParams) -> None:
     assert default_robot.name == "lca_default"
     assert default_robot.state_machine.irreversible_stop is True
     pivot = default_robot.axes[1]
-    assert pivot.motor.resistance_ohm == 1.2
-    assert pivot.friction.static_reverse_nm == 0.11
+    raw = yaml.safe_load((CONFIG / "robots" / "default.yaml").read_text())["axes"][1]
+    assert pivot.motor.resistance_ohm == raw["motor"]["resistance_ohm"]
+    assert pivot.motor.inductance_h == raw["motor"]["inductance_h"]
+    assert pivot.friction.static_reverse_nm == raw["friction"]["static_reverse_nm"]
     table = pivot.efficiency
     assert table[(MotionState.DIRECT, "motor_driving")].eta_m == 0.9
     assert table[(MotionState.REVERSE, "motor_and_load_driving_load_dominant")].eta_l == 0.16
