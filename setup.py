@@ -24,13 +24,16 @@ setup(
     # The shipped configs live in the top-level config/ folder (the ROS convention) and are also
     # package data of lca_sim.data, so a non-editable install finds them.
     package_dir={"lca_sim.data": "config"},
-    package_data={"lca_sim.data": ["robots/*.yaml", "scenarios/*.yaml", "urdf/*.urdf"]},
+    package_data={
+        "lca_sim.data": ["robots/*.yaml", "scenarios/*.yaml", "urdf/*.urdf", "ros/*.yaml"]
+    },
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),
         ("share/" + PACKAGE + "/config/robots", _config_files("robots")),
         ("share/" + PACKAGE + "/config/scenarios", _config_files("scenarios")),
         ("share/" + PACKAGE + "/config/urdf", _config_files("urdf")),
+        ("share/" + PACKAGE + "/config/ros", _config_files("ros")),
     ],
     install_requires=[
         "numpy>=1.26",

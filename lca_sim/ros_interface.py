@@ -3,16 +3,22 @@
 The simulator node and the CAN bridge publish the same topics and take the same commands, so
 the controller (and any user's controller) works against either unchanged.
 
-| topic                | type                             | from            | content |
-|----------------------|----------------------------------|-----------------|---------|
-| `joint_states`       | sensor_msgs/JointState           | plant           | joint side, SI (rad, rad/s; m, m/s for the lift); effort = joint torque/force the motor delivers through the gear (N m, N) |
-| `motor_states`       | sensor_msgs/JointState           | plant           | motor side: position (rad), velocity (rad/s), effort = armature current (A) |
-| `drive_chain_states` | diagnostic_msgs/DiagnosticArray  | plant           | one status per axis, keys below |
-| `/diagnostics`       | diagnostic_msgs/DiagnosticArray  | every node      | 1 Hz health, counters, faults |
-| `/clock`             | rosgraph_msgs/Clock              | simulator       | simulated time in lockstep |
-| `voltage_commands`   | std_msgs/Float64MultiArray       | controller      | V per joint, in the order of the `joints` parameter |
-| `current_commands`   | std_msgs/Float64MultiArray       | controller      | A per joint (the current loop runs in the drive) |
-| `velocity_reference` | std_msgs/Float64MultiArray       | user            | rad/s (m/s) per joint, for the controller |
+Topics (type, publisher, content):
+
+* `joint_states` (sensor_msgs/JointState, plant): joint side, SI (rad, rad/s; m, m/s for the
+  lift); effort = N * tau_m, the joint torque (force) the motor applies through the gear before
+  losses (N m, N).
+* `motor_states` (sensor_msgs/JointState, plant): motor side, position (rad), velocity (rad/s),
+  effort = armature current (A).
+* `drive_chain_states` (diagnostic_msgs/DiagnosticArray, plant): one status per axis, named
+  `drive_chain/<joint>`, message = drive state, key/values `DRIVE_STATE_KEYS`.
+* `/diagnostics` (diagnostic_msgs/DiagnosticArray, every node): 1 Hz health, counters, faults.
+* `/clock` (rosgraph_msgs/Clock, simulator): simulated time, in lockstep.
+* `voltage_commands` (std_msgs/Float64MultiArray, controller): V per joint, in the order of the
+  `joints` parameter (the ros2_control forward-command convention).
+* `current_commands` (std_msgs/Float64MultiArray, controller): A per joint; the current loop
+  runs in the drive.
+* `velocity_reference` (std_msgs/Float64MultiArray, user): rad/s (m/s) per joint.
 
 This module imports no ROS package: names and keys only, so tools and tests can share them.
 """
