@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The main job: set up .venv if needed, then run the paper's open-loop pivot experiment
-# (Figs 9-10) headless. Writes out/fig9/result.csv and result.png and prints the state phases.
+# The main job: set up .venv if needed, then run the closed-loop HIL loop of the paper's Fig. 15:
+# simulator, controller and recorder as ROS 2 processes in lockstep (DDS on loopback only).
+# Writes out/fig15/bag (MCAP), PNG plots and summary.json, and prints the summary.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/setup.sh"
@@ -8,4 +9,8 @@ bash "$root/scripts/setup.sh"
 source "$root/scripts/env.sh"
 venv="${LCA_HIL_VENV:-$root/.venv}"
 cd "$root"
-"$venv/bin/lca-sim" run --robot default --scenario fig9_open_loop_pivot --out "${1:-out/fig9}"
+out="${1:-out/fig15}"
+if [ -e "$out/bag" ]; then
+  out="$out-$(date +%Y%m%d-%H%M%S)"  # never overwrite an earlier run's bag
+fi
+"$venv/bin/lca-hil" fig15 --out "$out"
