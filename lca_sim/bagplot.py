@@ -1,0 +1,285 @@
+"""`lca-plot`: plot a recorded bag's joint, motor and drive-chain states as PNG files.
+
+    lca-plot out/run1                 # PNGs next to the bag's metadata.yaml
+    lca-plot out/run1 --out out/plots --namespace /robot1
+
+Reads a rosbag2 bag (MCAP or SQLite) with `rosbags`, deserializing with the ROS 2 Jazzy typestore,
+and writes, for each topic present:
+
+| file                | topic                | what |
+|---------------------|----------------------|------|
+| `positions.png`     | `joint_states`       | position per joint (deg; m for the `lift`) |
+| `velocities.png`    | `joint_states`       | velocity per joint (deg/s; m/s for the `lift`) |
+| `currents.png`      | `motor_states`       | effort per joint = armature current (A) |
+| `drive_states.png`  | `drive_chain_states` | drive state per axis, the state names as y ticks |
+| `efficiencies.png`  | `drive_chain_states` | eta_m and eta_l per axis (gaps while stopped: nan) |
+
+The time axis is the bag's reception time in seconds from the first message of the bag (the
+recorder's node clock: simulated time when it ran with `use_sim_time:=true`). A missing topic
+skips its plots with a note. Exit codes: 0 success, 2 the bag cannot be read (one line on
+stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+
+from lca_sim.results import atomic_path
+from lca_sim.ros_interface import (
+    DRIVE_CHAIN_STATES,
+    DRIVE_STATUS_PREFIX,
+    JOINT_STATES,
+    MOTOR_STATES,
+)
+from lca_sim.state_machine import StopState
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+NS_PER_S = 1e9
+# Joints whose position is a length (m); the others are angles (rad, plotted in degrees).
+LINEAR_JOINTS = frozenset({"lift"})
+DRIVE_STATE_KEY = "drive_state"
+ETA_KEYS = ("eta_m", "eta_l")
+PNG_DPI = 110
+
+
+@dataclass
+class JointSeries:
+    """Samples of one joint (or axis) over time: time in s and named value lists."""
+
+    time_s: list[float] = field(default_factory=list)
+    values: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+
+
+@dataclass
+class DriveSeries:
+    """Drive-chain samples of one axis: time in s, state names, and eta_m / eta_l."""
+
+    time_s: list[float] = field(default_factory=list)
+    state: list[str] = field(default_factory=list)
+    eta: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ETA_KEYS})
+
+
+@dataclass
+class BagData:
+    """What lca-plot reads from a bag, per joint in first-seen order."""
+
+    joints: dict[str, JointSeries] = field(default_factory=dict)
+    motors: dict[str, JointSeries] = field(default_factory=dict)
+    drives: dict[str, DriveSeries] = field(default_factory=dict)
+    topics: list[str] = field(default_factory=list)
+
+
+class BagReadError(Exception):
+    """The bag cannot be opened or decoded."""
+
+
+def _topic_name(namespace: str, name: str) -> str:
+    """The fully qualified topic name of `name` under `namespace`."""
+    if name.startswith("/"):
+        return name
+    return f"{namespace.rstrip('/')}/{name}"
+
+
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
+def read_bag(path: Path, namespace: str = "/") -> BagData:
+    """Read the joint, motor and drive-chain states of the bag at `path`.
+
+    Raises:
+        BagReadError: The path is not a readable rosbag2 bag.
+    """
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    wanted = {
+        _topic_name(namespace, JOINT_STATES): "joints",
+        _topic_name(namespace, MOTOR_STATES): "motors",
+        _topic_name(namespace, DRIVE_CHAIN_STATES): "drives",
+    }
+    if not path.is_dir():
+        raise BagReadError(f"bag {path}: no such folder")
+    if not (path / "metadata.yaml").is_file():
+        raise BagReadError(f"bag {path}: not a rosbag2 bag (no metadata.yaml)")
+    data = BagData()
+    try:
+        with Reader(path) as reader:
+            data.topics = sorted(reader.topics)
+            connections = [c for c in reader.connections if c.topic in wanted]
+            start_ns = reader.start_time
+            for conn, stamp_ns, raw in reader.messages(connections=connections):
+                msg = typestore.deserialize_cdr(raw, conn.msgtype)
+                t_s = (stamp_ns - start_ns) / NS_PER_S
+                kind = wanted[conn.topic]
+                if kind == "drives":
+                    _add_drive_array(data.drives, t_s, msg)
+                else:
+                    _add_joint_state(data.joints if kind == "joints" else data.motors, t_s, msg)
+    except BagReadError:
+        raise
+    except Exception as exc:  # rosbags raises several error types (and OSError, KeyError)
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise BagReadError(f"cannot read bag {path}: {text}") from None
+    return data
+
+
+def _add_joint_state(series: dict[str, JointSeries], t_s: float, msg: Any) -> None:
+    for i, name in enumerate(msg.name):
+        entry = series.setdefault(name, JointSeries())
+        entry.time_s.append(t_s)
+        for key in ("position", "velocity", "effort"):
+            array = getattr(msg, key)
+            entry.values[key].append(float(array[i]) if i < len(array) else math.nan)
+
+
+def _add_drive_array(series: dict[str, DriveSeries], t_s: float, msg: Any) -> None:
+    for status in msg.status:
+        if not status.name.startswith(DRIVE_STATUS_PREFIX):
+            continue
+        values = {kv.key: kv.value for kv in status.values}
+        entry = series.setdefault(status.name[len(DRIVE_STATUS_PREFIX) :], DriveSeries())
+        entry.time_s.append(t_s)
+        entry.state.append(values.get(DRIVE_STATE_KEY, status.message) or "?")
+        for key in ETA_KEYS:
+            entry.eta[key].append(_float(values.get(key, "nan")))
+
+
+def state_order(seen: Sequence[str]) -> list[str]:
+    """The y-axis order of drive states: the stop states first, then the others as first seen."""
+    order = [s.name.lower() for s in StopState]
+    for name in seen:
+        if name not in order:
+            order.append(name)
+    return order
+
+
+def _unit(joint: str, per_s: bool) -> tuple[float, str]:
+    """Scale and unit of a joint's position (or velocity if per_s) for plotting."""
+    scale, unit = (1.0, "m") if joint in LINEAR_JOINTS else (180.0 / math.pi, "deg")
+    return scale, f"{unit}/s" if per_s else unit
+
+
+def write_plots(data: BagData, out_dir: Path, title: str) -> tuple[list[Path], list[str]]:
+    """Write the PNG files of `data` into `out_dir`; the paths written and notes on skips."""
+    import matplotlib  # noqa: PLC0415  # about a second to import: only when plotting
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    written: list[Path] = []
+    notes: list[str] = []
+
+    def figure(n_rows: int, what: str) -> tuple[Any, list[Axes]]:
+        fig, panels = plt.subplots(
+            n_rows, 1, figsize=(9, 1.0 + 2.0 * n_rows), sharex=True, squeeze=False
+        )
+        fig.suptitle(f"{title}: {what}")
+        return fig, [row[0] for row in panels]
+
+    def save(fig: Any, panels: list[Axes], name: str) -> None:
+        panels[-1].set_xlabel("time (s)")
+        for panel in panels:
+            panel.grid(True, alpha=0.3)
+        fig.tight_layout()
+        path = out_dir / name
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=PNG_DPI)
+        plt.close(fig)
+        written.append(path)
+
+    if data.joints:
+        for key, name, per_s in (
+            ("position", "positions.png", False),
+            ("velocity", "velocities.png", True),
+        ):
+            fig, panels = figure(len(data.joints), f"joint {key} ({JOINT_STATES})")
+            for panel, (joint, series) in zip(panels, data.joints.items(), strict=True):
+                scale, unit = _unit(joint, per_s)
+                panel.plot(series.time_s, [v * scale for v in series.values[key]])
+                panel.set_ylabel(f"{joint} ({unit})")
+            save(fig, panels, name)
+    else:
+        notes.append(f"no {JOINT_STATES} in the bag: positions.png, velocities.png skipped")
+
+    if data.motors:
+        fig, panels = figure(len(data.motors), f"current ({MOTOR_STATES})")
+        for panel, (joint, series) in zip(panels, data.motors.items(), strict=True):
+            panel.plot(series.time_s, series.values["effort"])
+            panel.set_ylabel(f"{joint} (A)")
+        save(fig, panels, "currents.png")
+    else:
+        notes.append(f"no {MOTOR_STATES} in the bag: currents.png skipped")
+
+    if data.drives:
+        fig, panels = figure(len(data.drives), "drive state")
+        for panel, (axis, drive) in zip(panels, data.drives.items(), strict=True):
+            order = state_order(drive.state)
+            index = {name: i for i, name in enumerate(order)}
+            panel.step(drive.time_s, [index[s] for s in drive.state], where="post")
+            panel.set_yticks(range(len(order)))
+            panel.set_yticklabels(order, fontsize=7)
+            panel.set_ylabel(axis)
+        save(fig, panels, "drive_states.png")
+        fig, panels = figure(len(data.drives), "efficiency (eq. 10)")
+        for panel, (axis, drive) in zip(panels, data.drives.items(), strict=True):
+            for key in ETA_KEYS:
+                panel.plot(drive.time_s, drive.eta[key], label=key)
+            panel.set_ylabel(axis)
+            panel.legend(loc="upper left", fontsize=7)
+        save(fig, panels, "efficiencies.png")
+    else:
+        notes.append(
+            f"no {DRIVE_CHAIN_STATES} in the bag: drive_states.png, efficiencies.png skipped"
+        )
+    return written, notes
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of lca-plot."""
+    parser = argparse.ArgumentParser(
+        prog="lca-plot", description="Plot joint, motor and drive-chain states of a bag as PNG."
+    )
+    parser.add_argument("bag", type=Path, metavar="BAG", help="rosbag2 folder (metadata.yaml)")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: BAG)")
+    parser.add_argument("--namespace", default="/", help="namespace of the topics (default /)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the lca-plot console script."""
+    args = build_parser().parse_args(argv)
+    bag: Path = args.bag
+    try:
+        data = read_bag(bag, args.namespace)
+    except BagReadError as exc:
+        print(f"lca-plot: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    out_dir: Path = args.out if args.out is not None else bag
+    try:
+        written, notes = write_plots(data, out_dir, bag.resolve().name)
+    except OSError as exc:
+        print(f"lca-plot: error: cannot write to {out_dir}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    for note in notes:
+        print(f"lca-plot: note: {note}", file=sys.stderr)
+    for path in written:
+        print(f"wrote {path}")
+    if not written:
+        print(f"lca-plot: note: nothing to plot; topics in the bag: {data.topics}", file=sys.stderr)
+    return EXIT_OK
