@@ -16,6 +16,7 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok as rclpy_ok
 
 from lca_sim.errors import LcaHilError
@@ -105,12 +106,19 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
     A configuration error while building the node is one line on stderr and exit code 2.
     """
     check_loopback_environment()
-    rclpy.init(args=list(args) if args is not None else None)
     stop = {"requested": False}
 
     def _on_signal(signum: int, _frame: object) -> None:
         stop["requested"] = True
 
+    # Our handlers go in before rclpy.init, and rclpy installs none: a signal during start-up
+    # then only asks for a clean stop instead of invalidating the context under the build.
+    signal.signal(signal.SIGTERM, _on_signal)
+    signal.signal(signal.SIGINT, _on_signal)
+    rclpy.init(
+        args=list(args) if args is not None else None,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
     node: Node | None = None
     try:
         try:
@@ -118,8 +126,6 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
         except LcaHilError as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             return EXIT_BAD_CONFIG
-        signal.signal(signal.SIGTERM, _on_signal)
-        signal.signal(signal.SIGINT, _on_signal)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop["requested"] and rclpy_ok():
