@@ -14,10 +14,14 @@ and writes, for each topic present:
 | `drive_states.png`  | `drive_chain_states` | drive state per axis, the state names as y ticks |
 | `efficiencies.png`  | `drive_chain_states` | eta_m and eta_l per axis (gaps while stopped: nan) |
 
-The time axis is the bag's reception time in seconds from the first message of the bag (the
-recorder's node clock: simulated time when it ran with `use_sim_time:=true`). A missing topic
-skips its plots with a note. Exit codes: 0 success, 2 the bag cannot be read (one line on
-stderr).
+The time axis (`--time`): `header` uses the messages' header stamps (the plant's own time,
+simulated or wall; seconds from the earliest sample plotted), `bag` the recorder's reception
+stamps (its node clock: simulated time when it ran with `use_sim_time:=true`, all 0 if no /clock
+came; seconds from the bag's first message). `auto`, the default, takes the header stamps when
+every plotted message has one (non-zero) and the bag stamps otherwise. A missing topic skips its
+plots with a note.
+
+Exit codes: 0 success, 2 the bag cannot be read (one line on stderr).
 """
 
 from __future__ import annotations
@@ -48,7 +52,8 @@ if TYPE_CHECKING:
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
-NS_PER_S = 1e9
+NS_PER_S = 1_000_000_000
+TIME_BASES = ("auto", "header", "bag")
 # Joints whose position is a length (m); the others are angles (rad, plotted in degrees).
 LINEAR_JOINTS = frozenset({"lift"})
 DRIVE_STATE_KEY = "drive_state"
@@ -57,18 +62,29 @@ PNG_DPI = 110
 
 
 @dataclass
-class JointSeries:
+class _Stamped:
+    """Sample times of a series: both stamps in ns while reading, then the chosen one in s."""
+
+    bag_ns: list[int] = field(default_factory=list)
+    header_ns: list[int] = field(default_factory=list)
+    time_s: list[float] = field(default_factory=list)
+
+    def stamp(self, bag_ns: int, header: Any) -> None:
+        self.bag_ns.append(bag_ns)
+        self.header_ns.append(int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec))
+
+
+@dataclass
+class JointSeries(_Stamped):
     """Samples of one joint (or axis) over time: time in s and named value lists."""
 
-    time_s: list[float] = field(default_factory=list)
     values: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
 
 
 @dataclass
-class DriveSeries:
+class DriveSeries(_Stamped):
     """Drive-chain samples of one axis: time in s, state names, and eta_m / eta_l."""
 
-    time_s: list[float] = field(default_factory=list)
     state: list[str] = field(default_factory=list)
     eta: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in ETA_KEYS})
 
@@ -81,6 +97,27 @@ class BagData:
     motors: dict[str, JointSeries] = field(default_factory=dict)
     drives: dict[str, DriveSeries] = field(default_factory=dict)
     topics: list[str] = field(default_factory=list)
+    time_base: str = "bag"
+    bag_start_ns: int = 0  # the bag's first message (any topic): the origin of bag time
+
+    def series(self) -> list[_Stamped]:
+        """Every series read, of all three topics."""
+        return [*self.joints.values(), *self.motors.values(), *self.drives.values()]
+
+    def set_time_base(self, base: str) -> None:
+        """Fill every series' `time_s` from `base` ("header", "bag" or "auto", see the module)."""
+        every = self.series()
+        if base == "auto":
+            stamped = all(0 not in s.header_ns for s in every)
+            base = "header" if stamped and every else "bag"
+        self.time_base = base
+        stamps = [s.header_ns if base == "header" else s.bag_ns for s in every]
+        if base == "header":
+            start_ns = min((min(ns) for ns in stamps if ns), default=0)
+        else:
+            start_ns = self.bag_start_ns
+        for series, ns in zip(every, stamps, strict=True):
+            series.time_s = [(t - start_ns) / NS_PER_S for t in ns]
 
 
 class BagReadError(Exception):
@@ -101,8 +138,10 @@ def _float(text: str) -> float:
         return math.nan
 
 
-def read_bag(path: Path, namespace: str = "/") -> BagData:
+def read_bag(path: Path, namespace: str = "/", time_base: str = "auto") -> BagData:
     """Read the joint, motor and drive-chain states of the bag at `path`.
+
+    `time_base` picks the time axis: "header", "bag" or "auto" (see the module docstring).
 
     Raises:
         BagReadError: The path is not a readable rosbag2 bag.
@@ -121,40 +160,41 @@ def read_bag(path: Path, namespace: str = "/") -> BagData:
     try:
         with Reader(path) as reader:
             data.topics = sorted(reader.topics)
+            data.bag_start_ns = reader.start_time if reader.message_count else 0
             connections = [c for c in reader.connections if c.topic in wanted]
-            start_ns = reader.start_time
             for conn, stamp_ns, raw in reader.messages(connections=connections):
                 msg = typestore.deserialize_cdr(raw, conn.msgtype)
-                t_s = (stamp_ns - start_ns) / NS_PER_S
                 kind = wanted[conn.topic]
                 if kind == "drives":
-                    _add_drive_array(data.drives, t_s, msg)
+                    _add_drive_array(data.drives, stamp_ns, msg)
                 else:
-                    _add_joint_state(data.joints if kind == "joints" else data.motors, t_s, msg)
+                    series = data.joints if kind == "joints" else data.motors
+                    _add_joint_state(series, stamp_ns, msg)
     except BagReadError:
         raise
     except Exception as exc:  # rosbags raises several error types (and OSError, KeyError)
         text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise BagReadError(f"cannot read bag {path}: {text}") from None
+    data.set_time_base(time_base)
     return data
 
 
-def _add_joint_state(series: dict[str, JointSeries], t_s: float, msg: Any) -> None:
+def _add_joint_state(series: dict[str, JointSeries], bag_ns: int, msg: Any) -> None:
     for i, name in enumerate(msg.name):
         entry = series.setdefault(name, JointSeries())
-        entry.time_s.append(t_s)
+        entry.stamp(bag_ns, msg.header)
         for key in ("position", "velocity", "effort"):
             array = getattr(msg, key)
             entry.values[key].append(float(array[i]) if i < len(array) else math.nan)
 
 
-def _add_drive_array(series: dict[str, DriveSeries], t_s: float, msg: Any) -> None:
+def _add_drive_array(series: dict[str, DriveSeries], bag_ns: int, msg: Any) -> None:
     for status in msg.status:
         if not status.name.startswith(DRIVE_STATUS_PREFIX):
             continue
         values = {kv.key: kv.value for kv in status.values}
         entry = series.setdefault(status.name[len(DRIVE_STATUS_PREFIX) :], DriveSeries())
-        entry.time_s.append(t_s)
+        entry.stamp(bag_ns, msg.header)
         entry.state.append(values.get(DRIVE_STATE_KEY, status.message) or "?")
         for key in ETA_KEYS:
             entry.eta[key].append(_float(values.get(key, "nan")))
@@ -193,7 +233,7 @@ def write_plots(data: BagData, out_dir: Path, title: str) -> tuple[list[Path], l
         return fig, [row[0] for row in panels]
 
     def save(fig: Any, panels: list[Axes], name: str) -> None:
-        panels[-1].set_xlabel("time (s)")
+        panels[-1].set_xlabel(f"time (s, {data.time_base} stamps)")
         for panel in panels:
             panel.grid(True, alpha=0.3)
         fig.tight_layout()
@@ -258,6 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("bag", type=Path, metavar="BAG", help="rosbag2 folder (metadata.yaml)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: BAG)")
     parser.add_argument("--namespace", default="/", help="namespace of the topics (default /)")
+    parser.add_argument(
+        "--time",
+        choices=TIME_BASES,
+        default="auto",
+        help="time axis: header stamps, bag (reception) stamps, or auto (header if all set)",
+    )
     return parser
 
 
@@ -266,7 +312,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     bag: Path = args.bag
     try:
-        data = read_bag(bag, args.namespace)
+        data = read_bag(bag, args.namespace, args.time)
     except BagReadError as exc:
         print(f"lca-plot: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -30,8 +30,14 @@ from collections.abc import Callable, Sequence
 from types import FrameType
 from typing import Any, cast
 
+import rclpy
 import yaml
+from rclpy.context import Context
+from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
 
 from lca_sim.record import RecorderError, first_line, import_message_class, subscription_qos
 
@@ -129,13 +135,6 @@ class _Printer:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the lca-echo console script."""
-    import rclpy  # noqa: PLC0415
-    from rclpy.context import Context  # noqa: PLC0415
-    from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
-    from rclpy.node import Node  # noqa: PLC0415
-    from rclpy.signals import SignalHandlerOptions  # noqa: PLC0415
-    from rclpy.utilities import remove_ros_args  # noqa: PLC0415
-
     all_args = ["lca-echo", *(sys.argv[1:] if argv is None else argv)]
     parser = build_parser()
     try:
@@ -200,7 +199,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _wait_for_type(
-    node: Any, executor: Any, topic: str, wait_s: float, done: threading.Event
+    node: Node, executor: Executor, topic: str, wait_s: float, done: threading.Event
 ) -> str | None:
     """The first type of `topic` once it is in the graph; None after `wait_s` or a signal."""
     deadline_s = time.monotonic() + wait_s

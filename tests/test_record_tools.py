@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -117,30 +118,57 @@ def tool(name: str) -> str:
     return str(path)
 
 
+class Tool:
+    """A console-script subprocess whose stderr is collected line by line as it runs."""
+
+    def __init__(self, args: list[str], domain_id: int, cwd: Path) -> None:
+        self.proc = subprocess.Popen(
+            args,
+            cwd=cwd,
+            env=tool_env(domain_id),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.stderr_lines: list[str] = []
+        self._pump = threading.Thread(target=self._read_stderr, daemon=True)
+        self._pump.start()
+
+    def _read_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.stderr_lines.append(line)
+
+    def said(self, text: str) -> bool:
+        """True once a stderr line contains `text`."""
+        return any(text in line for line in list(self.stderr_lines))
+
+    def finish(self, signum: int | None = None) -> tuple[int, str, str]:
+        """Send `signum` (if any), wait for the exit; the exit code, stdout and stderr."""
+        if signum is not None:
+            self.proc.send_signal(signum)
+        code = self.proc.wait(timeout=EXIT_TIMEOUT_S)
+        assert self.proc.stdout is not None
+        out = self.proc.stdout.read()
+        self._pump.join(timeout=EXIT_TIMEOUT_S)
+        return code, out, "".join(self.stderr_lines)
+
+
 @contextlib.contextmanager
-def running(args: list[str], domain_id: int, cwd: Path) -> Iterator[subprocess.Popen[str]]:
+def running(args: list[str], domain_id: int, cwd: Path) -> Iterator[Tool]:
     """Start a tool subprocess; kill it on the way out if the test left it running."""
-    proc = subprocess.Popen(
-        args,
-        cwd=cwd,
-        env=tool_env(domain_id),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    started = Tool(args, domain_id, cwd)
     try:
-        yield proc
+        yield started
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        if started.proc.poll() is None:
+            started.proc.kill()
+            started.proc.communicate()
 
 
-def stop(proc: subprocess.Popen[str], signum: int) -> tuple[int, str, str]:
-    """Send `signum`, wait for the exit; the exit code, stdout and stderr."""
-    proc.send_signal(signum)
-    out, err = proc.communicate(timeout=EXIT_TIMEOUT_S)
-    return proc.returncode, out, err
+def recording(topic: str) -> str:
+    """lca-record's stderr note once its subscription to `topic` has matched a publisher."""
+    return f"lca-record: recording {topic} ("
 
 
 def joint_state(seq: int) -> Any:
@@ -232,6 +260,10 @@ def test_record_loses_no_message_and_closes_on_sigint_and_sigterm(tmp_path: Path
     stops = {"sigint": signal.SIGINT, "sigterm": signal.SIGTERM}
     bags = {name: tmp_path / name for name in stops}
     topics = (f"/{JOINT_STATES}", f"/{DRIVE_CHAIN_STATES}")
+    lca_record = tool("lca-record")
+    args = {
+        name: [lca_record, *topics, "-o", str(bag), "--wait-s", "30"] for name, bag in bags.items()
+    }
     with ros_node(domain_id, "test_publisher") as (node, executor):
         js_pub = node.create_publisher(JointState, JOINT_STATES, STATE_QOS_DEPTH)
         dc_pub = node.create_publisher(DiagnosticArray, DRIVE_CHAIN_STATES, STATE_QOS_DEPTH)
@@ -239,25 +271,28 @@ def test_record_loses_no_message_and_closes_on_sigint_and_sigterm(tmp_path: Path
             procs = {
                 name: stack.enter_context(
                     running(
-                        [tool("lca-record"), *topics, "-o", str(bag), "--wait-s", "30"],
+                        args[name],
                         domain_id,
                         tmp_path,
                     )
                 )
-                for name, bag in bags.items()
+                for name in bags
             }
+            # Both sides of every match: the publishers count the recorders, and each
+            # recorder reports its subscriptions matched (see BagRecorder.matched).
             spin_until(
                 executor,
                 lambda: (
                     js_pub.get_subscription_count() >= len(procs)
                     and dc_pub.get_subscription_count() >= len(procs)
+                    and all(p.said(recording(t)) for p in procs.values() for t in topics)
                 ),
                 "both recorders to subscribe",
             )
             publish_paced(
                 executor, node, [(js_pub, joint_state), (dc_pub, drive_array)], n_messages
             )
-            results = {name: stop(proc, stops[name]) for name, proc in procs.items()}
+            results = {name: proc.finish(stops[name]) for name, proc in procs.items()}
     expected = list(range(n_messages))
     for name, bag in bags.items():
         code, _, err = results[name]
@@ -280,7 +315,10 @@ def test_record_all_picks_up_a_topic_that_appears_later(tmp_path: Path) -> None:
     n_messages = 20
     # use_sim_time without a /clock publisher: the node clock reads 0, so every bag timestamp
     # must be 0 (a wall-clock stamp would be ~1.7e18 ns): ROS args reach the node.
-    args = [tool("lca-record"), "--all", "-o", str(bag), "--ros-args", "-p", "use_sim_time:=true"]
+    # -v: the recorder prints its counts each second, so the test can wait for all 20 to be in
+    # (wait_for_all_acked would wait for Fast DDS's 3 s heartbeat after so short a burst).
+    args = [tool("lca-record"), "--all", "-v", "-o", str(bag)]
+    args += ["--ros-args", "-p", "use_sim_time:=true"]
     with (
         ros_node(domain_id, "test_late_publisher") as (node, executor),
         running(args, domain_id, tmp_path) as proc,
@@ -291,11 +329,15 @@ def test_record_all_picks_up_a_topic_that_appears_later(tmp_path: Path) -> None:
             "the recorder to start",
         )
         late = node.create_publisher(Float64MultiArray, "late_topic", STATE_QOS_DEPTH)
-        spin_until(executor, lambda: late.get_subscription_count() >= 1, "a late subscription")
+        spin_until(
+            executor,
+            lambda: late.get_subscription_count() >= 1 and proc.said(recording("/late_topic")),
+            "a late subscription",
+        )
         for seq in range(n_messages):
             late.publish(Float64MultiArray(data=[float(seq)]))
-        assert late.wait_for_all_acked(Duration(seconds=10))
-        code, _, err = stop(proc, signal.SIGINT)
+        spin_until(executor, lambda: proc.said(f"/late_topic {n_messages}"), "all in the bag")
+        code, _, err = proc.finish(signal.SIGINT)
     assert code == 0, err
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
@@ -374,7 +416,9 @@ def test_bag_recorder_in_process_with_sim_time_and_best_effort_clock(tmp_path: P
             spin_until(
                 executor,
                 lambda: (
-                    clock_pub.get_subscription_count() >= 2 and js_pub.get_subscription_count() >= 1
+                    clock_pub.get_subscription_count() >= 2
+                    and js_pub.get_subscription_count() >= 1
+                    and f"/{JOINT_STATES}" in recorder.matched
                 ),
                 "the recorder's subscriptions",
             )
@@ -422,24 +466,32 @@ def test_subscription_qos_matches_best_effort_publishers() -> None:
 @pytest.mark.slow
 def test_echo_prints_yaml_documents(tmp_path: Path) -> None:
     domain_id = 74
-    sent = [joint_state(seq) for seq in range(3)]
     with ros_node(domain_id, "test_echo_publisher") as (node, executor):
         pub = node.create_publisher(JointState, JOINT_STATES, STATE_QOS_DEPTH)
         args = [tool("lca-echo"), JOINT_STATES, "-n", "3", "--wait-s", "30"]
-        with running(args, domain_id, tmp_path) as proc:
+        with running(args, domain_id, tmp_path) as echo:
             spin_until(executor, lambda: pub.get_subscription_count() >= 1, "lca-echo")
-            for msg in sent:
-                pub.publish(msg)
-            out, err = proc.communicate(timeout=EXIT_TIMEOUT_S)
-    assert proc.returncode == 0, err
+            # lca-echo's side of the match may lag this one, so keep publishing numbered
+            # messages until it has printed three and exits.
+            sent = [0]
+
+            def tick() -> None:
+                pub.publish(joint_state(sent[0]))
+                sent[0] += 1
+
+            node.create_timer(0.02, tick)
+            spin_until(executor, lambda: echo.proc.poll() is not None, "lca-echo to exit")
+            code, out, err = echo.finish()
+    assert code == 0, err
     assert out.count("\n---\n") == 3
     docs = [doc for doc in yaml.safe_load_all(out) if doc is not None]
     assert len(docs) == 3
-    for doc, msg in zip(docs, sent, strict=True):
-        assert doc["name"] == list(JOINTS)
-        assert doc["position"] == pytest.approx(list(msg.position))
-        assert doc["header"]["stamp"]["nanosec"] == msg.header.stamp.nanosec
+    first = docs[0]["header"]["stamp"]["nanosec"]
+    for seq, doc in enumerate(docs, start=first):  # reliable: consecutive once matched
         assert list(doc) == ["header", "name", "position", "velocity", "effort"]
+        assert doc["header"]["stamp"]["nanosec"] == seq
+        assert doc["name"] == list(JOINTS)
+        assert doc["position"] == pytest.approx(list(joint_state(seq).position))
 
 
 def test_echo_unknown_topic_is_one_line_exit_2(tmp_path: Path) -> None:
@@ -469,8 +521,13 @@ def test_message_to_plain_nested_and_arrays() -> None:
 # ---------------------------------------------------------------- lca-plot
 
 
-def write_test_bag(path: Path, topics: tuple[str, ...], n_messages: int = 50) -> None:
-    """A small MCAP bag: joint/motor JointStates and drive-chain DiagnosticArrays."""
+def write_test_bag(
+    path: Path, topics: tuple[str, ...], n_messages: int = 50, *, header_stamps: bool = True
+) -> None:
+    """A small MCAP bag: joint/motor JointStates and drive-chain DiagnosticArrays.
+
+    Bag stamps are 10 ms apart, header stamps 20 ms apart (or all zero without header_stamps).
+    """
     ts = get_typestore(Stores.ROS2_JAZZY)
     types = ts.types
     stamp = types["builtin_interfaces/msg/Time"]
@@ -492,7 +549,8 @@ def write_test_bag(path: Path, topics: tuple[str, ...], n_messages: int = 50) ->
         }
         for i in range(n_messages):
             t_ns = 1_000_000_000 + i * 10_000_000
-            head = header(stamp=stamp(sec=1, nanosec=i), frame_id="")
+            head_ns = (2_000_000_000 + i * 20_000_000) if header_stamps else 0
+            head = header(stamp=stamp(sec=head_ns // 10**9, nanosec=head_ns % 10**9), frame_id="")
             value = np.array([0.01 * i, 0.02 * i, -0.01 * i, 0.001 * i])
             msgs = {
                 JOINT_STATES: js_cls(
@@ -559,7 +617,16 @@ def test_plot_reads_drive_states_and_units(tmp_path: Path) -> None:
     assert data.drives["pivot"].state[0] == "stop_hold"
     assert data.drives["pivot"].state[-1] == "motor_driving"
     assert math.isnan(data.drives["pivot"].eta["eta_l"][0])
-    assert data.joints["pivot"].time_s[1] == pytest.approx(0.01)
+    assert data.time_base == "header"  # auto: every message has a header stamp
+    assert data.joints["pivot"].time_s[:2] == pytest.approx([0.0, 0.02])
+    assert data.drives["lift"].time_s[-1] == pytest.approx(29 * 0.02)
+    by_bag = bagplot.read_bag(bag, time_base="bag")
+    assert by_bag.joints["pivot"].time_s[:2] == pytest.approx([0.0, 0.01])
+    unstamped = tmp_path / "unstamped"
+    write_test_bag(unstamped, (JOINT_STATES,), n_messages=3, header_stamps=False)
+    fallback = bagplot.read_bag(unstamped)
+    assert fallback.time_base == "bag"
+    assert fallback.joints["lift"].time_s == pytest.approx([0.0, 0.01, 0.02])
     order = bagplot.state_order(["motor_driving", "stop_hold"])
     assert order[0] == "stop_hold"
     assert order[-1] == "motor_driving"
