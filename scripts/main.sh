@@ -3,12 +3,8 @@
 # simulator, controller and recorder as ROS 2 processes in lockstep (DDS on loopback only).
 # Writes out/fig15/bag (MCAP), PNG plots and summary.json, and prints the summary.
 set -euo pipefail
-root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$root/scripts/setup.sh"
-# shellcheck source=scripts/env.sh
-source "$root/scripts/env.sh"
-venv="${LCA_HIL_VENV:-$root/.venv}"
-cd "$root"
+# shellcheck source=scripts/prepare.sh
+source "$(dirname "${BASH_SOURCE[0]}")/prepare.sh"
 out="${1:-out/fig15}"
 if [ -e "$out/bag" ]; then
   out="$out-$(date +%Y%m%d-%H%M%S)"  # never overwrite an earlier run's bag

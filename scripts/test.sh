@@ -2,12 +2,8 @@
 # The test command: set up .venv if needed, then lint (ruff), type-check (mypy, strict on the
 # core) and run the test suite (pytest). Extra arguments go to pytest.
 set -euo pipefail
-root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$root/scripts/setup.sh"
-# shellcheck source=scripts/env.sh
-source "$root/scripts/env.sh"
-venv="${LCA_HIL_VENV:-$root/.venv}"
-cd "$root"
+# shellcheck source=scripts/prepare.sh
+source "$(dirname "${BASH_SOURCE[0]}")/prepare.sh"
 echo "== ruff"
 "$venv/bin/ruff" check .
 "$venv/bin/ruff" format --check .
