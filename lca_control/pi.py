@@ -46,6 +46,51 @@ class PIParams:
             )
 
 
+def pi_law(
+    kp: float,
+    ti_s: float,
+    output_min: float,
+    output_max: float,
+    integral: float,
+    error: float,
+    dt_s: float,
+) -> tuple[float, float]:
+    """One PI sample: (output, new integral) from the old integral and the error.
+
+    u = Kp e + I with I += Kp / Ti * e * dt (backward Euler), u clamped to the limits; while u
+    is clamped and the error pushes further into the limit the integral is frozen, and it never
+    exceeds the limits itself. Plain float arithmetic only, so `lca_sim.drive` compiles this
+    very function with numba for its bank of in-drive current loops.
+    """
+    new_integral = integral + kp / ti_s * error * dt_s
+    unclamped = kp * error + new_integral
+    if unclamped > output_max:
+        output = output_max
+        if error > 0.0:  # would wind up further: keep the old integral
+            new_integral = integral
+    elif unclamped < output_min:
+        output = output_min
+        if error < 0.0:
+            new_integral = integral
+    else:
+        output = unclamped
+    return output, min(max(new_integral, output_min), output_max)
+
+
+def pi_rebase(
+    kp: float, output_min: float, output_max: float, output: float, last_error: float
+) -> tuple[float, float]:
+    """Bumpless retune: the new (integral, output), both within the new limits.
+
+    The integral is chosen so that the last error with the new Kp gives the last output.
+    """
+    integral = output - kp * last_error
+    return (
+        min(max(integral, output_min), output_max),
+        min(max(output, output_min), output_max),
+    )
+
+
 class PIController:
     """One discrete PI loop with an explicit dt.
 
@@ -93,20 +138,9 @@ class PIController:
             return self._output
         p = self._params
         error = setpoint - measurement
-        integral = self._integral + p.kp / p.ti_s * error * dt_s
-        unclamped = p.kp * error + integral
-        if unclamped > p.output_max:
-            output = p.output_max
-            if error > 0.0:  # would wind up further: keep the old integral
-                integral = self._integral
-        elif unclamped < p.output_min:
-            output = p.output_min
-            if error < 0.0:
-                integral = self._integral
-        else:
-            output = unclamped
-        # The integral alone may never exceed the limits either.
-        self._integral = min(max(integral, p.output_min), p.output_max)
+        output, self._integral = pi_law(
+            p.kp, p.ti_s, p.output_min, p.output_max, self._integral, error, dt_s
+        )
         self._output = output
         self._last_error = error
         return output
@@ -124,7 +158,7 @@ class PIController:
 
         The integral is re-based so that the last error with the new Kp gives the last output.
         """
-        integral = self._output - params.kp * self._last_error
         self._params = params
-        self._integral = min(max(integral, params.output_min), params.output_max)
-        self._output = min(max(self._output, params.output_min), params.output_max)
+        self._integral, self._output = pi_rebase(
+            params.kp, params.output_min, params.output_max, self._output, self._last_error
+        )

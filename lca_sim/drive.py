@@ -14,14 +14,48 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
-from lca_control.pi import PIController, PIParams
+from lca_control.pi import PIParams, pi_law, pi_rebase
 from lca_sim.simulator import Simulator
 
 FloatArray = npt.NDArray[np.float64]
 
 VOLTAGE = "voltage"
 CURRENT = "current"
+
+# Rows of the in-drive current loops' array (one column per simulator axis).
+_L_INTEGRAL = 0
+_L_OUTPUT = 1
+_L_LAST_ERROR = 2
+_L_LIMIT_V = 3  # amplifier voltage limit: the loop's output is clamped to +-this
+_L_TARGET_A = 4
+_L_ACTIVE = 5  # 1.0 for axes in `joints`, whose loop runs; the others get 0 V
+_N_LOOP_ROWS = 6
+
+# lca_control's PI law itself, compiled: the drive's loops are the controller's PI, not a copy.
+_pi_law_compiled = njit(cache=True)(pi_law)
+
+
+@njit(cache=True)
+def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyped-def]
+    """One sample of every active axis's current PI: volts from targets and measured currents.
+
+    gains is [kp_v_per_a, ti_s, dt_s]; the limits are per axis (row _L_LIMIT_V).
+    """
+    for a in range(volts.shape[0]):
+        if loops[_L_ACTIVE, a] == 0.0:
+            volts[a] = 0.0
+            continue
+        limit = loops[_L_LIMIT_V, a]
+        error = loops[_L_TARGET_A, a] - current_a[a]
+        output, integral = _pi_law_compiled(
+            gains[0], gains[1], -limit, limit, loops[_L_INTEGRAL, a], error, gains[2]
+        )
+        loops[_L_INTEGRAL, a] = integral
+        loops[_L_OUTPUT, a] = output
+        loops[_L_LAST_ERROR, a] = error
+        volts[a] = output
 
 
 @dataclass
@@ -81,10 +115,10 @@ class DrivePlant:
         self._target = np.zeros(self.sim.n_axes)
         self._volts = np.zeros(self.sim.n_axes)
         self._voltage_limits = [a.motor.voltage_limit_v for a in self.sim.robot.axes]
-        self._loops = [
-            PIController(_with_limits(self.current_pi, -limit, limit))
-            for limit in self._voltage_limits
-        ]
+        self._loops = np.zeros((_N_LOOP_ROWS, self.sim.n_axes))
+        self._loops[_L_LIMIT_V] = self._voltage_limits
+        self._loops[_L_ACTIVE, self._index] = 1.0
+        self._gains = np.array([self.current_pi.kp, self.current_pi.ti_s, self.sim.dt_s])
 
     @property
     def target(self) -> FloatArray:
@@ -126,8 +160,7 @@ class DrivePlant:
         if timed_out:
             self.counters.timeouts += 1
         self._target[:] = 0.0
-        for loop in self._loops:
-            loop.reset()
+        self._loops[[_L_INTEGRAL, _L_OUTPUT, _L_LAST_ERROR]] = 0.0
 
     def set_enabled(self, enabled: bool) -> None:
         """Amplifiers on or off; off means 0 V on every axis and reset current loops."""
@@ -137,8 +170,18 @@ class DrivePlant:
     def set_current_gains(self, kp_v_per_a: float, ti_s: float) -> None:
         """Retune the in-drive current loop (bumpless)."""
         self.current_pi = PIParams(kp_v_per_a, ti_s, -1.0, 1.0)
-        for loop, limit in zip(self._loops, self._voltage_limits, strict=True):
-            loop.set_params(_with_limits(self.current_pi, -limit, limit))
+        loops = self._loops
+        for a, limit in enumerate(self._voltage_limits):
+            loops[_L_INTEGRAL, a], loops[_L_OUTPUT, a] = pi_rebase(
+                kp_v_per_a, -limit, limit, loops[_L_OUTPUT, a], loops[_L_LAST_ERROR, a]
+            )
+        self._gains[:2] = (kp_v_per_a, ti_s)
+
+    @property
+    def current_loop_outputs_v(self) -> FloatArray:
+        """The last output of each axis's in-drive current loop, V (0 for inactive axes)."""
+        outputs: FloatArray = self._loops[_L_OUTPUT].copy()
+        return outputs
 
     def advance(self, n_steps: int) -> None:
         """Run the model n_steps of its dt under the command in force."""
@@ -155,14 +198,9 @@ class DrivePlant:
                 sim.step(volts)
             return
         currents = sim.state_array[2]
-        dt = sim.dt_s
         loops = self._loops
-        target = self._target
+        gains = self._gains
+        loops[_L_TARGET_A] = self._target
         for _ in range(n_steps):
-            for a in self._index:
-                volts[a] = loops[a].update(target[a], currents[a], dt)
+            _run_current_loops(loops, currents, gains, volts)
             sim.step(volts)
-
-
-def _with_limits(params: PIParams, low: float, high: float) -> PIParams:
-    return PIParams(params.kp, params.ti_s, low, high)
