@@ -4,7 +4,8 @@ What it measures, in one run, with every ROS process a child of this script on i
 id (140..143) and DDS discovery limited to this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST):
 
 1. Lockstep closed loop: ``lca-simulator`` (lockstep, current commands, 4 ms control period,
-   pivot at 35 deg) and ``lca-controller`` (config/ros/controller.yaml, use_sim_time) as two
+   pivot at 35 deg) and ``lca-controller`` (config/ros/controller.yaml; it steps on state
+   stamps, no /clock) as two
    processes. The rate is read from the simulator's own ``/diagnostics`` (status
    ``lca_hil/simulator``, once per ``diagnostics_period_s``) at two instants a window apart:
    steps/s = delta(sim_time_s) / control_period_s / delta(stamp), the stamps being the wall
@@ -165,11 +166,17 @@ def reliable_qos(depth: int) -> Any:
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)  # type: ignore[no-untyped-call]
 
 
-def spin_until(node: Any, done: Callable[[], bool], deadline: float, stop: StopFlag) -> bool:
-    """Spin `node` (SingleThreadedExecutor, as the nodes do) until done(); False on deadline."""
-    from rclpy.executors import SingleThreadedExecutor
+def spin_until(
+    node: Any, done: Callable[[], bool], deadline: float, stop: StopFlag, executor_kind: str
+) -> bool:
+    """Spin `node` until done(); False on deadline.
 
-    executor = SingleThreadedExecutor()
+    executor_kind: `single` (rclpy's default SingleThreadedExecutor, what `rclpy.spin` uses) or
+    `events` (the C++ events executor the lca_hil nodes use when rclpy has it).
+    """
+    from lca_sim.rosutil import make_executor
+
+    executor = make_executor(node.context, executor_kind)
     executor.add_node(node)
     try:
         while not done():
@@ -191,9 +198,9 @@ def run_role(role: str, args: argparse.Namespace) -> int:
     rclpy.init()
     try:
         if role == "pong":
-            result = role_pong(deadline, stop)
+            result = role_pong(deadline, stop, args.executor)
         elif role == "ping":
-            result = role_ping(args.warmup_s, args.window_s, deadline, stop)
+            result = role_ping(args.warmup_s, args.window_s, deadline, stop, args.executor)
         elif role == "observe-lockstep":
             result = role_observe_lockstep(args.warmup_s, args.window_s, deadline, stop)
         else:
@@ -207,7 +214,7 @@ def run_role(role: str, args: argparse.Namespace) -> int:
     return 0 if result.get("ok") else 1
 
 
-def role_pong(deadline: float, stop: StopFlag) -> JsonDict:
+def role_pong(deadline: float, stop: StopFlag, executor_kind: str) -> JsonDict:
     """Answer every JointState on PING_TOPIC with a Float64MultiArray on PONG_TOPIC."""
     from rclpy.node import Node
     from sensor_msgs.msg import JointState
@@ -225,12 +232,14 @@ def role_pong(deadline: float, stop: StopFlag) -> JsonDict:
         answered[0] += 1
 
     node.create_subscription(JointState, PING_TOPIC, on_ping, qos)
-    spin_until(node, lambda: False, deadline, stop)  # until SIGTERM or the deadline
+    spin_until(node, lambda: False, deadline, stop, executor_kind)  # until SIGTERM or the deadline
     node.destroy_node()  # type: ignore[no-untyped-call]
     return {"role": "pong", "ok": True, "answered": answered[0]}
 
 
-def role_ping(warmup_s: float, window_s: float, deadline: float, stop: StopFlag) -> JsonDict:
+def role_ping(
+    warmup_s: float, window_s: float, deadline: float, stop: StopFlag, executor_kind: str
+) -> JsonDict:
     """Ping-pong: one JointState out, wait for the answer, the next; count round trips."""
     from rclpy.node import Node
     from sensor_msgs.msg import JointState
@@ -276,6 +285,7 @@ def role_ping(warmup_s: float, window_s: float, deadline: float, stop: StopFlag)
         lambda: node.count_subscribers(PING_TOPIC) >= 1 and node.count_publishers(PONG_TOPIC) >= 1,
         min(deadline, time.monotonic() + STARTUP_TIMEOUT_S),
         stop,
+        executor_kind,
     )
     if not matched:
         node.destroy_node()  # type: ignore[no-untyped-call]
@@ -290,7 +300,7 @@ def role_ping(warmup_s: float, window_s: float, deadline: float, stop: StopFlag)
             send()
         return False
 
-    finished = spin_until(node, done, deadline, stop)
+    finished = spin_until(node, done, deadline, stop, executor_kind)
     node.destroy_node()  # type: ignore[no-untyped-call]
     if not finished:
         return {"role": "ping", "ok": False, "error": "no full window before the deadline"}
@@ -388,7 +398,7 @@ def role_observe_lockstep(
         picked["a"], picked["b"] = a, b
         return True
 
-    finished = spin_until(node, done, deadline, stop)
+    finished = spin_until(node, done, deadline, stop, "single")
     foreign = foreign_publishers(node)
     node.destroy_node()  # type: ignore[no-untyped-call]
     if foreign:
@@ -441,7 +451,7 @@ def role_observe_realtime(
     def done() -> bool:
         return "end" in window and diag_after(window["end"]) is not None
 
-    finished = spin_until(node, done, deadline, stop)
+    finished = spin_until(node, done, deadline, stop, "single")
     foreign = foreign_publishers(node)
     node.destroy_node()  # type: ignore[no-untyped-call]
     if foreign:
@@ -628,7 +638,9 @@ def wait_for(
     return result
 
 
-def role_argv(role: str, timeout_s: float, warmup_s: float, window_s: float) -> list[str]:
+def role_argv(
+    role: str, timeout_s: float, warmup_s: float, window_s: float, executor: str = "single"
+) -> list[str]:
     """The command line of this script in a child role."""
     return [
         sys.executable,
@@ -641,6 +653,8 @@ def role_argv(role: str, timeout_s: float, warmup_s: float, window_s: float) -> 
         f"{warmup_s:g}",
         "--window-s",
         f"{window_s:g}",
+        "--executor",
+        executor,
     ]
 
 
@@ -713,8 +727,6 @@ def phase_lockstep(children: Children, warmup_s: float, window_s: float) -> Json
             "--ros-args",
             "--params-file",
             str(CONTROLLER_YAML),
-            "-p",
-            "use_sim_time:=true",
         ],
         DOMAIN_LOCKSTEP,
     )
@@ -747,13 +759,15 @@ def phase_lockstep(children: Children, warmup_s: float, window_s: float) -> Json
     }
 
 
-def phase_pingpong(children: Children, warmup_s: float, window_s: float) -> JsonDict:
-    """[2] Bare rclpy ping-pong between two processes."""
+def phase_pingpong(children: Children, warmup_s: float, window_s: float, executor: str) -> JsonDict:
+    """[2] Bare rclpy ping-pong between two processes, spinning the given executor kind."""
     timeout_s = STARTUP_TIMEOUT_S + warmup_s + window_s + 10.0
     pong = children.start(
-        "pong", role_argv("pong", timeout_s + 5.0, warmup_s, window_s), DOMAIN_PINGPONG
+        "pong", role_argv("pong", timeout_s + 5.0, warmup_s, window_s, executor), DOMAIN_PINGPONG
     )
-    ping = children.start("ping", role_argv("ping", timeout_s, warmup_s, window_s), DOMAIN_PINGPONG)
+    ping = children.start(
+        "ping", role_argv("ping", timeout_s, warmup_s, window_s, executor), DOMAIN_PINGPONG
+    )
     result = wait_for(children, ping, [pong], timeout_s + 5.0)
     rate = float(result["round_trips_per_s"])
     cpu = cpu_per_event_ms(
@@ -873,6 +887,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--warmup-s", type=float, default=DEFAULT_WARMUP_S, help=argparse.SUPPRESS)
     parser.add_argument("--timeout-s", type=float, default=60.0, help=argparse.SUPPRESS)
     parser.add_argument("--rate-hz", type=float, default=250.0, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--executor", choices=("single", "events"), default="single", help=argparse.SUPPRESS
+    )
     return parser.parse_args(argv)
 
 
@@ -926,11 +943,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             pingpong = run_phase(
                 "[2] bare rclpy ping-pong: JointState -> Float64MultiArray, reliable depth "
-                f"{PINGPONG_QOS_DEPTH}",
+                f"{PINGPONG_QOS_DEPTH}, rclpy's default SingleThreadedExecutor",
                 children,
                 errors,
                 "pingpong",
-                lambda: phase_pingpong(children, warmup_s, window_s),
+                lambda: phase_pingpong(children, warmup_s, window_s, "single"),
+            )
+            pingpong_events = run_phase(
+                "[2b] the same ping-pong on the events executor the nodes spin",
+                children,
+                errors,
+                "pingpong_events",
+                lambda: phase_pingpong(children, warmup_s, window_s, "events"),
             )
             realtime: dict[str, JsonDict | None] = {}
             for rate_hz in REALTIME_RATES_HZ:
@@ -949,13 +973,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ping_rate = pingpong["round_trips_per_s"] if pingpong else None
     ratio = lock_rate / ping_rate if lock_rate is not None and ping_rate else None
     met = ratio >= TARGET_RATIO_MIN if ratio is not None else None
+    events_rate = pingpong_events["round_trips_per_s"] if pingpong_events else None
+    events_ratio = lock_rate / events_rate if lock_rate is not None and events_rate else None
     print("\nsummary")
     print(f"  lockstep steps/s               {fmt(lock_rate)}")
-    print(f"  ping-pong round trips/s        {fmt(ping_rate)}")
+    print(f"  ping-pong round trips/s        {fmt(ping_rate)}  (SingleThreadedExecutor)")
+    print(f"  ping-pong round trips/s        {fmt(events_rate)}  (EventsExecutor)")
     print(
         f"  lockstep / ping-pong           {fmt(ratio, '.3f')}  (target >= {TARGET_RATIO_MIN}: "
         f"{'n/a' if met is None else 'MET' if met else 'NOT MET'})"
     )
+    print(f"  lockstep / events ping-pong    {fmt(events_ratio, '.3f')}  (same executor as nodes)")
     for rate_key, figures in realtime.items():
         if figures is None:
             print(f"  realtime {rate_key:>4} Hz: n/a")
@@ -973,6 +1001,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "lockstep_steps_per_s": rounded(lock_rate, 2),
         "pingpong_round_trips_per_s": rounded(ping_rate, 2),
         "lockstep_to_pingpong_ratio": rounded(ratio, 4),
+        "pingpong_events_round_trips_per_s": rounded(events_rate, 2),
+        "lockstep_to_events_pingpong_ratio": rounded(events_ratio, 4),
         "target_ratio_min": TARGET_RATIO_MIN,
         "meets_ratio_target": met,
         "realtime": realtime,
@@ -983,6 +1013,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else None,
         "lockstep_cpu": lockstep["cpu"] if lockstep else None,
         "pingpong_cpu": pingpong["cpu"] if pingpong else None,
+        "pingpong_events_cpu": pingpong_events["cpu"] if pingpong_events else None,
         "control_period_s": CONTROL_PERIOD_S,
         "window_s": window_s,
         "warmup_s": warmup_s,

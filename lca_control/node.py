@@ -1,9 +1,10 @@
 """The controller node: `ros2 run lca_hil controller` (console script `lca-controller`).
 
 Runs the paper's cascaded PI loops over topics only, so it drives the simulator node and the CAN
-bridge alike. Every new plant state (joint_states, with motor_states of the same stamp for the
-currents) yields one command; the period is the difference of the state stamps, so in lockstep
-(`use_sim_time:=true`) the loop runs on simulated time exactly.
+bridge alike. Every new plant state (joint_states; with voltage commands also motor_states of the
+same stamp, for the currents) yields one command. The period is the difference of the state
+stamps, never the node clock, so the loop runs on simulated time exactly in lockstep without
+`use_sim_time` (which then only changes the stamps of the controller's diagnostics).
 
     lca-controller --ros-args --params-file config/ros/controller.yaml
 """
@@ -68,7 +69,10 @@ class ControllerNode(Node):
         self._command_pub = self.create_publisher(Float64MultiArray, topic, command_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
         self.create_subscription(JointState, ri.JOINT_STATES, self._on_joint_states, state_qos)
-        self.create_subscription(JointState, ri.MOTOR_STATES, self._on_motor_states, state_qos)
+        if params.command_interface == "voltage":
+            # Only the current loop needs the motor currents; with current commands the drive
+            # runs that loop, and every message not taken is executor time saved per step.
+            self.create_subscription(JointState, ri.MOTOR_STATES, self._on_motor_states, state_qos)
         self.create_subscription(
             Float64MultiArray, ri.VELOCITY_REFERENCE, self._on_reference, command_qos
         )

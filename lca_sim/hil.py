@@ -84,9 +84,10 @@ def run_fig15(out: Path, duration_s: float) -> int:
         "-p", f"initial_position:=[0.0,{start_rad!r},0.0,0.0]",
         "-p", "lockstep_subscribers:=2",
     ]  # fmt: skip
+    # No use_sim_time for the controller: it steps on the state stamps, and a /clock
+    # subscription would cost it one more message per step.
     controller = [
         _script("lca-controller"), "--ros-args", "--params-file", str(params / "controller.yaml"),
-        "-p", "use_sim_time:=true",
     ]  # fmt: skip
     recorder = [
         _script("lca-record"), "-o", str(bag), "--wait-s", "30",

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -58,6 +59,18 @@ from lca_sim.state_machine import MotionState
 
 MAX_CATCH_UP_PERIODS = 4
 _ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
+_MOTION_NAMES = {int(m): m.name.lower() for m in MotionState}
+# The numeric drive-chain values per axis, in message order after motion and drive state.
+_DRIVE_SIGNALS = (
+    "eta_m",
+    "eta_l",
+    "motor_torque_nm",
+    "load_torque_nm",
+    "friction_torque_nm",
+    "current_a",
+    "voltage_v",
+)
+_DRIVE_SIGNAL_ROWS = tuple(_ROW[name] for name in _DRIVE_SIGNALS)
 
 
 class SimulatorNode(Node):
@@ -93,6 +106,10 @@ class SimulatorNode(Node):
         self._overrun_steps = 0
         self._published = 0
         self._wrong_interface = 0
+        self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
+        self._joint_msg = JointState(name=list(self.sim.axis_names))
+        self._motor_msg = JointState(name=list(self.sim.axis_names))
+        self._drive_msg = self._drive_chain_template()
 
         state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         self._joint_pub = self.create_publisher(JointState, ri.JOINT_STATES, state_qos)
@@ -200,54 +217,65 @@ class SimulatorNode(Node):
     # --- publishing ----------------------------------------------------------------------
 
     def _publish_state(self) -> None:
+        """Publish one instant, joint_states first and the drive-chain states last.
+
+        joint_states is what a current-commanding controller waits for: its next command is
+        being computed while motor_states, /clock and the drive-chain states go out.
+        """
         sim = self.sim
         stamp = to_stamp(self.sim_time_s)
         state = sim.state_array
         signals = sim.signal_array
-        modes = sim.mode_array
-        names = list(sim.axis_names)
-        ratio = np.array([a.gear_ratio for a in sim.robot.axes])
 
-        motor = JointState()
-        motor.header.stamp = stamp
-        motor.name = names
-        motor.position = (state[0] * ratio).tolist()
-        motor.velocity = signals[_ROW["motor_velocity_rad_s"]].tolist()
-        motor.effort = state[2].tolist()
-        self._motor_pub.publish(motor)
-
-        drive = DiagnosticArray()
-        drive.header.stamp = stamp
-        for a, name in enumerate(names):
-            drive_state = sim.state_names[int(modes[1, a])]
-            values = {
-                "motion_state": MotionState(int(modes[0, a])).name.lower(),
-                "drive_state": drive_state,
-                "eta_m": float(signals[_ROW["eta_m"], a]),
-                "eta_l": float(signals[_ROW["eta_l"], a]),
-                "motor_torque_nm": float(signals[_ROW["motor_torque_nm"], a]),
-                "load_torque_nm": float(signals[_ROW["load_torque_nm"], a]),
-                "friction_torque_nm": float(signals[_ROW["friction_torque_nm"], a]),
-                "current_a": float(state[2, a]),
-                "voltage_v": float(signals[_ROW["voltage_v"], a]),
-            }
-            drive.status.append(
-                status(ri.DRIVE_STATUS_PREFIX + name, DiagnosticStatus.OK, drive_state, values)
-            )
-        self._drive_pub.publish(drive)
-
-        joint = JointState()
+        joint = self._joint_msg
         joint.header.stamp = stamp
-        joint.name = names
         joint.position = state[0].tolist()
         joint.velocity = state[1].tolist()
-        joint.effort = (signals[_ROW["motor_torque_nm"]] * ratio).tolist()
+        joint.effort = (signals[_ROW["motor_torque_nm"]] * self._gear_ratio).tolist()
         self._joint_pub.publish(joint)
+
+        # Messages nobody has subscribed to are not even built (a subscriber that joins later
+        # gets them from its first match on); joint_states and /clock always go out.
+        if self._motor_pub.get_subscription_count():
+            motor = self._motor_msg
+            motor.header.stamp = stamp
+            motor.position = (state[0] * self._gear_ratio).tolist()
+            motor.velocity = signals[_ROW["motor_velocity_rad_s"]].tolist()
+            motor.effort = state[2].tolist()
+            self._motor_pub.publish(motor)
 
         if self._clock_pub is not None:
             self._clock_pub.publish(Clock(clock=stamp))
+        if self._drive_pub.get_subscription_count():
+            self._publish_drive_chain(stamp)
         self._published += 1
         self._last_publish_wall = time.monotonic()
+
+    def _drive_chain_template(self) -> DiagnosticArray:
+        """The drive-chain message, built once: each publish only rewrites its values."""
+        array = DiagnosticArray()
+        for name in self.sim.axis_names:
+            values = dict.fromkeys(("motion_state", "drive_state", *_DRIVE_SIGNALS), "")
+            array.status.append(
+                status(ri.DRIVE_STATUS_PREFIX + name, DiagnosticStatus.OK, "", values)
+            )
+        return array
+
+    def _publish_drive_chain(self, stamp: Time) -> None:
+        sim = self.sim
+        modes = sim.mode_array
+        rows = sim.signal_array
+        drive = self._drive_msg
+        drive.header.stamp = stamp
+        for a, axis_status in enumerate(drive.status):
+            drive_state = sim.state_names[int(modes[1, a])]
+            axis_status.message = drive_state
+            kv = axis_status.values
+            kv[0].value = _MOTION_NAMES[int(modes[0, a])]
+            kv[1].value = drive_state
+            for k, row in enumerate(_DRIVE_SIGNAL_ROWS, start=2):
+                kv[k].value = repr(float(rows[row, a]))
+        self._drive_pub.publish(drive)
 
     def _publish_diagnostics(self) -> None:
         p = self.params

@@ -88,7 +88,7 @@ import rclpy
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.context import Context
-from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.executors import Executor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -116,6 +116,7 @@ from rosbags.typesys.store import Typestore
 
 from lca_sim.errors import LcaHilError
 from lca_sim.ros_interface import CLOCK, STATE_QOS_DEPTH
+from lca_sim.rosutil import make_executor
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
@@ -500,24 +501,6 @@ class BagRecorder:
         # raw=True hands the callback the serialized bytes; rclpy types it for messages.
         callback = cast("Callable[[Any], None]", on_message)
         return self._node.create_subscription(rec.msg_class, rec.topic, callback, qos, raw=True)
-
-
-def make_executor(context: Context, kind: str = "events") -> Executor:
-    """An executor for the recorder: rclpy's events executor if available, else single-threaded.
-
-    The events executor (rclpy.experimental, C++) costs about 110 us of CPU per recorded
-    message against about 250 us for SingleThreadedExecutor (5 topics, 2500 messages each at
-    500 Hz, 2-core machine under load), which matters because a recorder that falls more
-    than `STATE_QOS_DEPTH` messages behind on a topic loses the oldest (keep-last).
-    """
-    if kind == "events":
-        try:
-            from rclpy.experimental.events_executor import EventsExecutor  # noqa: PLC0415
-        except ImportError:
-            pass
-        else:
-            return EventsExecutor(context=context)
-    return SingleThreadedExecutor(context=context)
 
 
 def default_output(now: datetime | None = None) -> Path:

@@ -194,15 +194,24 @@ def _simulator(
     )
 
 
-def _controller(exe: str, domain_id: int) -> NodeCase:
+def _controller(exe: str, domain_id: int, interface: str = "current") -> NodeCase:
+    # Only with voltage commands does the controller run the current loop, needing motor_states.
+    states = {"/joint_states", "/motor_states"} if interface == "voltage" else {"/joint_states"}
+    other = "current" if interface == "voltage" else "voltage"
     return NodeCase(
         exe=exe,
-        args=("--ros-args", "--params-file", str(CONTROLLER_PARAMS)),
+        args=(
+            "--ros-args",
+            "--params-file",
+            str(CONTROLLER_PARAMS),
+            "-p",
+            f"command_interface:={interface}",
+        ),
         domain_id=domain_id,
         node_name="controller",
-        publishes=frozenset({"/current_commands", "/diagnostics"}),
-        subscribes=frozenset({"/joint_states", "/motor_states", "/velocity_reference"}),
-        not_published=frozenset({"/voltage_commands"}),
+        publishes=frozenset({f"/{interface}_commands", "/diagnostics"}),
+        subscribes=frozenset({*states, "/velocity_reference"}),
+        not_published=frozenset({f"/{other}_commands"}),
         status_name="lca_hil/controller",
         status_key="reference_source",
         status_value="ramp",
@@ -219,6 +228,7 @@ NODE_CASES = {
     "ros2-run-simulator": _simulator("simulator", SIM_PARAMS_ARGS, 104, "current", signal.SIGINT),
     "lca-controller-params-file": _controller("lca-controller", 105),
     "ros2-run-controller": _controller("controller", 106),
+    "lca-controller-voltage": _controller("lca-controller", 109, "voltage"),
 }
 
 
