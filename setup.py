@@ -25,7 +25,14 @@ setup(
     # package data of lca_sim.data, so a non-editable install finds them.
     package_dir={"lca_sim.data": "config"},
     package_data={
-        "lca_sim.data": ["robots/*.yaml", "scenarios/*.yaml", "urdf/*.urdf", "ros/*.yaml"]
+        "lca_sim.data": [
+            "robots/*.yaml",
+            "scenarios/*.yaml",
+            "urdf/*.urdf",
+            "ros/*.yaml",
+            "can/*.yaml",
+            "can/*.eds",
+        ]
     },
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
@@ -34,12 +41,14 @@ setup(
         ("share/" + PACKAGE + "/config/scenarios", _config_files("scenarios")),
         ("share/" + PACKAGE + "/config/urdf", _config_files("urdf")),
         ("share/" + PACKAGE + "/config/ros", _config_files("ros")),
+        ("share/" + PACKAGE + "/config/can", _config_files("can")),
     ],
     install_requires=[
         "numpy>=1.26",
         "numba>=0.60",
         "pin>=3.0",
         "python-can>=4.3",
+        "canopen>=2.3",
         "PyYAML>=6.0",
         "matplotlib>=3.8",
         "setuptools<80",
@@ -69,10 +78,14 @@ setup(
             "lca-record = lca_sim.record:main",
             "lca-echo = lca_sim.echo:main",
             "lca-plot = lca_sim.bagplot:main",
+            "lca-virtual-drive = lca_sim.virtual_drive:main",
+            "lca-can-bridge = lca_sim.can_bridge_node:main",
             # The names `ros2 run lca_hil <exe>` expects (installed to lib/lca_hil by colcon).
             "simulator = lca_sim.node:main",
             "controller = lca_control.node:main",
             "record = lca_sim.record:main",
+            "virtual_drive = lca_sim.virtual_drive:main",
+            "can_bridge = lca_sim.can_bridge_node:main",
         ],
     },
     zip_safe=False,
