@@ -37,6 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
 SIMULATOR_PARAMS = ROOT / "config" / "ros" / "simulator.yaml"
 CONTROLLER_PARAMS = ROOT / "config" / "ros" / "controller.yaml"
+CAN_BRIDGE_PARAMS = ROOT / "config" / "ros" / "can_bridge.yaml"
 JOINTS = ["l_arm", "pivot", "c_arc", "lift"]
 SIM_PUBLISHES = frozenset({"/joint_states", "/motor_states", "/drive_chain_states", "/diagnostics"})
 START_TIMEOUT_S = 60.0  # imports (numba, pinocchio) and DDS discovery on a loaded machine
@@ -218,6 +219,28 @@ def _controller(exe: str, domain_id: int, interface: str = "current") -> NodeCas
     )
 
 
+def _can_bridge(exe: str, domain_id: int) -> NodeCase:
+    # The shipped params: the virtual rack in the bridge's process, on its own channel here.
+    return NodeCase(
+        exe=exe,
+        args=(
+            "--ros-args",
+            "--params-file",
+            str(CAN_BRIDGE_PARAMS),
+            "-p",
+            f"channel:=exe_test_{domain_id}",
+        ),
+        domain_id=domain_id,
+        node_name="can_bridge",
+        publishes=SIM_PUBLISHES,
+        subscribes=frozenset({"/current_commands"}),
+        not_published=frozenset({"/voltage_commands", "/current_commands", "/clock"}),
+        status_name="lca_hil/can_bridge",
+        status_key="interface",
+        status_value="virtual",
+    )
+
+
 SIM_PARAMS_ARGS = ("--ros-args", "--params-file", str(SIMULATOR_PARAMS))
 NODE_CASES = {
     "lca-simulator-defaults": _simulator("lca-simulator", (), 101, "voltage", signal.SIGINT),
@@ -229,6 +252,8 @@ NODE_CASES = {
     "lca-controller-params-file": _controller("lca-controller", 105),
     "ros2-run-controller": _controller("controller", 106),
     "lca-controller-voltage": _controller("lca-controller", 109, "voltage"),
+    "lca-can-bridge": _can_bridge("lca-can-bridge", 116),
+    "ros2-run-can-bridge": _can_bridge("can_bridge", 117),
 }
 
 
@@ -254,7 +279,7 @@ def test_node_executable_starts_serves_and_stops_cleanly(case: NodeCase, tmp_pat
             f"a {case.status_name} status on /diagnostics",
         )
         assert obs.diagnostic_value(case.status_name, case.status_key) == case.status_value
-        if case.node_name == "simulator":
+        if case.node_name in ("simulator", "can_bridge"):
             obs.spin_until(lambda: bool(obs.joint_states), run, "a joint_states message")
             first = obs.joint_states[0]
             assert list(first.name) == JOINTS
@@ -423,3 +448,33 @@ def test_colcon_build_installs_the_ros_package(tmp_path: Path) -> None:
     )  # fmt: skip
     assert helped.returncode == 0, helped.stderr
     assert helped.stdout.startswith("usage: lca-sim")
+
+
+@pytest.mark.parametrize(
+    ("command", "domain_id", "prog"),
+    [
+        (["lca-can-bridge", "--ros-args", "-p", "interface:=socketcan", "-p", "channel:=nope0"],
+         118, "lca-can-bridge"),
+        (["lca-virtual-drive", "--interface", "socketcan", "--channel", "nope0"],
+         119, "lca-virtual-drive"),
+    ],
+    ids=["can_bridge", "virtual_drive"],
+)  # fmt: skip
+def test_missing_socketcan_interface_is_one_error_line_and_exit_2(
+    command: list[str], domain_id: int, prog: str, tmp_path: Path
+) -> None:
+    """A SocketCAN interface that does not exist: a clear error naming it, no traceback."""
+    proc = subprocess.run(
+        [str(BIN / command[0]), *command[1:]],
+        cwd=tmp_path,
+        env=ros_env(domain_id),
+        capture_output=True,
+        text=True,
+        timeout=START_TIMEOUT_S,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith(f"{prog}: error:")]
+    assert len(errors) == 1, proc.stderr
+    assert "socketcan" in errors[0] and "nope0" in errors[0]
