@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -37,6 +38,9 @@ from lca_sim.can_master import PowerState, TorqueScale, Want
 
 log = logging.getLogger(__name__)
 
+# Python's default GIL switch interval (5 ms) lets one thread hold the interpreter for several
+# CAN periods; processes that run a CanBridge (the node, the benchmark) set this instead.
+GIL_SWITCH_INTERVAL_S = 5e-4
 SYNC_COB_ID = 0x80
 HEARTBEAT_BASE = 0x700
 NMT_OPERATIONAL_CODE = 0x05
@@ -64,6 +68,10 @@ OD_DRIVE_STATE = 0x2010
 OD_MOTION_STATE = 0x2011
 OD_ETA_M = 0x2012
 OD_ETA_L = 0x2013
+
+
+# CANopen basic data types (CiA 301) -> little-endian struct codes.
+_STRUCT_OF_TYPE = {0x2: "<b", 0x3: "<h", 0x4: "<i", 0x5: "<B", 0x6: "<H", 0x7: "<I"}
 
 
 class BridgeError(RuntimeError):
@@ -334,9 +342,10 @@ class CanBridge:
             tpdo = axis.node.tpdo[number]
             if not tpdo.enabled:
                 continue
-            indices = {var.index for var in tpdo}
-            mapped |= indices
-            tpdo.add_callback(self._tpdo_callback(axis, indices))
+            mapped |= {var.index for var in tpdo}
+            # canopen's PdoMap subscribed itself when read; decode the raw frames instead.
+            self.network.unsubscribe(tpdo.cob_id, tpdo.on_message)
+            self.network.subscribe(tpdo.cob_id, self._tpdo_callback(axis, tpdo))
         needed = {OD_STATUSWORD, OD_POSITION_ACTUAL, OD_VELOCITY_ACTUAL, OD_CURRENT_ACTUAL}
         if not needed <= mapped:
             missing = ", ".join(f"0x{i:04X}" for i in sorted(needed - mapped))
@@ -345,37 +354,54 @@ class CanBridge:
 
     # --- PDO and EMCY reception (notifier thread) ----------------------------------------
 
-    def _tpdo_callback(self, axis: _Axis, indices: set[int]) -> Callable[[Any], None]:
-        sync_bit = 1 if OD_STATUSWORD in indices else 0
-        sync_bit |= 2 if OD_VELOCITY_ACTUAL in indices else 0
+    def _tpdo_callback(self, axis: _Axis, tpdo: Any) -> Callable[[int, bytearray, float], None]:
+        """A raw-frame decoder for one TPDO, compiled once from its mapping (read over SDO).
 
-        def on_tpdo(pdo: Any) -> None:
+        Every mapped entry becomes (index, byte offset, struct); at 500 Hz x 8 TPDOs this is
+        several times cheaper than canopen's per-variable decoding, and it runs on the notifier
+        thread that every frame of the bus shares.
+        """
+        fields = []
+        for var in tpdo:
+            code = _STRUCT_OF_TYPE.get(int(var.od.data_type))
+            if code is None or var.offset % 8:
+                raise BridgeError(
+                    f"drive {axis.joint}: TPDO maps 0x{var.index:04X} with a type or bit offset "
+                    "the bridge does not decode"
+                )
+            fields.append((int(var.index), var.offset // 8, struct.Struct(code)))
+        size = max(offset + st.size for _, offset, st in fields)
+        indices = {index for index, _, _ in fields}
+        sync_bit = (1 if OD_STATUSWORD in indices else 0) | (
+            2 if OD_VELOCITY_ACTUAL in indices else 0
+        )
+
+        def on_tpdo(_can_id: int, data: bytearray, _timestamp: float) -> None:
             now = time.monotonic()
-            s = axis.state
-            try:
-                for var in pdo:
-                    index, raw = var.index, var.raw
-                    if index == OD_STATUSWORD:
-                        s.statusword = int(raw)
-                    elif index == OD_POSITION_ACTUAL:
-                        s.motor_position_rad = raw / axis.inc_per_rad
-                        s.position = s.motor_position_rad / axis.gear
-                    elif index == OD_VELOCITY_ACTUAL:
-                        s.motor_velocity_rad_s = raw / axis.inc_per_rad
-                        s.velocity = s.motor_velocity_rad_s / axis.gear
-                    elif index == OD_CURRENT_ACTUAL:
-                        s.current_a = raw / 1000.0 * axis.rated_current_a
-                    elif index == OD_DRIVE_STATE:
-                        s.drive_state = int(raw)
-                    elif index == OD_MOTION_STATE:
-                        s.motion_state = int(raw)
-                    elif index == OD_ETA_M:
-                        s.eta_m = raw / 1000.0
-                    elif index == OD_ETA_L:
-                        s.eta_l = raw / 1000.0
-            except (ValueError, TypeError, OverflowError):  # a short or garbled PDO
+            if len(data) < size:
                 self.counters.bad_pdos += 1
                 return
+            s = axis.state
+            for index, offset, st in fields:
+                raw = st.unpack_from(data, offset)[0]
+                if index == OD_STATUSWORD:
+                    s.statusword = raw
+                elif index == OD_POSITION_ACTUAL:
+                    s.motor_position_rad = raw / axis.inc_per_rad
+                    s.position = s.motor_position_rad / axis.gear
+                elif index == OD_VELOCITY_ACTUAL:
+                    s.motor_velocity_rad_s = raw / axis.inc_per_rad
+                    s.velocity = s.motor_velocity_rad_s / axis.gear
+                elif index == OD_CURRENT_ACTUAL:
+                    s.current_a = raw / 1000.0 * axis.rated_current_a
+                elif index == OD_DRIVE_STATE:
+                    s.drive_state = raw
+                elif index == OD_MOTION_STATE:
+                    s.motion_state = raw
+                elif index == OD_ETA_M:
+                    s.eta_m = raw / 1000.0
+                elif index == OD_ETA_L:
+                    s.eta_l = raw / 1000.0
             axis.last_tpdo_t = now
             if sync_bit:
                 self._mark_fresh(axis, sync_bit, now)

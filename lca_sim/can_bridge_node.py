@@ -22,6 +22,7 @@ and `~/sdo_write` (SetParameters; the same names, integer or double values).
 from __future__ import annotations
 
 import contextlib
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -40,7 +41,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from lca_sim import ros_interface as ri
-from lca_sim.can_bridge import BridgeError, BridgeParams, CanBridge, Snapshot
+from lca_sim.can_bridge import GIL_SWITCH_INTERVAL_S, BridgeError, BridgeParams, CanBridge, Snapshot
 from lca_sim.can_bridge_params import (
     CAN_BRIDGE_PARAMETERS,
     CanBridgeNodeParams,
@@ -106,6 +107,10 @@ class CanBridgeNode(Node):
         self._values = declare_parameters(self, CAN_BRIDGE_PARAMETERS)
         self.params: CanBridgeNodeParams = validate_can_bridge_params(self._values)
         p = self.params
+        # The cycle thread, the notifier threads (and with `virtual` the rack's) share the GIL
+        # with the executor; Python's default 5 ms switch interval lets one of them hold it
+        # for several CAN periods. 0.5 ms keeps the 500 Hz cycle regular.
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         robot = load_robot(p.robot)
         axes = {a.name: a for a in robot.axes}
         eds = Path(p.eds) if p.eds else config_dir() / "can" / "lca_drive.eds"
