@@ -100,9 +100,9 @@ def test_controller_unchanged_over_can_tracks_the_ramp_and_switches_near_55_deg(
         assert len(errors) > 1500  # 250 Hz over 8.9 s: 2225, less any incomplete cycles
         assert math.degrees(max(errors)) < 0.5  # deg/s (0.3 over the lockstep simulator)
     finally:
-        nodes: tuple[Node | None, ...] = (probe, ctl, bridge)
-        for node in nodes:
-            if node is not None:
-                node.destroy_node()
+        started: tuple[Node | None, ...] = (probe, ctl, bridge)
+        for leftover in started:
+            if leftover is not None:
+                leftover.destroy_node()
         executor.shutdown()
         rclpy.shutdown(context=ctx)
