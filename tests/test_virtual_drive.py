@@ -636,7 +636,7 @@ def test_main_reports_a_missing_interface(capsys: pytest.CaptureFixture[str]) ->
     assert main(["--interface", "socketcan", "--channel", "nope0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    assert err[0].startswith("lca-virtual-drive: cannot open CAN interface 'socketcan'")
+    assert err[0].startswith("lca-virtual-drive: error: cannot open CAN interface 'socketcan'")
     assert main(["--interface", "no_such_interface", "--channel", "x"]) == 2
 
 
