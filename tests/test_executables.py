@@ -342,9 +342,19 @@ def test_simulator_bad_parameter_is_one_error_line_and_exit_2(
     override: str, domain_id: int, named: list[str], tmp_path: Path
 ) -> None:
     """A bad parameter value: exit 2 and one `lca-simulator: error:` line naming the problem."""
+    error = one_error_line_and_exit_2(
+        ["lca-simulator", "--ros-args", "-p", override], domain_id, tmp_path
+    )
+    for word in named:
+        assert word in error
+
+
+def one_error_line_and_exit_2(command: list[str], domain_id: int, cwd: Path) -> str:
+    """Run a console script that must fail at start: exit 2, no traceback, one error line."""
+    prog = command[0]
     proc = subprocess.run(
-        [str(BIN / "lca-simulator"), "--ros-args", "-p", override],
-        cwd=tmp_path,
+        [str(BIN / prog), *command[1:]],
+        cwd=cwd,
         env=ros_env(domain_id),
         capture_output=True,
         text=True,
@@ -353,11 +363,10 @@ def test_simulator_bad_parameter_is_one_error_line_and_exit_2(
     )
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("lca-simulator: ")]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith(f"{prog}: ")]
     assert len(errors) == 1, proc.stderr
-    assert errors[0].startswith("lca-simulator: error:")
-    for word in named:
-        assert word in errors[0]
+    assert errors[0].startswith(f"{prog}: error:")
+    return errors[0]
 
 
 # SIGTERM while the node is still being built (rclpy.init done, run_node's own handlers not yet
@@ -451,30 +460,17 @@ def test_colcon_build_installs_the_ros_package(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("command", "domain_id", "prog"),
+    ("command", "domain_id"),
     [
         (["lca-can-bridge", "--ros-args", "-p", "interface:=socketcan", "-p", "channel:=nope0"],
-         118, "lca-can-bridge"),
-        (["lca-virtual-drive", "--interface", "socketcan", "--channel", "nope0"],
-         119, "lca-virtual-drive"),
+         118),
+        (["lca-virtual-drive", "--interface", "socketcan", "--channel", "nope0"], 119),
     ],
     ids=["can_bridge", "virtual_drive"],
 )  # fmt: skip
 def test_missing_socketcan_interface_is_one_error_line_and_exit_2(
-    command: list[str], domain_id: int, prog: str, tmp_path: Path
+    command: list[str], domain_id: int, tmp_path: Path
 ) -> None:
     """A SocketCAN interface that does not exist: a clear error naming it, no traceback."""
-    proc = subprocess.run(
-        [str(BIN / command[0]), *command[1:]],
-        cwd=tmp_path,
-        env=ros_env(domain_id),
-        capture_output=True,
-        text=True,
-        timeout=START_TIMEOUT_S,
-        check=False,
-    )
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr
-    errors = [line for line in proc.stderr.splitlines() if line.startswith(f"{prog}: error:")]
-    assert len(errors) == 1, proc.stderr
-    assert "socketcan" in errors[0] and "nope0" in errors[0]
+    error = one_error_line_and_exit_2(command, domain_id, tmp_path)
+    assert "socketcan" in error and "nope0" in error
