@@ -119,6 +119,11 @@ class DrivePlant:
         self._loops[_L_LIMIT_V] = self._voltage_limits
         self._loops[_L_ACTIVE, self._index] = 1.0
         self._gains = np.array([self.current_pi.kp, self.current_pi.ti_s, self.sim.dt_s])
+        # Compile (or load from numba's cache) now, not in the first step of a running loop:
+        # on a cold cache that takes seconds, which a CAN drive's watchdogs would see.
+        _run_current_loops(
+            np.zeros_like(self._loops), np.zeros(self.sim.n_axes), self._gains, self._volts.copy()
+        )
 
     @property
     def target(self) -> FloatArray:
