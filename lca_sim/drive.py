@@ -119,11 +119,20 @@ class DrivePlant:
         self._loops[_L_LIMIT_V] = self._voltage_limits
         self._loops[_L_ACTIVE, self._index] = 1.0
         self._gains = np.array([self.current_pi.kp, self.current_pi.ti_s, self.sim.dt_s])
-        # Compile (or load from numba's cache) now, not in the first step of a running loop:
-        # on a cold cache that takes seconds, which a CAN drive's watchdogs would see.
-        _run_current_loops(
-            np.zeros_like(self._loops), np.zeros(self.sim.n_axes), self._gains, self._volts.copy()
-        )
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Run one step of the whole path now, and rewind.
+
+        Nothing is then compiled (or loaded from numba's cache) in the first step of a running
+        loop: on a fresh machine that took 0.2 s, which a CAN drive's watchdogs see as a lost
+        master.
+        """
+        snapshot = self.sim.state
+        _run_current_loops(self._loops.copy(), self.sim.state_array[2], self._gains, self._volts)
+        self.sim.step(np.zeros(self.sim.n_axes))
+        self.sim.set_state(snapshot)
+        self._volts[:] = 0.0
 
     @property
     def target(self) -> FloatArray:
