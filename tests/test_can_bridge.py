@@ -70,6 +70,11 @@ def _params(**overrides: Any) -> BridgeParams:
         "gear_ratios": tuple(axes[j].gear_ratio for j in JOINTS),
         "drive_state_names": robot.state_machine.state_names,
         "cycle_hz": 250.0,
+        # Watchdogs with room for a shared 2-core machine's stalls (a CI run saw a 0.3 s one);
+        # the tests of the watchdogs themselves still see them fire within their deadlines.
+        "rpdo_deadline_ms": 500,
+        "heartbeat_consumer_ms": 1000,
+        "stale_timeout_s": 0.5,
     }
     values.update(overrides)
     return BridgeParams(**values)
