@@ -36,9 +36,11 @@ from typing import Any
 
 import can
 import canopen
+import numpy as np
 
 from lca_sim.can_bridge import GIL_SWITCH_INTERVAL_S, BridgeParams, CanBridge, Snapshot
-from lca_sim.can_master import PowerState, bus_load_pct
+from lca_sim.can_master import bus_load_pct
+from lca_sim.cia402 import PowerState
 from lca_sim.config import config_dir, load_robot
 from lca_sim.virtual_drive import VirtualDriveRack, load_rack_config
 
@@ -54,14 +56,8 @@ JsonDict = dict[str, Any]
 
 
 def percentile(values: Sequence[float], q: float) -> float:
-    """The q-th percentile with linear interpolation (numpy's default method)."""
-    ordered = sorted(values)
-    if not ordered:
-        return math.nan
-    pos = (len(ordered) - 1) * q / 100.0
-    low = math.floor(pos)
-    high = min(low + 1, len(ordered) - 1)
-    return ordered[low] + (ordered[high] - ordered[low]) * (pos - low)
+    """The q-th percentile (numpy, linear interpolation); nan for no values."""
+    return float(np.percentile(values, q)) if len(values) else math.nan
 
 
 def rounded(value: float, digits: int = 3) -> float | None:

@@ -34,7 +34,8 @@ import canopen
 from canopen.sdo.base import SdoArray, SdoRecord
 
 from lca_sim import can_master as cm
-from lca_sim.can_master import PowerState, TorqueScale, Want
+from lca_sim.can_master import TorqueScale, Want
+from lca_sim.cia402 import CW_HALT, PowerState
 
 log = logging.getLogger(__name__)
 
@@ -559,7 +560,10 @@ class CanBridge:
             for a in self._axes:
                 a.fresh = 0
             self._check_safety(now)
-            frames = [self._rpdo_frame(axis, now) for axis in self._axes]
+            want = self._want
+            if want is Want.ENABLED and (self._quick_stopped or self._stop_reason()):
+                want = Want.QUICK_STOP
+            frames = [self._rpdo_frame(axis, want) for axis in self._axes]
             if self._want is Want.FAULT_RESET and all(
                 a.state.power_state is not PowerState.FAULT for a in self._axes
             ):
@@ -595,16 +599,13 @@ class CanBridge:
                     self._stale.append(axis.joint)
                     log.error("drive %s is stale: no TPDO for %.3f s", axis.joint, silent_s)
 
-    def _rpdo_frame(self, axis: _Axis, now: float) -> tuple[int, bytes]:
-        want = self._want
-        if want is Want.ENABLED and (self._quick_stopped or self._stop_reason()):
-            want = Want.QUICK_STOP
+    def _rpdo_frame(self, axis: _Axis, want: Want) -> tuple[int, bytes]:
         state = axis.state.power_state
         controlword = cm.next_controlword(state, want, axis.controlword)
         torque = 0
         running = want is Want.ENABLED and state is PowerState.OPERATION_ENABLED
         if running and (self._silence_halt or self._user_halt or self._failure_halt):
-            controlword |= cm.CW_HALT
+            controlword |= CW_HALT
         elif running and axis.scale is not None:
             torque, clamped = axis.scale.target_permille(axis.command_a)
             self.counters.commands_clamped += int(clamped)

@@ -156,7 +156,7 @@ class CanBridgeNode(Node):
         self._published = 0
         self._wrong_interface = 0
         self._last_diag_t = time.monotonic()
-        self._last_counts = (0, 0, 0, 0)
+        self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
         self._init_lock = threading.Lock()
 
         state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -384,10 +384,10 @@ class CanBridgeNode(Node):
         span = max(now - self._last_diag_t, 1e-6)
         frames = c.frames_sent + c.frames_received
         bits = c.bits_sent + c.bits_received
-        last_frames, last_bits = self._last_counts[0], self._last_counts[1]
+        last_frames, last_bits = self._last_frames_bits
         frames_per_s = (frames - last_frames) / span
         bits_per_s = (bits - last_bits) / span
-        self._last_diag_t, self._last_counts = now, (frames, bits, 0, 0)
+        self._last_diag_t, self._last_frames_bits = now, (frames, bits)
         latched = bridge.latched_reason()
         level = DiagnosticStatus.ERROR if latched else DiagnosticStatus.OK
         message = latched or "running"
@@ -416,7 +416,7 @@ class CanBridgeNode(Node):
                 status(
                     f"lca_hil/can_bridge/{joint}",
                     axis_level,
-                    power.value if power else f"statusword 0x{s.statusword:04X}",
+                    power.name.lower() if power else f"statusword 0x{s.statusword:04X}",
                     {
                         "statusword": f"0x{s.statusword:04X}",
                         "emcy_code": f"0x{emcy[joint]:04X}",

@@ -12,51 +12,26 @@ import enum
 import math
 from dataclasses import dataclass
 
-# Controlword commands (CiA 402, table "device control commands"); bit 8 is halt.
-CW_DISABLE_VOLTAGE = 0x0000
-CW_QUICK_STOP = 0x0002
-CW_SHUTDOWN = 0x0006
-CW_SWITCH_ON = 0x0007
-CW_ENABLE_OPERATION = 0x000F
-CW_FAULT_RESET = 0x0080
-CW_HALT = 0x0100
+from lca_sim.cia402 import CW_FAULT_RESET, PowerState, power_state_of
+
+# Whole controlwords a master sends (CiA 402, "device control commands"); the single bits
+# (CW_FAULT_RESET, CW_HALT, ...) are lca_sim.cia402's.
+CMD_DISABLE_VOLTAGE = 0x0000
+CMD_QUICK_STOP = 0x0002
+CMD_SHUTDOWN = 0x0006
+CMD_SWITCH_ON = 0x0007
+CMD_ENABLE_OPERATION = 0x000F
 
 MODE_CST = 10  # cyclic synchronous torque
 MODE_CSV = 9  # cyclic synchronous velocity
 
 
-class PowerState(enum.Enum):
-    """The CiA 402 power states, as a master reads them from the statusword."""
-
-    NOT_READY_TO_SWITCH_ON = "not_ready_to_switch_on"
-    SWITCH_ON_DISABLED = "switch_on_disabled"
-    READY_TO_SWITCH_ON = "ready_to_switch_on"
-    SWITCHED_ON = "switched_on"
-    OPERATION_ENABLED = "operation_enabled"
-    QUICK_STOP_ACTIVE = "quick_stop_active"
-    FAULT_REACTION_ACTIVE = "fault_reaction_active"
-    FAULT = "fault"
-
-
-# (mask, value, state): the statusword patterns of CiA 402, checked in this order.
-_STATUS_PATTERNS = (
-    (0x4F, 0x00, PowerState.NOT_READY_TO_SWITCH_ON),
-    (0x4F, 0x40, PowerState.SWITCH_ON_DISABLED),
-    (0x6F, 0x21, PowerState.READY_TO_SWITCH_ON),
-    (0x6F, 0x23, PowerState.SWITCHED_ON),
-    (0x6F, 0x27, PowerState.OPERATION_ENABLED),
-    (0x6F, 0x07, PowerState.QUICK_STOP_ACTIVE),
-    (0x4F, 0x0F, PowerState.FAULT_REACTION_ACTIVE),
-    (0x4F, 0x08, PowerState.FAULT),
-)
-
-
 def power_state(statusword: int) -> PowerState | None:
-    """The power state a statusword reports, or None for a pattern CiA 402 does not define."""
-    for mask, value, state in _STATUS_PATTERNS:
-        if statusword & mask == value:
-            return state
-    return None
+    """The power state a statusword reports, or None for a pattern CiA 402 does not define.
+
+    The drive side's decoding (`lca_sim.cia402.power_state_of`): one table for both ends.
+    """
+    return power_state_of(statusword)
 
 
 class Want(enum.Enum):
@@ -77,26 +52,26 @@ def next_controlword(state: PowerState | None, want: Want, previous_controlword:
     """
     if want is Want.FAULT_RESET:
         if state is PowerState.FAULT:
-            return CW_DISABLE_VOLTAGE if previous_controlword & CW_FAULT_RESET else CW_FAULT_RESET
+            return CMD_DISABLE_VOLTAGE if previous_controlword & CW_FAULT_RESET else CW_FAULT_RESET
         want = Want.DISABLED
     if want is Want.QUICK_STOP:
         # Quick stop from operation enabled; from any other state it leads to (or keeps)
         # switch on disabled, the state no single controlword leaves for motion.
-        return CW_DISABLE_VOLTAGE if state is PowerState.FAULT else CW_QUICK_STOP
+        return CMD_DISABLE_VOLTAGE if state is PowerState.FAULT else CMD_QUICK_STOP
     if state in (None, PowerState.NOT_READY_TO_SWITCH_ON, PowerState.FAULT_REACTION_ACTIVE):
-        return CW_SHUTDOWN
+        return CMD_SHUTDOWN
     if state is PowerState.FAULT:
-        return CW_DISABLE_VOLTAGE  # stays in fault until a reset is wanted
+        return CMD_DISABLE_VOLTAGE  # stays in fault until a reset is wanted
     if state is PowerState.QUICK_STOP_ACTIVE:
-        return CW_QUICK_STOP  # let the quick stop finish (-> switch on disabled)
+        return CMD_QUICK_STOP  # let the quick stop finish (-> switch on disabled)
     if want is Want.DISABLED:
-        return CW_SWITCH_ON if state is PowerState.OPERATION_ENABLED else CW_SHUTDOWN
+        return CMD_SWITCH_ON if state is PowerState.OPERATION_ENABLED else CMD_SHUTDOWN
     # want ENABLED
     if state is PowerState.SWITCH_ON_DISABLED:
-        return CW_SHUTDOWN
+        return CMD_SHUTDOWN
     if state is PowerState.READY_TO_SWITCH_ON:
-        return CW_SWITCH_ON
-    return CW_ENABLE_OPERATION  # switched on -> enable; enabled -> stay
+        return CMD_SWITCH_ON
+    return CMD_ENABLE_OPERATION  # switched on -> enable; enabled -> stay
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,7 +20,7 @@ import canopen
 import pytest
 
 from lca_sim.can_bridge import CAN_ERR_BUSOFF, BridgeParams, CanBridge, Snapshot
-from lca_sim.can_master import PowerState
+from lca_sim.cia402 import PowerState
 from lca_sim.config import config_dir, load_robot
 from lca_sim.virtual_drive import VirtualDriveRack, load_rack_config
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from lca_sim import can_master as cm
-from lca_sim.can_master import PowerState, TorqueScale, Want
+from lca_sim.can_master import TorqueScale, Want
+from lca_sim.cia402 import PowerState
 
 
 @pytest.mark.parametrize(
@@ -75,10 +76,10 @@ def test_quick_stop_from_enabled_ends_switch_on_disabled() -> None:
     for _ in range(3):
         controlword = cm.next_controlword(state, Want.QUICK_STOP, controlword)
         state = _drive(state, controlword)
-    assert controlword == cm.CW_QUICK_STOP
+    assert controlword == cm.CMD_QUICK_STOP
     assert state is PowerState.SWITCH_ON_DISABLED
     # and a fault is never "quick stopped" out of (only a reset leaves it)
-    assert cm.next_controlword(PowerState.FAULT, Want.QUICK_STOP, 0) == cm.CW_DISABLE_VOLTAGE
+    assert cm.next_controlword(PowerState.FAULT, Want.QUICK_STOP, 0) == cm.CMD_DISABLE_VOLTAGE
 
 
 def test_torque_scale_per_mille_and_clamp() -> None:
