@@ -51,6 +51,10 @@ setup(
         "canopen>=2.3",
         "PyYAML>=6.0",
         "matplotlib>=3.8",
+        # python-control: the Bode diagrams, margins and tuning of `lca-hil paper` / `tune`;
+        # scipy: the identification's filters and confidence intervals.
+        "control>=0.10",
+        "scipy>=1.11",
         "setuptools<80",
     ],
     extras_require={
@@ -63,8 +67,6 @@ setup(
             "ruff==0.17.6",
             "mypy==2.4.1",
             "types-PyYAML",
-            "control>=0.10",
-            "scipy>=1.11",
             "colcon-common-extensions",
         ],
         "bench": ["mujoco>=3.1"],
