@@ -31,6 +31,7 @@ from rosgraph_msgs.msg import Clock
 
 from lca_control.profiles import RampProfile
 from lca_sim import ros_interface as ri
+from lca_sim import tune
 from lca_sim.bagplot import BagReadError, read_bag
 from lca_sim.config import config_dir
 from lca_sim.rosutil import from_stamp
@@ -215,7 +216,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     fig15 = sub.add_parser("fig15", help="closed-loop Fig. 15 velocity ramp over ROS 2")
     fig15.add_argument("--out", type=Path, default=Path("out/fig15"), help="output folder")
     fig15.add_argument("--duration-s", type=float, default=13.0, help="simulated seconds")
+    tune.add_parser(sub)
     args = parser.parse_args(argv)
+    if args.command == "tune":
+        return tune.run(args)
     return run_fig15(args.out, args.duration_s)
 
 

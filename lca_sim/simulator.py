@@ -257,6 +257,44 @@ class Simulator:
         self._command = command
         self._time_s += self.dt_s
 
+    def derivative(
+        self, state: PlantState, voltage_v: Sequence[float] | FloatArray
+    ) -> tuple[FloatArray, tuple[int, ...]]:
+        """dx/dt of the continuous model at `state` under `voltage_v`, without stepping.
+
+        Returns a [3, n] array: joint velocity, joint acceleration (eq. 10 solved for the moving
+        axes with the drive state picked for this state, stopped axes locked at 0), and the
+        armature current rate (v - R i - k_t w) / L with the voltage saturated; and the drive
+        state index of every axis that this evaluation picked. This is what a numerical
+        linearisation differentiates (`lca_sim.linear`). The simulator's own state, time and
+        last command are left as they were.
+        """
+        saved_work = self._work.copy()
+        saved_time, saved_command = self._time_s, self._command
+        try:
+            self._work[kernel.X_POSITION] = state.position
+            self._work[kernel.X_VELOCITY] = state.velocity
+            self._work[kernel.X_CURRENT] = state.current_a
+            self._work[kernel.X_MOTION] = [int(m) for m in state.motion]
+            self._work[kernel.X_DRIVE] = state.drive
+            self._evaluate(voltage_v)
+            model = self._model
+            ratio = model[kernel.P_GEAR_RATIO]
+            current = self._work[kernel.X_CURRENT]
+            omega = ratio * self._work[kernel.X_VELOCITY]
+            out = np.empty((3, self.n_axes))
+            out[0] = self._work[kernel.X_VELOCITY]
+            out[1] = self._work[kernel.S_MOTOR_ACCELERATION] / ratio
+            out[2] = (
+                self._work[kernel.S_VOLTAGE]
+                - model[kernel.P_RESISTANCE_OHM] * current
+                - model[kernel.P_TORQUE_CONSTANT] * omega
+            ) / model[kernel.P_INDUCTANCE_H]
+            return out, tuple(int(d) for d in self._work[kernel.X_DRIVE])
+        finally:
+            self._work[:] = saved_work
+            self._time_s, self._command = saved_time, saved_command
+
     def _evaluate(self, voltage_v: Sequence[float] | FloatArray) -> None:
         """Fill the signals for the current state without advancing time (a zero-length step)."""
         command = np.asarray(voltage_v, dtype=np.float64)
