@@ -108,9 +108,10 @@ def pi_transfer(kp: float, ti_s: float) -> ct.TransferFunction:
     return ct.tf([kp * ti_s, kp], [ti_s, 0.0])
 
 
-def _state(
+def axis_moving_state(
     sim: Simulator, axis: int, position: float, velocity: float, current: float
 ) -> PlantState:
+    """A plant state with only `axis` moving (in the direction of `velocity`), others at rest."""
     n = sim.n_axes
     q = [0.0] * n
     v = [0.0] * n
@@ -138,7 +139,7 @@ def equilibrium_current(sim: Simulator, axis: int, point: OperatingPoint) -> flo
     zero = np.zeros(sim.n_axes)
 
     def acceleration(current: float) -> float:
-        state = _state(sim, axis, point.position_rad, point.velocity_rad_s, current)
+        state = axis_moving_state(sim, axis, point.position_rad, point.velocity_rad_s, current)
         return float(sim.derivative(state, zero)[0][1, axis])
 
     lo, hi = acceleration(-i_max), acceleration(i_max)
@@ -176,7 +177,7 @@ def linearise(sim: Simulator, axis: str, point: OperatingPoint) -> LinearAxisMod
     steps = _REL_STEP * np.maximum(np.abs(x0), scale)
 
     def f(x: FloatArray, u: float) -> tuple[FloatArray, int]:
-        state = _state(sim, a_index, float(x[0]), float(x[1]), float(x[2]))
+        state = axis_moving_state(sim, a_index, float(x[0]), float(x[1]), float(x[2]))
         volts = np.zeros(sim.n_axes)
         volts[a_index] = u
         dx, drive = sim.derivative(state, volts)
