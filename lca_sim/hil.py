@@ -30,8 +30,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from lca_control.profiles import RampProfile
+from lca_sim import paper_cli, tune
 from lca_sim import ros_interface as ri
-from lca_sim import tune
 from lca_sim.bagplot import BagReadError, read_bag
 from lca_sim.config import config_dir
 from lca_sim.rosutil import from_stamp
@@ -172,7 +172,7 @@ def _summarise(out: Path, bag: Path, wall_s: float) -> int:
             transition_deg, transition_t = math.degrees(positions[j]), t
             transition_state = state
             break
-    ramp = _ramp()
+    ramp = ramp_profile()
     errors = [
         abs(v - ramp(t)) for t, v in zip(joint.time_s, velocities, strict=True) if 2.0 < t < 10.9
     ]
@@ -204,7 +204,7 @@ def _summarise(out: Path, bag: Path, wall_s: float) -> int:
     return 0
 
 
-def _ramp() -> Callable[[float], float]:
+def ramp_profile() -> Callable[[float], float]:
     """The controller's Fig. 15 ramp, as config/ros/controller.yaml sets it."""
     return RampProfile(1.0, 10.0, math.radians(5.0), 0.0).velocity
 
@@ -217,9 +217,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     fig15.add_argument("--out", type=Path, default=Path("out/fig15"), help="output folder")
     fig15.add_argument("--duration-s", type=float, default=13.0, help="simulated seconds")
     tune.add_parser(sub)
+    paper_cli.add_parser(sub)
     args = parser.parse_args(argv)
     if args.command == "tune":
         return tune.run(args)
+    if args.command == "paper":
+        return paper_cli.run(args)
     return run_fig15(args.out, args.duration_s)
 
 
