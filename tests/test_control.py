@@ -13,12 +13,11 @@ from hypothesis import strategies as st
 from lca_control.cascade import (
     PAPER_CURRENT_KP_V_PER_A,
     PAPER_CURRENT_TI_S,
-    AxisCascade,
-    paper_cascade,
 )
 from lca_control.pi import ControlParamError, PIController, PIParams
 from lca_control.profiles import RampProfile, TrapezoidProfile
 from lca_sim import RobotParams, Simulator
+from lca_sim.paper import current_step
 
 WIDE = PIParams(kp=2.0, ti_s=0.5, output_min=-1e9, output_max=1e9)
 
@@ -159,40 +158,21 @@ def test_profiles_integrate_to_their_displacement() -> None:
     assert math.degrees(ramp.displacement(11.0)) == pytest.approx(25.0)
 
 
-def _current_step(robot: RobotParams, setpoint_a: float, seconds: float) -> np.ndarray:
-    """The pivot's current under the paper's current PI at the model rate, from rest."""
-    sim = Simulator(robot, dt_s=1e-4)
-    # Locked rotor, as for a current-loop test on the bench: the pivot sits on its upper end
-    # stop and the positive current pushes it into the stop.
-    upper_rad = sim.position_limits[1][1]
-    sim.reset(position={"pivot": upper_rad})
-    pivot = robot.axes[1]
-    cascade = AxisCascade(paper_cascade(20.0, pivot.motor.voltage_limit_v))
-    volts = np.zeros(4)
-    out = []
-    for _ in range(round(seconds / sim.dt_s)):
-        current = float(sim.state_array[2, 1])
-        volts[1] = cascade.voltage_command(setpoint_a, current, sim.dt_s)
-        sim.step(volts)
-        out.append(float(sim.state_array[2, 1]))
-    assert sim.state.position[1] == upper_rad
-    return np.array(out)
-
-
 def test_paper_current_step_fig13(default_robot: RobotParams) -> None:
     """Fig. 13: a 5 A step, response time about 3 ms and overshoot about 24 %.
 
     The paper's t_r is the 5 % response time (temps de reponse a 5 %), see docs/control.md.
     """
-    i = _current_step(default_robot, 5.0, 0.05)
-    t = np.arange(1, len(i) + 1) * 1e-4
+    step = current_step(default_robot, 5.0, 0.05)
+    i = step.current_a
     final = i[-1]
     assert final == pytest.approx(5.0, abs=0.01)
-    overshoot_pct = (i.max() - final) / final * 100
+    assert step.overshoot_pct == pytest.approx(24.0, abs=5.0)
+    assert step.response_time_s == pytest.approx(3e-3, abs=1e-3)
+    # The figures are those of the samples: 5 % band left for good, peak over the final value.
     outside = np.nonzero(np.abs(i - final) > 0.05 * final)[0]
-    response_s = t[outside[-1] + 1]
-    assert overshoot_pct == pytest.approx(24.0, abs=5.0)
-    assert response_s == pytest.approx(3e-3, abs=1e-3)
+    assert step.response_time_s == pytest.approx(step.time_s[outside[-1] + 1])
+    assert step.overshoot_pct == pytest.approx((i.max() - final) / final * 100)
     # And it is exactly the sampled RL loop python-control predicts (the rotor is locked):
     # ZOH plant at the model step, PI with the backward-Euler integral of lca_control.
     motor = default_robot.axes[1].motor
