@@ -30,7 +30,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from lca_control.profiles import RampProfile
-from lca_sim import paper_cli, tune
+from lca_sim import identify_cli, paper_cli, tune
 from lca_sim import ros_interface as ri
 from lca_sim.bagplot import BagReadError, read_bag
 from lca_sim.config import config_dir
@@ -218,7 +218,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     fig15.add_argument("--duration-s", type=float, default=13.0, help="simulated seconds")
     tune.add_parser(sub)
     paper_cli.add_parser(sub)
+    identify_cli.add_parser(sub)
     args = parser.parse_args(argv)
+    if args.command == "identify":
+        return identify_cli.run(args)
     if args.command == "tune":
         return tune.run(args)
     if args.command == "paper":

@@ -303,7 +303,8 @@ def test_unknown_shipped_scenario_lists_valid_names(
     outcome = _run(["run", "--scenario", "no_such", "--out", str(out_dir)], capsys)
     line = _assert_one_error_line(outcome)
     assert line == (
-        "lca-sim: error: unknown scenario 'no_such'; valid: fig9_open_loop_pivot, hold_pivot"
+        "lca-sim: error: unknown scenario 'no_such'; "
+        "valid: fig9_open_loop_pivot, hold_pivot, identify_pivot"
     )
     assert not out_dir.exists()
 

@@ -766,8 +766,8 @@ def test_unknown_shipped_scenario_lists_valid_names() -> None:
     """An unknown shipped scenario name lists the shipped scenarios."""
     with pytest.raises(UnknownNameError) as info:
         load_scenario("no_such_scenario", AXIS_NAMES)
-    assert info.value.valid == ("fig9_open_loop_pivot", "hold_pivot")
-    assert "valid: fig9_open_loop_pivot, hold_pivot" in str(info.value)
+    assert info.value.valid == ("fig9_open_loop_pivot", "hold_pivot", "identify_pivot")
+    assert "valid: fig9_open_loop_pivot, hold_pivot, identify_pivot" in str(info.value)
 
 
 @pytest.mark.parametrize("kind", ["robot", "scenario"])
@@ -788,7 +788,7 @@ def test_missing_file_path(tmp_path: Path, kind: str) -> None:
 def test_shipped_names() -> None:
     """The shipped robots and scenarios are found by name."""
     assert shipped_names("robots") == ("default", "reversible")
-    assert shipped_names("scenarios") == ("fig9_open_loop_pivot", "hold_pivot")
+    assert shipped_names("scenarios") == ("fig9_open_loop_pivot", "hold_pivot", "identify_pivot")
 
 
 @pytest.mark.parametrize("name", ["default", "reversible"])
