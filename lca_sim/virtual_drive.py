@@ -52,7 +52,9 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   EMCY (0x8130, 0x8250, 0x8700) and applies the 0x6007 reaction (default 1: fault) if the drive
   can produce torque (OPERATION ENABLED, QUICK STOP ACTIVE). NMT stop applies the 0x6007
   reaction too (no EMCY in STOPPED). A rising edge of controlword bit 7 clears 0x603F / 0x1001
-  (with an EMCY "error reset", code 0) and leaves FAULT.
+  (with an EMCY "error reset", code 0) and leaves FAULT. Time this process stands still (a
+  monitor tick later than `FREEZE_THRESHOLD_S`: the GIL held, the host paused) is not counted
+  against the master: the armed deadlines move on by it (`process_freezes` counts it).
 * PDO remapping over SDO, the standard way: set COB-ID bit 31, mapping sub 0 = 0, write the
   entries, sub 0 = their number, clear bit 31. Mapping writes while the PDO is valid, entries
   while sub 0 != 0, unmappable objects and more than 64 bits are refused with an SDO abort.
@@ -94,6 +96,9 @@ SYNC_COB_ID = 0x080
 NMT_COB_ID = 0x000
 HEARTBEAT_COB_BASE = 0x700
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
+# A monitor tick this much later than due means this process was frozen (the GIL held, the host
+# paused): that time is not counted against the master's deadlines (see `_monitor`).
+FREEZE_THRESHOLD_S = 0.05
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
 
@@ -311,6 +316,7 @@ class RackCounters:
     sync_losses: int = 0
     send_errors: int = 0
     handler_errors: int = 0
+    process_freezes: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """The counters by name."""
@@ -1095,15 +1101,44 @@ class VirtualDriveRack:
     # --- watchdogs -------------------------------------------------------------------------
 
     def _monitor(self) -> None:
-        while not self._stop_event.wait(MONITOR_PERIOD_S):
+        due = time.monotonic() + MONITOR_PERIOD_S
+        while not self._stop_event.wait(max(due - time.monotonic(), 0.0)):
             try:
                 with self._lock:
                     now = time.monotonic()
+                    frozen_s = now - due
+                    due = now + MONITOR_PERIOD_S
+                    if frozen_s > FREEZE_THRESHOLD_S:
+                        self._discount_freeze(frozen_s)
                     self._check_watchdogs(now)
                     self._service_event_tpdos(now)
             except Exception:
                 self._counters.handler_errors += 1
                 logger.exception("virtual drive: error in the monitor")
+
+    def _discount_freeze(self, frozen_s: float) -> None:
+        """Move every armed deadline on by `frozen_s`: this process, not the master, stood still.
+
+        A real drive's watchdog runs on its own hardware. This one shares an interpreter with
+        its receive thread (and, with interface virtual, with the master): while the process is
+        frozen, frames wait unread in the bus queue, and judging the deadlines on waking would
+        blame the master for the freeze. A master that is silent while this process runs is
+        still caught on time.
+        """
+        self._counters.process_freezes += 1
+        self._warn_once(
+            "freeze",
+            f"this process stood still for {frozen_s * 1e3:.0f} ms; the watchdogs do not count "
+            "such time against the master",
+        )
+        for axis in self._axes:
+            if axis.heartbeat_last_rx_s is not None:
+                axis.heartbeat_last_rx_s += frozen_s
+            for pdo in axis.rpdos:
+                if pdo.last_rx_s is not None:
+                    pdo.last_rx_s += frozen_s
+            axis.sync_armed_s += frozen_s
+        self._last_sync_done_s += frozen_s
 
     def _check_watchdogs(self, now: float) -> None:
         for axis in self._axes:

@@ -44,6 +44,10 @@ def test_controller_unchanged_over_can_tracks_the_ramp_and_switches_near_55_deg(
     executor = make_executor(ctx)  # the executor the nodes spin in production (run_node)
     bridge = ctl = probe = None
     try:
+        # The controller and the probe first: their construction (type support libraries loaded
+        # on a fresh machine) then cannot stall the CAN cycle, which starts with the bridge.
+        ctl = ControllerNode(context=ctx, parameter_overrides=_controller_yaml())
+        probe = Node("swap_probe", context=ctx)
         bridge = CanBridgeNode(
             context=ctx,
             parameter_overrides=[
@@ -55,8 +59,6 @@ def test_controller_unchanged_over_can_tracks_the_ramp_and_switches_near_55_deg(
                 Parameter("cycle_hz", value=250.0),
             ],
         )
-        ctl = ControllerNode(context=ctx, parameter_overrides=_controller_yaml())
-        probe = Node("swap_probe", context=ctx)
         states: list[JointState] = []
         transitions: list[tuple[float, str, float]] = []
         last_state = {"name": ""}

@@ -447,6 +447,43 @@ def test_rpdo_deadline(rack: VirtualDriveRack, probe: Probe, master: canopen.Net
     assert rack.counters.rpdo_timeouts == 1
 
 
+def test_a_frozen_rack_does_not_blame_the_master(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """A freeze of the rack's own process is not the master's silence.
+
+    The rack's threads stand still for 0.3 s (40 ms RPDO deadline) while the master goes on
+    sending: the frozen time is discounted, no fault. Silence afterwards still faults.
+    """
+    node = remote(master, PIVOT)
+    node.sdo[0x1400][5].raw = 40
+    enable(node)
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    stop_sending = threading.Event()
+
+    def master_rpdos() -> None:
+        while not stop_sending.wait(0.01):
+            probe.send(0x202, struct.pack("<Hh", 0x0F, 0))
+
+    sender = threading.Thread(target=master_rpdos, daemon=True)
+    sender.start()
+    try:
+        wait_until(lambda: rack.counters.rpdos_received > 5, "RPDOs flowing")
+        with rack._lock:  # what a held GIL or a paused host does to the rack's threads
+            threading.Event().wait(0.3)
+        received = rack.counters.rpdos_received
+        wait_until(lambda: rack.counters.rpdos_received > received + 5, "RPDOs after the freeze")
+        assert rack.counters.process_freezes >= 1
+        assert rack.counters.rpdo_timeouts == 0
+        assert rack.power_state("pivot") is PowerState.OPERATION_ENABLED
+    finally:
+        stop_sending.set()
+        sender.join()
+    mark = probe.mark()
+    assert emcy_code(probe.wait(0x82, mark)) == (0x8250, 0x11)
+    assert rack.counters.rpdo_timeouts == 1
+
+
 def test_sync_loss(rack: VirtualDriveRack, probe: Probe, master: canopen.Network) -> None:
     """0x1006 = 20 ms, OPERATIONAL and enabled, no SYNC: EMCY 0x8700 and FAULT."""
     node = remote(master, PIVOT)
