@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 # Python's default GIL switch interval (5 ms) lets one thread hold the interpreter for several
 # CAN periods; processes that run a CanBridge (the node, the benchmark) set this instead.
 GIL_SWITCH_INTERVAL_S = 5e-4
+# Two cycle starts this much further apart than a period: the process was frozen (`_run`).
+FREEZE_THRESHOLD_S = 0.05
 SYNC_COB_ID = 0x80
 HEARTBEAT_BASE = 0x700
 NMT_OPERATIONAL_CODE = 0x05
@@ -189,6 +191,7 @@ class Counters:
     frames_received: int = 0
     bits_sent: int = 0
     bits_received: int = 0
+    process_freezes: int = 0
 
 
 @dataclass(slots=True)
@@ -538,8 +541,14 @@ class CanBridge:
     def _run(self) -> None:
         period = 1.0 / self.params.cycle_hz
         next_t = time.monotonic()
+        previous_start = math.nan
         while not self._stop.is_set():
-            self.cycle(time.monotonic())
+            now = time.monotonic()
+            frozen_s = now - previous_start - period
+            if frozen_s > FREEZE_THRESHOLD_S:
+                self._discount_freeze(frozen_s)
+            previous_start = now
+            self.cycle(now)
             next_t += period
             delay = next_t - time.monotonic()
             if delay < -period:  # more than a period late: do not burst to catch up
@@ -578,6 +587,27 @@ class CanBridge:
         if now >= self._next_heartbeat_t:
             self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
             self._send(HEARTBEAT_BASE + p.master_node_id, bytes([NMT_OPERATIONAL_CODE]))
+
+    def _discount_freeze(self, frozen_s: float) -> None:
+        """Move the silence deadlines on by `frozen_s`: this process stood still, not the others.
+
+        Two cycle starts further apart than a period plus `FREEZE_THRESHOLD_S` mean the cycle
+        thread was frozen (the GIL held by a library load, a paused host). The commands and
+        TPDOs sent meanwhile wait unread in the queues; judging the controller's and the drives'
+        silence on waking would blame them for the freeze. A controller or drive that is silent
+        while this thread runs is still caught on time.
+        """
+        with self._lock:
+            self.counters.process_freezes += 1
+            self._last_command_t += frozen_s
+            for axis in self._axes:
+                axis.last_tpdo_t += frozen_s
+        if self.counters.process_freezes == 1:
+            log.warning(
+                "the cycle thread stood still for %.0f ms; silence deadlines do not count it "
+                "(further freezes are only counted)",
+                frozen_s * 1e3,
+            )
 
     def _check_safety(self, now: float) -> None:
         p = self.params

@@ -196,6 +196,29 @@ def test_controller_silence_halts_then_quick_stops(rig_factory: Callable[..., Ri
     _enabled(rig)
 
 
+def test_a_frozen_bridge_does_not_blame_the_controller_or_the_drives(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """A freeze of the whole process is nobody's silence.
+
+    The bridge's and the rack's threads stand still for 0.3 s (what a held GIL does): with a
+    0.05 s command timeout, a 0.1 s stale timeout and the drives' 40 ms SYNC-loss deadline,
+    nothing trips, because both sides discount the frozen time. A silent controller is still
+    caught: the halt test above runs with the same timeouts.
+    """
+    rig = _enabled(rig_factory(command_timeout_s=0.05, stale_timeout_s=0.1))
+    n = len(rig.snapshots)
+    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles enabled")
+    with rig.rack._lock, rig.bridge._lock:
+        threading.Event().wait(0.3)
+    n = len(rig.snapshots)
+    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles after the freeze")
+    assert rig.bridge.counters.process_freezes >= 1
+    assert rig.bridge.counters.silence_halts == 0
+    assert rig.bridge.latched_reason() == ""
+    assert rig.all_in(PowerState.OPERATION_ENABLED)
+
+
 def test_bridge_killed_drives_react_and_send_emcy(rig_factory: Callable[..., Rig]) -> None:
     """No more SYNC, RPDO or heartbeat: each drive applies 0x6007 (fault) and sends an EMCY."""
     rig = _enabled(rig_factory())
