@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 # CAN periods; processes that run a CanBridge (the node, the benchmark) set this instead.
 GIL_SWITCH_INTERVAL_S = 5e-4
 # Two cycle starts this much further apart than a period: the process was frozen (`_run`).
-FREEZE_THRESHOLD_S = 0.05
+FREEZE_THRESHOLD_S = 0.01
 SYNC_COB_ID = 0x80
 HEARTBEAT_BASE = 0x700
 NMT_OPERATIONAL_CODE = 0x05

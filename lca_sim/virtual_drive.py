@@ -97,8 +97,9 @@ NMT_COB_ID = 0x000
 HEARTBEAT_COB_BASE = 0x700
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 # A monitor tick this much later than due means this process was frozen (the GIL held, the host
-# paused): that time is not counted against the master's deadlines (see `_monitor`).
-FREEZE_THRESHOLD_S = 0.05
+# paused): that time is not counted against the master's deadlines (see `_monitor`). It must stay
+# below the tightest deadline (SYNC loss: 10 periods, 20 ms at 500 Hz).
+FREEZE_THRESHOLD_S = 0.01
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
 
