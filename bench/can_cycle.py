@@ -42,6 +42,7 @@ from lca_sim.can_bridge import GIL_SWITCH_INTERVAL_S, BridgeParams, CanBridge, S
 from lca_sim.can_master import bus_load_pct
 from lca_sim.cia402 import PowerState
 from lca_sim.config import config_dir, load_robot
+from lca_sim.runtime import settle_heap
 from lca_sim.virtual_drive import VirtualDriveRack, load_rack_config
 
 RATES_HZ = (250, 500, 1000)
@@ -98,6 +99,7 @@ def run_rate(rate_hz: int, window_s: float, warmup_s: float) -> JsonDict:
             network, bridge_params(rate_hz), config_dir() / "can" / "lca_drive.eds", on_state
         )
         bridge.init()
+        settle_heap()  # as the bridge node does before its cycle starts
         bridge.start()
         bridge.set_currents(COMMAND_A)
         bridge.enable(True)

@@ -51,6 +51,7 @@ from lca_sim.can_master import bus_load_pct
 from lca_sim.config import config_dir, load_robot
 from lca_sim.errors import ConfigError
 from lca_sim.rosutil import declare_parameters, run_node, status, to_stamp
+from lca_sim.runtime import settle_heap
 
 MOTION_NAMES = {-1: "reverse", 0: "stopped", 1: "direct"}
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
@@ -212,6 +213,7 @@ class CanBridgeNode(Node):
                 self.bridge.init()
             except BridgeError as exc:
                 return str(exc)
+            settle_heap()  # before the cycle runs: a full collection would stall it
             self.bridge.start()
             return ""
 

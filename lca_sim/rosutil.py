@@ -21,6 +21,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok as rclpy_ok
 
 from lca_sim.errors import LcaHilError
+from lca_sim.runtime import settle_heap
 
 EXIT_OK = 0
 EXIT_BAD_CONFIG = 2
@@ -147,6 +148,7 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
             return EXIT_BAD_CONFIG
         executor = make_executor()
         executor.add_node(node)
+        settle_heap()  # start-up objects out of the collector's sight: no 100 ms stalls later
         while not stop["requested"] and rclpy_ok():
             executor.spin_once(timeout_sec=0.1)
         return EXIT_OK

@@ -88,6 +88,7 @@ from lca_sim.config import config_dir, load_robot, read_yaml
 from lca_sim.drive import CURRENT, DrivePlant
 from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
 from lca_sim.params import AXIS_NAMES, RobotParams
+from lca_sim.runtime import settle_heap
 from lca_sim.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 
 logger = logging.getLogger(__name__)
@@ -1242,6 +1243,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rack: VirtualDriveRack | None = None
     try:
         rack = VirtualDriveRack(bus, config)
+        settle_heap()  # before the rack runs: a full collection would stall its cycle
         rack.start()
         nodes = ", ".join(f"{a.name}={a.node_id}" for a in config.axes)
         print(
