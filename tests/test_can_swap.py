@@ -109,8 +109,13 @@ def test_controller_unchanged_over_can_tracks_the_ramp_and_switches_near_55_deg(
         names = [name for _, name, _ in transitions]
         assert "motor_driving" in names, transitions
         first_motor = names.index("motor_driving")
-        switch = next(t for t in transitions[first_motor:] if t[1] != "motor_driving")
-        assert switch[1].startswith(("motor_and_load_driving", "load_driving")), transitions
+        # The load starts driving where the centre of gravity passes over the axis. Before it,
+        # only motor driving and (during a brief brake of the velocity loop) coasting can occur:
+        # both are states where the load resists. A cold-start run showed such a brake at 41 deg.
+        load_drives = ("motor_and_load_driving", "load_driving")
+        switch = next(t for t in transitions[first_motor:] if t[1].startswith(load_drives))
+        before = {t[1] for t in transitions[first_motor:] if t[0] < switch[0]}
+        assert before <= {"motor_driving", "coasting"}, transitions
         assert math.degrees(switch[2]) == pytest.approx(55.0, abs=1.0)
         ramp = ctl.core.params.profile
         assert ramp is not None
