@@ -202,7 +202,8 @@ class Simulator:
             values={name: self._signals[row].copy() for row, name in enumerate(SIGNAL_NAMES)},
         )
 
-    # Read-only views for recorders that copy every step (no allocation).
+    # Read-only views for recorders that copy every step (no allocation). They stay valid for
+    # the simulator's life: its arrays are updated in place, never replaced.
     @property
     def state_array(self) -> FloatArray:
         """View of [position, velocity, current] x axes; do not write."""
