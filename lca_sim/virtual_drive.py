@@ -364,9 +364,15 @@ def _frame_codec(objects: Sequence[ODVariable]) -> struct.Struct:
     Packing a whole frame at once instead of object by object (`ODVariable.encode_raw`) is
     most of what keeps the rack's SYNC handling inside a 2 ms cycle (bench/can_cycle.py).
     """
-    return struct.Struct(
-        "<" + "".join(ODVariable.STRUCT_TYPES[obj.data_type].format.lstrip("<") for obj in objects)
-    )
+    return struct.Struct("<" + "".join(_number_format(obj) for obj in objects))
+
+
+def _number_format(obj: ODVariable) -> str:
+    """The struct format of a number object; a string or domain cannot be mapped."""
+    packer = None if obj.data_type is None else ODVariable.STRUCT_TYPES.get(obj.data_type)
+    if packer is None:
+        raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+    return packer.format.lstrip("<")
 
 
 @dataclass
@@ -797,6 +803,7 @@ class VirtualDriveRack:
         allowed = obj.writable if receive else obj.readable
         if not (obj.pdo_mappable and allowed and entry.bits == len(obj) and entry.bits % 8 == 0):
             raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        _number_format(obj)
         return obj
 
     def _mapped_objects(self, axis: _Axis, slots: Sequence[int], receive: bool) -> list[ODVariable]:
