@@ -89,7 +89,7 @@ from lca_sim.config import config_dir, load_robot, read_yaml
 from lca_sim.drive import CURRENT, DrivePlant
 from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
 from lca_sim.params import AXIS_NAMES, RobotParams
-from lca_sim.runtime import settle_heap
+from lca_sim.runtime import settle_heap, yield_gil
 from lca_sim.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 
 logger = logging.getLogger(__name__)
@@ -1033,6 +1033,9 @@ class VirtualDriveRack:
                 if pdo.sync_count >= pdo.transmission_type:
                     pdo.sync_count = 0
                     self._send_tpdo(pdo, self._encode(axis, pdo), now)
+        # A real drive's TPDOs leave in hardware while its CPU goes on; here the master reads
+        # them on a thread of this process, so let it before the plant's period is computed.
+        yield_gil()
         self._advance(now)
         for axis in self._axes:
             self._set_drive(axis, axis.drive, now)
