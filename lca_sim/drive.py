@@ -17,6 +17,7 @@ import numpy.typing as npt
 from numba import njit
 
 from lca_control.pi import PIParams, pi_law, pi_rebase
+from lca_sim import kernel
 from lca_sim.simulator import Simulator
 
 FloatArray = npt.NDArray[np.float64]
@@ -56,6 +57,13 @@ def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyp
         loops[_L_OUTPUT, a] = output
         loops[_L_LAST_ERROR, a] = error
         volts[a] = output
+
+
+@njit(cache=True)
+def _current_loops_step(volts, loops, gains, mass_matrix, nonlinear_effects, work, model, dt_s):  # type: ignore[no-untyped-def]
+    """One model step under the current loops' voltages (`Simulator.step_with`)."""
+    _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
+    return kernel.step(mass_matrix, nonlinear_effects, volts, work, model, dt_s)
 
 
 @dataclass
@@ -211,10 +219,8 @@ class DrivePlant:
             for _ in range(n_steps):
                 sim.step(volts)
             return
-        currents = sim.state_array[2]
         loops = self._loops
         gains = self._gains
         loops[_L_TARGET_A] = self._target
         for _ in range(n_steps):
-            _run_current_loops(loops, currents, gains, volts)
-            sim.step(volts)
+            sim.step_with(_current_loops_step, volts, loops, gains)

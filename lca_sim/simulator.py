@@ -8,7 +8,7 @@ fixed `dt_s`. Nothing here reads a clock or touches a file.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -256,6 +256,26 @@ class Simulator:
         if code != kernel.OK:
             raise InputError(f"voltage commands must be finite, got {command.tolist()}")
         self._command = command
+        self._time_s += self.dt_s
+
+    def step_with(self, stepper: Callable[..., int], volts: FloatArray, *args: FloatArray) -> None:
+        """Advance one `dt_s` under voltages that a compiled drive computes inside the step.
+
+        `stepper(volts, *args, mass_matrix, nonlinear_effects, work, model, dt_s)` is a numba
+        function that writes the voltage commands into `volts` from the state in `work` (rows
+        `kernel.X_*`, read only) and then calls `kernel.step` with them, returning its code.
+        The in-drive current loops (`lca_sim.drive`) run this way: one compiled call per
+        substep instead of two, the same arithmetic.
+
+        Raises:
+            InputError: the voltages were not finite; the state is left unchanged.
+
+        """
+        mass, nle = self._dynamics(self._position, self._velocity)
+        code = stepper(volts, *args, mass, nle, self._work, self._model, self.dt_s)
+        if code != kernel.OK:
+            raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
+        self._command = volts
         self._time_s += self.dt_s
 
     def derivative(
