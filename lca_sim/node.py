@@ -234,8 +234,9 @@ class SimulatorNode(Node):
         joint.effort = (signals[_ROW["motor_torque_nm"]] * self._gear_ratio).tolist()
         self._joint_pub.publish(joint)
 
-        # Messages nobody has subscribed to are not even built (a subscriber that joins later
-        # gets them from its first match on); joint_states and /clock always go out.
+        # Messages nobody has subscribed to are not even built (a subscriber that joins later,
+        # a use_sim_time node's clock included, gets them from its first match on);
+        # joint_states always goes out.
         if self._motor_pub.get_subscription_count():
             motor = self._motor_msg
             motor.header.stamp = stamp
@@ -244,7 +245,7 @@ class SimulatorNode(Node):
             motor.effort = state[2].tolist()
             self._motor_pub.publish(motor)
 
-        if self._clock_pub is not None:
+        if self._clock_pub is not None and self._clock_pub.get_subscription_count():
             self._clock_pub.publish(Clock(clock=stamp))
         if self._drive_pub.get_subscription_count():
             self._publish_drive_chain(stamp)

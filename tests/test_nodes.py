@@ -20,6 +20,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
@@ -127,6 +128,28 @@ def test_closed_loop_ramp_switches_to_load_driving_near_55_deg() -> None:
                 errors.append(abs(msg.velocity[1] - ramp.velocity(t)))
         assert len(errors) > 1000
         assert math.degrees(max(errors)) < 0.3  # deg/s
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def test_lockstep_clock_advances_one_control_period_per_state() -> None:
+    """/clock in lockstep: one tick per published instant, 4 ms of simulated time apart."""
+    with ros_context() as (ctx, executor):
+        sim, ctl = _lockstep_pair(ctx, executor)  # the controller runs on sim time
+        recorder = Recorder(ctx, executor)
+        clocks: list[int] = []
+        recorder.node.create_subscription(
+            Clock, "/clock", lambda m: clocks.append(_stamp_ns(m.clock)), 100
+        )
+        spin_until(executor, lambda: sim.sim_time_s >= 1.0, timeout_s=60.0)
+        spin_until(executor, lambda: len(set(clocks)) >= 200)
+        ticks = np.array(sorted(set(clocks)))
+        np.testing.assert_array_equal(np.diff(ticks), 4_000_000)  # ns: exactly one period
+        joint_stamps = {_stamp_ns(m.header.stamp) for m in recorder.states}
+        assert set(ticks.tolist()) <= joint_stamps  # every tick is an instant published
+        assert ctl.get_clock().now().nanoseconds >= ticks[-1] - 8_000_000  # it follows /clock
 
 
 def _lockstep_run(seconds: float) -> np.ndarray:
