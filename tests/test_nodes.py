@@ -140,9 +140,11 @@ def test_lockstep_clock_advances_one_control_period_per_state() -> None:
         sim, ctl = _lockstep_pair(ctx, executor)  # the controller runs on sim time
         recorder = Recorder(ctx, executor)
         clocks: list[int] = []
-        recorder.node.create_subscription(
-            Clock, "/clock", lambda m: clocks.append(_stamp_ns(m.clock)), 100
-        )
+
+        def on_clock(msg: Clock) -> None:
+            clocks.append(_stamp_ns(msg.clock))
+
+        recorder.node.create_subscription(Clock, "/clock", on_clock, 100)
         spin_until(executor, lambda: sim.sim_time_s >= 1.0, timeout_s=60.0)
         spin_until(executor, lambda: len(set(clocks)) >= 200)
         ticks = np.array(sorted(set(clocks)))
