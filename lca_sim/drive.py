@@ -61,7 +61,7 @@ def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyp
 
 @njit(cache=True)
 def _current_loops_step(volts, loops, gains, mass_matrix, nonlinear_effects, work, model, dt_s):  # type: ignore[no-untyped-def]
-    """One model step under the current loops' voltages (`Simulator.step_with`)."""
+    """One model step under the current loops' voltages (`Simulator.advance_with`)."""
     _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
     return kernel.step(mass_matrix, nonlinear_effects, volts, work, model, dt_s)
 
@@ -222,5 +222,4 @@ class DrivePlant:
         loops = self._loops
         gains = self._gains
         loops[_L_TARGET_A] = self._target
-        for _ in range(n_steps):
-            sim.step_with(_current_loops_step, volts, loops, gains)
+        sim.advance_with(n_steps, _current_loops_step, volts, loops, gains)

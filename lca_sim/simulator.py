@@ -258,25 +258,31 @@ class Simulator:
         self._command = command
         self._time_s += self.dt_s
 
-    def step_with(self, stepper: Callable[..., int], volts: FloatArray, *args: FloatArray) -> None:
-        """Advance one `dt_s` under voltages that a compiled drive computes inside the step.
+    def advance_with(
+        self, n_steps: int, stepper: Callable[..., int], volts: FloatArray, *args: FloatArray
+    ) -> None:
+        """Advance `n_steps` of `dt_s` under voltages a compiled drive computes at every step.
 
         `stepper(volts, *args, mass_matrix, nonlinear_effects, work, model, dt_s)` is a numba
         function that writes the voltage commands into `volts` from the state in `work` (rows
         `kernel.X_*`, read only) and then calls `kernel.step` with them, returning its code.
-        The in-drive current loops (`lca_sim.drive`) run this way: one compiled call per
-        substep instead of two, the same arithmetic.
+        The in-drive current loops (`lca_sim.drive`) run this way: per step, one compiled call
+        instead of two and no Python bookkeeping beyond the Pinocchio terms; the same arithmetic
+        as `step` with the voltages computed outside.
 
         Raises:
-            InputError: the voltages were not finite; the state is left unchanged.
+            InputError: the voltages were not finite; the steps before stand, the state is as
+                after them.
 
         """
-        mass, nle = self._dynamics(self._position, self._velocity)
-        code = stepper(volts, *args, mass, nle, self._work, self._model, self.dt_s)
-        if code != kernel.OK:
-            raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
-        self._command = volts
-        self._time_s += self.dt_s
+        dynamics, position, velocity = self._dynamics, self._position, self._velocity
+        work, model, dt_s = self._work, self._model, self.dt_s
+        for _ in range(n_steps):
+            mass, nle = dynamics(position, velocity)
+            if stepper(volts, *args, mass, nle, work, model, dt_s) != kernel.OK:
+                raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
+            self._command = volts
+            self._time_s += dt_s
 
     def derivative(
         self, state: PlantState, voltage_v: Sequence[float] | FloatArray

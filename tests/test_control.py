@@ -226,3 +226,11 @@ def test_in_drive_current_loops_are_the_lca_control_pi(default_robot: RobotParam
             np.testing.assert_array_equal(sim_drive.state_array, sim_ref.state_array)
     assert saturated > 10  # the limit and the frozen integral were really exercised
     assert volts[0] == volts[2] == 0.0  # axes outside `joints` get no voltage
+    # A whole control period in one call (as the simulator node and the CAN rack advance).
+    for _ in range(40):
+        for a, loop in loops.items():
+            volts[a] = loop.update(-2.0 if a == 3 else 3.0, float(sim_ref.state_array[2, a]), 1e-4)
+        sim_ref.step(volts)
+    plant.advance(40)
+    np.testing.assert_array_equal(sim_drive.state_array, sim_ref.state_array)
+    assert sim_drive.time_s == sim_ref.time_s
