@@ -15,7 +15,9 @@ id (140..143) and DDS discovery limited to this machine (ROS_AUTOMATIC_DISCOVERY
    depth 100): ``ping`` publishes a JointState, ``pong`` answers each with a Float64MultiArray,
    ``ping`` publishes the next on the answer. Both spin a SingleThreadedExecutor as the nodes
    do. The figure is round trips per second over the same window; the target is a lockstep rate
-   of at least 0.8x that.
+   of at least 0.8x that. Phases 1 and 2 run in turn ``--pairs`` times (3 by default), so that the
+   host's load drifting during a run does not land on one side of the ratio only; each pair
+   gives a ratio, and the headline figure is their median.
 3. Realtime mode: ``lca-simulator`` with ``timing_mode:=realtime`` at ``publish_rate_hz`` 250,
    then 1000 (separate runs, no controller), with an observer process that records the receive
    time (CLOCK_MONOTONIC) and header stamp of every joint_states message over the window. It
@@ -31,7 +33,7 @@ when every figure was measured, 1 when a phase failed. The last stdout line is o
 
 Run from the repository root::
 
-    .venv/bin/python bench/ros_loop.py            # 10 s windows, about 70 s in all
+    .venv/bin/python bench/ros_loop.py            # 10 s windows, 3 pairs, about 2.5 min in all
     .venv/bin/python bench/ros_loop.py --quick    # 3 s windows, a fast check
 
 Children stop on their own (every role has a deadline), and are ended by this script on exit,
@@ -50,6 +52,7 @@ import math
 import os
 import platform
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -76,6 +79,7 @@ TARGET_RATIO_MIN = 0.8
 DEFAULT_WINDOW_S = 10.0
 QUICK_WINDOW_S = 3.0
 DEFAULT_WARMUP_S = 2.0
+DEFAULT_PAIRS = 3  # lockstep / ping-pong measured in turn this many times; the median ratio counts
 QUICK_WARMUP_S = 1.0
 STARTUP_TIMEOUT_S = 30.0  # first data from a freshly started node (numba cache, discovery)
 STOP_TIMEOUT_S = 5.0  # SIGTERM -> exit, then SIGKILL
@@ -876,7 +880,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--quick",
         action="store_true",
-        help=f"short windows ({QUICK_WINDOW_S:g} s) and warm-ups ({QUICK_WARMUP_S:g} s)",
+        help=f"short windows ({QUICK_WINDOW_S:g} s) and warm-ups ({QUICK_WARMUP_S:g} s), one pair",
+    )
+    parser.add_argument(
+        "--pairs",
+        type=positive_int,
+        default=None,
+        help="lockstep and ping-pong phases run in turn this many times; the headline ratio is "
+        f"the median of the pairs' ratios (default {DEFAULT_PAIRS}; 1 with --quick)",
     )
     # Internal: this script as one of its own child processes.
     parser.add_argument(
@@ -901,6 +912,19 @@ def positive_float(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """Argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def median(values: Sequence[float]) -> float | None:
+    """The median of `values`, None for none."""
+    return statistics.median(values) if values else None
+
+
 def _raise_on_sigterm(signum: int, _frame: FrameType | None) -> None:
     raise SystemExit(128 + signum)  # so the finally blocks end the children
 
@@ -911,6 +935,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.role:
         return run_role(args.role, args)
     window_s = args.window_s or (QUICK_WINDOW_S if args.quick else DEFAULT_WINDOW_S)
+    pairs = args.pairs or (1 if args.quick else DEFAULT_PAIRS)
     warmup_s = QUICK_WARMUP_S if args.quick else DEFAULT_WARMUP_S
     # This process starts no ROS context, but it runs under the same rules as its children.
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -930,25 +955,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     started_s = time.monotonic()
     errors: dict[str, str] = {}
+    pair_results: list[tuple[JsonDict | None, JsonDict | None]] = []
     with tempfile.TemporaryDirectory(prefix="ros_loop_") as tmp:
         children = Children(Path(tmp))
         try:
-            lockstep = run_phase(
-                "[1] lockstep closed loop: lca-simulator + lca-controller (current commands, "
-                f"{CONTROL_PERIOD_S * 1e3:g} ms period)",
-                children,
-                errors,
-                "lockstep",
-                lambda: phase_lockstep(children, warmup_s, window_s),
-            )
-            pingpong = run_phase(
-                "[2] bare rclpy ping-pong: JointState -> Float64MultiArray, reliable depth "
-                f"{PINGPONG_QOS_DEPTH}, rclpy's default SingleThreadedExecutor",
-                children,
-                errors,
-                "pingpong",
-                lambda: phase_pingpong(children, warmup_s, window_s, "single"),
-            )
+            # The host's load drifts over a run; measuring the two in turn, several times,
+            # keeps a drift from landing on one side of the ratio only.
+            for k in range(1, pairs + 1):
+                tag = f" (pair {k} of {pairs})" if pairs > 1 else ""
+                lockstep = run_phase(
+                    "[1] lockstep closed loop: lca-simulator + lca-controller (current "
+                    f"commands, {CONTROL_PERIOD_S * 1e3:g} ms period){tag}",
+                    children,
+                    errors,
+                    f"lockstep_{k}",
+                    lambda: phase_lockstep(children, warmup_s, window_s),
+                )
+                pingpong = run_phase(
+                    "[2] bare rclpy ping-pong: JointState -> Float64MultiArray, reliable depth "
+                    f"{PINGPONG_QOS_DEPTH}, rclpy's default SingleThreadedExecutor{tag}",
+                    children,
+                    errors,
+                    f"pingpong_{k}",
+                    lambda: phase_pingpong(children, warmup_s, window_s, "single"),
+                )
+                pair_results.append((lockstep, pingpong))
             pingpong_events = run_phase(
                 "[2b] the same ping-pong on the events executor the nodes spin",
                 children,
@@ -969,18 +1000,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             children.stop_all()
 
-    lock_rate = lockstep["steps_per_s"] if lockstep else None
-    ping_rate = pingpong["round_trips_per_s"] if pingpong else None
-    ratio = lock_rate / ping_rate if lock_rate is not None and ping_rate else None
+    pair_figures = [
+        {
+            "lockstep_steps_per_s": rounded(lo["steps_per_s"], 2) if lo else None,
+            "pingpong_round_trips_per_s": rounded(pp["round_trips_per_s"], 2) if pp else None,
+            "ratio": rounded(lo["steps_per_s"] / pp["round_trips_per_s"], 4) if lo and pp else None,
+        }
+        for lo, pp in pair_results
+    ]
+    lock_rate = median([lo["steps_per_s"] for lo, _ in pair_results if lo])
+    ping_rate = median([pp["round_trips_per_s"] for _, pp in pair_results if pp])
+    ratio = median([f["ratio"] for f in pair_figures if f["ratio"] is not None])
     met = ratio >= TARGET_RATIO_MIN if ratio is not None else None
+    lockstep = next((lo for lo, _ in reversed(pair_results) if lo), None)  # its CPU figures
+    pingpong = next((pp for _, pp in reversed(pair_results) if pp), None)
     events_rate = pingpong_events["round_trips_per_s"] if pingpong_events else None
     events_ratio = lock_rate / events_rate if lock_rate is not None and events_rate else None
     print("\nsummary")
-    print(f"  lockstep steps/s               {fmt(lock_rate)}")
+    for k, f in enumerate(pair_figures, start=1):
+        print(
+            f"  pair {k}: lockstep {fmt(f['lockstep_steps_per_s'])} steps/s, ping-pong "
+            f"{fmt(f['pingpong_round_trips_per_s'])} round trips/s, ratio {fmt(f['ratio'], '.3f')}"
+        )
+    print(f"  lockstep steps/s               {fmt(lock_rate)}  (median of the pairs)")
     print(f"  ping-pong round trips/s        {fmt(ping_rate)}  (SingleThreadedExecutor)")
     print(f"  ping-pong round trips/s        {fmt(events_rate)}  (EventsExecutor)")
     print(
-        f"  lockstep / ping-pong           {fmt(ratio, '.3f')}  (target >= {TARGET_RATIO_MIN}: "
+        f"  lockstep / ping-pong           {fmt(ratio, '.3f')}  (median of the pairs' ratios; "
+        f"target >= {TARGET_RATIO_MIN}: "
         f"{'n/a' if met is None else 'MET' if met else 'NOT MET'})"
     )
     print(f"  lockstep / events ping-pong    {fmt(events_ratio, '.3f')}  (same executor as nodes)")
@@ -1001,6 +1048,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "lockstep_steps_per_s": rounded(lock_rate, 2),
         "pingpong_round_trips_per_s": rounded(ping_rate, 2),
         "lockstep_to_pingpong_ratio": rounded(ratio, 4),
+        "pairs": pair_figures,
         "pingpong_events_round_trips_per_s": rounded(events_rate, 2),
         "lockstep_to_events_pingpong_ratio": rounded(events_ratio, 4),
         "target_ratio_min": TARGET_RATIO_MIN,
