@@ -24,23 +24,30 @@ class PiTuning:
     """A tuned PI loop.
 
     Attributes:
-        kp: proportional gain (output units per error unit).
-        ti_s: integral action time, 1 / crossover.
+        kp: proportional gain (output units per error unit): 1 / |P(j wc)| for the smallest
+            plant magnitude at wc.
         crossover_rad_s: the chosen crossover wc.
-        plant_gain_db: the plant magnitude the gain was read from, dB (the smallest one).
         plant_gain_spread_db: max - min of the plant magnitudes at wc over the operating points.
     """
 
     kp: float
-    ti_s: float
     crossover_rad_s: float
-    plant_gain_db: float
     plant_gain_spread_db: float
+
+    @property
+    def ti_s(self) -> float:
+        """Integral action time, 1 / wc (section 6)."""
+        return 1.0 / self.crossover_rad_s
 
     @property
     def kp_db(self) -> float:
         """Kp in dB, as the paper quotes it."""
         return 20.0 * math.log10(self.kp)
+
+    @property
+    def plant_gain_db(self) -> float:
+        """The plant magnitude the gain was read from, dB (the smallest one): -Kp in dB."""
+        return -self.kp_db
 
 
 def tune_pi(crossover_rad_s: float, plant_magnitudes: Sequence[float]) -> PiTuning:
@@ -58,9 +65,7 @@ def tune_pi(crossover_rad_s: float, plant_magnitudes: Sequence[float]) -> PiTuni
     smallest = min(plant_magnitudes)
     return PiTuning(
         kp=1.0 / smallest,
-        ti_s=1.0 / crossover_rad_s,
         crossover_rad_s=crossover_rad_s,
-        plant_gain_db=20.0 * math.log10(smallest),
         plant_gain_spread_db=20.0 * math.log10(max(plant_magnitudes) / smallest),
     )
 

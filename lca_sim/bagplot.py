@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from lca_sim.results import atomic_path
+from lca_sim.results import save_png
 from lca_sim.ros_interface import (
     DRIVE_CHAIN_STATES,
     DRIVE_STATUS_PREFIX,
@@ -58,7 +58,6 @@ TIME_BASES = ("auto", "header", "bag")
 LINEAR_JOINTS = frozenset({"lift"})
 DRIVE_STATE_KEY = "drive_state"
 ETA_KEYS = ("eta_m", "eta_l")
-PNG_DPI = 110
 
 
 @dataclass
@@ -236,10 +235,8 @@ def write_plots(data: BagData, out_dir: Path, title: str) -> tuple[list[Path], l
         panels[-1].set_xlabel(f"time (s, {data.time_base} stamps)")
         for panel in panels:
             panel.grid(True, alpha=0.3)
-        fig.tight_layout()
         path = out_dir / name
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=PNG_DPI)
+        save_png(fig, path)
         plt.close(fig)
         written.append(path)
 

@@ -10,23 +10,15 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from lca_sim.config import load_robot, load_scenario, shipped_names
-from lca_sim.errors import LcaHilError
+from lca_sim.errors import OutputError, run_guarded
 from lca_sim.results import write_csv, write_plot
 from lca_sim.scenario import ScenarioResult, run_scenario
 from lca_sim.simulator import Simulator
-
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
-
-
-class OutputError(LcaHilError):
-    """The --out folder cannot take the results."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,14 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the lca-sim console script."""
     args = build_parser().parse_args(argv)
-    try:
-        return _run(args)
-    except LcaHilError as exc:
-        print(f"lca-sim: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("lca-sim: interrupted; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    return run_guarded("lca-sim", lambda: _run(args), "interrupted; nothing written")
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -1,6 +1,15 @@
-"""Exceptions of lca_hil: one base class, subclasses that carry their context."""
+"""Exceptions of lca_hil: one base class, subclasses that carry their context; exit codes."""
 
 from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+
+# Exit codes of the command-line tools.
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2  # a bad config, input file or argument: one line on stderr, no traceback
+EXIT_INTERRUPTED = 130
 
 
 class LcaHilError(Exception):
@@ -30,3 +39,22 @@ class UnknownNameError(LcaHilError):
         self.name = name
         self.valid = tuple(valid)
         super().__init__(f"unknown {kind} {name!r}; valid: {', '.join(self.valid)}")
+
+
+class OutputError(LcaHilError):
+    """The --out folder cannot take the results."""
+
+
+def run_guarded(prog: str, body: Callable[[], int], interrupted: str = "interrupted") -> int:
+    """Run a tool's `body`: an LcaHilError becomes one line on stderr, Ctrl-C a short note.
+
+    Returns the body's exit code, EXIT_BAD_INPUT or EXIT_INTERRUPTED.
+    """
+    try:
+        return body()
+    except LcaHilError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"{prog}: {interrupted}", file=sys.stderr)
+        return EXIT_INTERRUPTED

@@ -28,7 +28,6 @@ import argparse
 import csv
 import json
 import math
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -36,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from lca_sim.config import load_robot, resolve
-from lca_sim.errors import LcaHilError, UnknownNameError
+from lca_sim.errors import EXIT_OK, LcaHilError, OutputError, UnknownNameError, run_guarded
 from lca_sim.identify import (
     EstimateStatus,
     FloatArray,
@@ -51,9 +50,6 @@ from lca_sim.params import AxisParams, RobotParams
 from lca_sim.results import atomic_path
 from lca_sim.state_machine import Efficiency, MotionState
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
 PROG = "lca-hil identify"
 YAML_NAME = "identified.yaml"
 JSON_NAME = "identification.json"
@@ -63,10 +59,6 @@ DIGITS = 5
 
 class InputFileError(LcaHilError):
     """The INPUT file or folder cannot be used (missing columns, not a number, no topic...)."""
-
-
-class OutputError(LcaHilError):
-    """The --out folder cannot take the results."""
 
 
 def add_parser(sub: Any) -> None:
@@ -95,14 +87,7 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run `lca-hil identify` on parsed arguments; returns the exit code."""
-    try:
-        return _run(args)
-    except LcaHilError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    return run_guarded(PROG, lambda: _run(args))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -282,3 +282,51 @@ def loop_margins(loop: ct.LTI, sample_period_s: float = 0.0) -> LoopMargins:
     gain_margin_db = 20.0 * math.log10(min(above)) if above else math.inf
     delay_deg = math.degrees(crossover * sample_period_s / 2.0)
     return LoopMargins(crossover, phase_margin, gain_margin_db, phase_margin - delay_deg)
+
+
+@dataclass(frozen=True, slots=True)
+class PointLoops:
+    """The cascade's two open loops at one operating point, with their margins.
+
+    Attributes:
+        model: the linearised axis there.
+        current_loop: C_i(s) P_i(s), the current loop open.
+        velocity_loop: C_v(s) P_v(s), the velocity loop open around the closed current loop.
+        current, velocity: their margins, with the sample-and-hold of the rate each runs at.
+    """
+
+    model: LinearAxisModel
+    current_loop: ct.LTI
+    velocity_loop: ct.LTI
+    current: LoopMargins
+    velocity: LoopMargins
+
+
+def cascade_loops(
+    models: Sequence[LinearAxisModel],
+    current_gains: tuple[float, float],
+    velocity_gains: tuple[float, float],
+    current_period_s: float,
+    velocity_period_s: float,
+) -> tuple[PointLoops, ...]:
+    """Both open loops of the cascade at every model, for (Kp, Ti) gains of each PI (section 6).
+
+    `current_period_s` and `velocity_period_s` are the rates the loops run at (the drive's model
+    step, the controller's period), for the sampled phase margins.
+    """
+    c_i = pi_transfer(*current_gains)
+    c_v = pi_transfer(*velocity_gains)
+    loops = []
+    for m in models:
+        current_loop = c_i * m.current_plant()
+        velocity_loop = c_v * m.velocity_plant(*current_gains)
+        loops.append(
+            PointLoops(
+                model=m,
+                current_loop=current_loop,
+                velocity_loop=velocity_loop,
+                current=loop_margins(current_loop, current_period_s),
+                velocity=loop_margins(velocity_loop, velocity_period_s),
+            )
+        )
+    return tuple(loops)

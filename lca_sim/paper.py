@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import control as ct
 import numpy as np
@@ -35,16 +35,16 @@ from lca_control.cascade import (
     paper_cascade,
 )
 from lca_sim.linear import (
+    LinearAxisModel,
     LinearisationError,
     LoopMargins,
     OperatingPoint,
     axis_moving_state,
+    cascade_loops,
     default_operating_points,
     equilibrium_current,
     independence_frequency,
     linearise,
-    loop_margins,
-    pi_transfer,
 )
 from lca_sim.params import RobotParams
 from lca_sim.scenario import ScenarioResult
@@ -55,12 +55,11 @@ from lca_sim.state_machine import (
     MotorCondition,
     StopState,
 )
+from lca_sim.tune import CONTROL_PERIOD_S
 
 FloatArray = npt.NDArray[np.float64]
 
 PIVOT = "pivot"
-FIG45_SPEED_DEG_S = 7.0
-CONTROL_PERIOD_S = 0.004
 
 
 # --- Figs 4 and 5 ------------------------------------------------------------------------------
@@ -127,9 +126,8 @@ def constant_velocity_torques(
             torque, state = math.nan, "boundary"
         sm.append(torque)
         states.append(state)
-    load_drives = [
-        i for i, s in enumerate(states) if s in _states_where(robot, load=LoadCondition.DRIVES)
-    ]
+    load_driving = _states_where(robot, load=LoadCondition.DRIVES)
+    load_drives = [i for i, s in enumerate(states) if s in load_driving]
     return ConstantVelocityTorques(
         velocity_rad_s=velocity_rad_s,
         position_rad=np.asarray(order, dtype=float),
@@ -155,8 +153,6 @@ def _states_where(
 
 
 # --- Figs 9 and 10 -----------------------------------------------------------------------------
-
-PHASES = ("starting", "motor driving", "load driving", "braking")
 
 
 @dataclass(frozen=True, slots=True)
@@ -204,16 +200,12 @@ def open_loop_phases(result: ScenarioResult, robot: RobotParams, axis: str = PIV
             name = current  # a stop sub-state after motion: the phase runs on to the hold
         if name != current:
             if phases:
-                last = phases[-1]
-                phases[-1] = Phase(last.name, last.start_s, t.time_s, last.start_position_rad)
+                phases[-1] = replace(phases[-1], end_s=t.time_s)
             if name is not None:
                 phases.append(Phase(name, t.time_s, math.nan, t.position))
             current = name
     if phases and math.isnan(phases[-1].end_s):
-        last = phases[-1]
-        phases[-1] = Phase(
-            last.name, last.start_s, float(result.time_s[-1]), last.start_position_rad
-        )
+        phases[-1] = replace(phases[-1], end_s=float(result.time_s[-1]))
     return phases
 
 
@@ -247,36 +239,38 @@ class BodeStudy:
 
 
 def bode_study(
-    robot: RobotParams,
-    points: Sequence[OperatingPoint] | None = None,
-    axis: str = PIVOT,
+    sim: Simulator,
+    models: Sequence[LinearAxisModel],
     omega_rad_s: FloatArray | None = None,
     tolerance_db: float = 1.0,
     tolerance_deg: float = 5.0,
 ) -> BodeStudy:
-    """Figs 12 and 14 with the paper's gains: python-control responses, margins, independence."""
-    sim = Simulator(robot)
+    """Figs 12 and 14 with the paper's gains: python-control responses, margins, independence.
+
+    `models`: the axis linearised at the operating points (`linearise_points`).
+    """
     omega = np.logspace(-1, 5, 601) if omega_rad_s is None else np.asarray(omega_rad_s)
-    models = [linearise(sim, axis, p) for p in (points or default_operating_points())]
-    c_i = pi_transfer(PAPER_CURRENT_KP_V_PER_A, PAPER_CURRENT_TI_S)
-    c_v = pi_transfer(PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S)
-    current_loops = [c_i * m.current_plant() for m in models]
-    velocity_loops = [
-        c_v * m.velocity_plant(PAPER_CURRENT_KP_V_PER_A, PAPER_CURRENT_TI_S) for m in models
-    ]
+    loops = cascade_loops(
+        models,
+        (PAPER_CURRENT_KP_V_PER_A, PAPER_CURRENT_TI_S),
+        (PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S),
+        sim.dt_s,
+        CONTROL_PERIOD_S,
+    )
 
-    def responses(loops: list[ct.LTI]) -> npt.NDArray[np.complex128]:
-        return np.vstack([np.ravel(ct.frequency_response(lp, omega).complex) for lp in loops])
+    def responses(transfer: list[ct.LTI]) -> npt.NDArray[np.complex128]:
+        return np.vstack([np.ravel(ct.frequency_response(lp, omega).complex) for lp in transfer])
 
-    li, lv = responses(current_loops), responses(velocity_loops)
+    li = responses([p.current_loop for p in loops])
+    lv = responses([p.velocity_loop for p in loops])
     return BodeStudy(
         omega_rad_s=omega,
         labels=tuple(m.point.label for m in models),
         drive_states=tuple(m.drive_state for m in models),
         current_loop=li,
         velocity_loop=lv,
-        current_margins=tuple(loop_margins(lp, sim.dt_s) for lp in current_loops),
-        velocity_margins=tuple(loop_margins(lp, CONTROL_PERIOD_S) for lp in velocity_loops),
+        current_margins=tuple(p.current for p in loops),
+        velocity_margins=tuple(p.velocity for p in loops),
         current_independent_from_rad_s=independence_frequency(
             omega, list(li), tolerance_db, tolerance_deg
         ),
@@ -286,6 +280,13 @@ def bode_study(
         tolerance_db=tolerance_db,
         tolerance_deg=tolerance_deg,
     )
+
+
+def linearise_points(
+    sim: Simulator, axis: str = PIVOT, points: Sequence[OperatingPoint] | None = None
+) -> list[LinearAxisModel]:
+    """The axis linearised at `points` (the default operating points if None)."""
+    return [linearise(sim, axis, p) for p in (points or default_operating_points())]
 
 
 # --- Fig. 13 -----------------------------------------------------------------------------------

@@ -12,12 +12,12 @@ every reproduced number next to the paper's; docs/paper.md discusses the differe
 from __future__ import annotations
 
 import argparse
-import csv
+import functools
 import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +25,15 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from lca_control.cascade import (
+    PAPER_CURRENT_KP_V_PER_A,
+    PAPER_CURRENT_TI_S,
+    PAPER_VELOCITY_KP_A_PER_RAD_S,
+    PAPER_VELOCITY_TI_S,
+)
 from lca_sim.config import load_robot, load_scenario
-from lca_sim.errors import LcaHilError
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED, LcaHilError
+from lca_sim.linear import LinearAxisModel
 from lca_sim.paper import (
     BodeStudy,
     ConstantVelocityTorques,
@@ -35,23 +42,24 @@ from lca_sim.paper import (
     bode_study,
     constant_velocity_torques,
     current_step,
+    linearise_points,
     open_loop_phases,
 )
 from lca_sim.params import RobotParams
-from lca_sim.results import atomic_path
+from lca_sim.results import atomic_path, save_png, write_table
 from lca_sim.scenario import ScenarioResult, run_scenario
 from lca_sim.simulator import Simulator
 from lca_sim.tune import tune_axis
 
-EXIT_FAILED = 1
-EXIT_BAD_INPUT = 2
-DPI = 110
 PHASE_COLOURS = {
     "starting": "#dddddd",
     "motor driving": "#cfe8ff",
     "load driving": "#ffe2c6",
     "braking": "#f3d1f4",
 }
+# Where the paper sees the open loops stop depending on the operating point (Figs 12, 14).
+PAPER_FIG12_INDEPENDENT_RAD_S = 1000.0
+PAPER_FIG14_INDEPENDENT_RAD_S = 20.0
 # What the paper states, for numbers.json and docs/paper.md.
 PAPER = {
     "fig4_5_load_driving_deg": 60.0,
@@ -59,36 +67,16 @@ PAPER = {
     "fig9_motor_driving_s": [25.0, 37.8],
     "fig9_load_driving_s": [37.8, 40.2],
     "fig9_braking_s": [40.2, 40.3],
-    "fig12_independent_from_rad_s": 1000.0,
-    "fig14_independent_from_rad_s": 20.0,
+    "fig12_independent_from_rad_s": PAPER_FIG12_INDEPENDENT_RAD_S,
+    "fig14_independent_from_rad_s": PAPER_FIG14_INDEPENDENT_RAD_S,
     "fig13_response_time_s": 3e-3,
     "fig13_overshoot_pct": 24.0,
     "fig15_transition_deg": 55.0,
-    "current_kp_v_per_a": 31.62,
-    "current_ti_s": 1e-3,
-    "velocity_kp_a_per_rad_s": 316.23,
-    "velocity_ti_s": 10e-3,
+    "current_kp_v_per_a": PAPER_CURRENT_KP_V_PER_A,
+    "current_ti_s": PAPER_CURRENT_TI_S,
+    "velocity_kp_a_per_rad_s": PAPER_VELOCITY_KP_A_PER_RAD_S,
+    "velocity_ti_s": PAPER_VELOCITY_TI_S,
 }
-
-
-def _write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
-    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.writer(handle, lineterminator="\n")
-        writer.writerow(header)
-        for row in rows:
-            writer.writerow([_cell(x) for x in row])
-
-
-def _cell(x: Any) -> str:
-    if isinstance(x, float | np.floating):
-        return "nan" if math.isnan(x) else repr(float(x))
-    return str(x)
-
-
-def _save(fig: Figure, path: Path) -> None:
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
 
 
 # --- Figs 4 and 5 ------------------------------------------------------------------------------
@@ -101,7 +89,7 @@ def write_fig45(robot: RobotParams, reversible: RobotParams, out: Path) -> dict[
     for fig_no, speed in ((4, 7.0), (5, -7.0)):
         sweep = constant_velocity_torques(robot, reversible, math.radians(speed), positions)
         stem = f"fig{fig_no:02d}_constant_velocity_{'plus' if speed > 0 else 'minus'}7deg_s"
-        _write_csv(
+        write_table(
             out / f"{stem}.csv",
             [
                 "position_deg",
@@ -142,7 +130,7 @@ def _plot_fig45(sweep: ConstantVelocityTorques, fig_no: int, path: Path) -> None
     ax.set_title(f"Fig. {fig_no}: pivot at {speed:+.0f} deg/s (paper: load driving at ~60 deg)")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
-    _save(fig, path)
+    save_png(fig, path)
 
 
 # --- Figs 9 and 10 -----------------------------------------------------------------------------
@@ -161,7 +149,7 @@ def write_fig9_10(robot: RobotParams, out: Path) -> dict[str, Any]:
     def phase_at(t: float) -> str:
         return next((p.name for p in phases if p.start_s <= t < p.end_s), "")
 
-    _write_csv(
+    write_table(
         out / "fig09_10_open_loop.csv",
         [
             "t_s",
@@ -223,7 +211,7 @@ def _plot_fig9(
     ax.set_title("Fig. 9: open-loop motor command voltage")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
-    _save(fig, path)
+    save_png(fig, path)
 
 
 def _plot_fig10(
@@ -246,15 +234,15 @@ def _plot_fig10(
     for panel in panels:
         panel.grid(True, alpha=0.3)
         panel.set_xlim(22.0, float(result.time_s[-1]))
-    _save(fig, path)
+    save_png(fig, path)
 
 
 # --- Figs 12 and 14 ----------------------------------------------------------------------------
 
 
-def write_fig12_14(robot: RobotParams, out: Path) -> dict[str, Any]:
+def write_fig12_14(sim: Simulator, models: Sequence[LinearAxisModel], out: Path) -> dict[str, Any]:
     """Bode diagrams of the current (Fig. 12) and velocity (Fig. 14) open loops."""
-    study = bode_study(robot)
+    study = bode_study(sim, models)
     numbers: dict[str, Any] = {
         "fig12_independent_from_rad_s": study.current_independent_from_rad_s,
         "fig14_independent_from_rad_s": study.velocity_independent_from_rad_s,
@@ -262,9 +250,9 @@ def write_fig12_14(robot: RobotParams, out: Path) -> dict[str, Any]:
     }
     for fig_no, name, loop, margins, indep, paper in (
         (12, "current", study.current_loop, study.current_margins,
-         study.current_independent_from_rad_s, 1000.0),
+         study.current_independent_from_rad_s, PAPER_FIG12_INDEPENDENT_RAD_S),
         (14, "velocity", study.velocity_loop, study.velocity_margins,
-         study.velocity_independent_from_rad_s, 20.0),
+         study.velocity_independent_from_rad_s, PAPER_FIG14_INDEPENDENT_RAD_S),
     ):  # fmt: skip
         stem = f"fig{fig_no}_{name}_open_loop_bode"
         mag_db = 20.0 * np.log10(np.abs(loop))
@@ -272,7 +260,7 @@ def write_fig12_14(robot: RobotParams, out: Path) -> dict[str, Any]:
         header = ["omega_rad_s"]
         for label in study.labels:
             header += [f"{label} mag_db", f"{label} phase_deg"]
-        _write_csv(
+        write_table(
             out / f"{stem}.csv",
             header,
             (
@@ -324,7 +312,7 @@ def _plot_bode(
         f"{study.tolerance_db:g} dB / {study.tolerance_deg:g} deg); paper ~{paper:g} rad/s (red)",
         fontsize=9,
     )
-    _save(fig, path)
+    save_png(fig, path)
 
 
 # --- Fig. 13 -----------------------------------------------------------------------------------
@@ -333,7 +321,7 @@ def _plot_bode(
 def write_fig13(robot: RobotParams, out: Path) -> dict[str, float]:
     """The 5 A current step with the paper's gains."""
     step = current_step(robot)
-    _write_csv(
+    write_table(
         out / "fig13_current_step.csv",
         ["t_s", "current_a", "setpoint_a"],
         (
@@ -368,7 +356,7 @@ def _plot_fig13(step: StepResponse, path: Path) -> None:
     )
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
-    _save(fig, path)
+    save_png(fig, path)
 
 
 # --- Fig. 15 -----------------------------------------------------------------------------------
@@ -397,7 +385,7 @@ def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
     states = [drive.state[k] for k in state_index]
     position = np.degrees(joint.values["position"])
     velocity = np.degrees(joint.values["velocity"])
-    _write_csv(
+    write_table(
         out / "fig15_velocity_ramp.csv",
         ["t_s", "velocity_ref_deg_s", "velocity_deg_s", "position_deg", "current_a", "drive_state"],
         zip(t, np.degrees(reference), velocity, position, current, states, strict=True),
@@ -430,7 +418,7 @@ def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
         f"(max tracking error {summary['max_velocity_error_deg_s']:.3f} deg/s)",
         fontsize=9,
     )
-    _save(fig, out / "fig15_velocity_ramp.png")
+    save_png(fig, out / "fig15_velocity_ramp.png")
     return {
         "fig15_transition_deg": transition_deg,
         "fig15_transition_time_s": transition_t,
@@ -442,9 +430,9 @@ def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
 # --- section 6 tuning ---------------------------------------------------------------------------
 
 
-def tuning_numbers(robot: RobotParams) -> dict[str, float]:
+def tuning_numbers(sim: Simulator, models: Sequence[LinearAxisModel]) -> dict[str, float]:
     """The gains `lca-hil tune` finds for the pivot, next to the paper's."""
-    report = tune_axis(Simulator(robot), "pivot")
+    report = tune_axis(sim, "pivot", models=models)
     return {
         "current_kp_v_per_a": report.current.kp,
         "current_ti_s": report.current.ti_s,
@@ -487,12 +475,14 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     out.mkdir(parents=True, exist_ok=True)
     numbers: dict[str, Any] = {"robot": robot.name}
+    sim = Simulator(robot)
+    pivot_models = functools.cache(lambda: linearise_points(sim))  # Figs 12/14 and the tuning
     steps: list[tuple[str, Callable[[], dict[str, Any]]]] = [
         ("Figs 4-5", lambda: write_fig45(robot, reversible, out)),
         ("Figs 9-10", lambda: write_fig9_10(robot, out)),
-        ("Figs 12 and 14", lambda: write_fig12_14(robot, out)),
+        ("Figs 12 and 14", lambda: write_fig12_14(sim, pivot_models(), out)),
         ("Fig. 13", lambda: write_fig13(robot, out)),
-        ("section 6 tuning", lambda: tuning_numbers(robot)),
+        ("section 6 tuning", lambda: tuning_numbers(sim, pivot_models())),
     ]
     if not args.no_ros:
         steps.append(("Fig. 15", lambda: write_fig15(out, args.fig15_duration_s)))

@@ -10,15 +10,21 @@ import csv
 import math
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lca_sim.scenario import ScenarioResult
 from lca_sim.simulator import SIGNAL_NAMES
 from lca_sim.state_machine import MotionState
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+PNG_DPI = 110  # every PNG the tools write
 
 # Per-axis CSV columns after the axis-name prefix, in order.
 CSV_AXIS_COLUMNS: tuple[str, ...] = (
@@ -46,6 +52,26 @@ def csv_header(axis_names: tuple[str, ...]) -> list[str]:
 
 def _number(x: float) -> str:
     return "nan" if math.isnan(x) else repr(float(x))
+
+
+def _cell(x: object) -> str:
+    """A CSV cell: floats in shortest round-trip form (nan as such), the rest as text."""
+    return _number(float(x)) if isinstance(x, float | np.floating) else str(x)
+
+
+def write_table(path: Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
+    """Write a CSV table atomically, floats in shortest round-trip form."""
+    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows([_cell(x) for x in row] for row in rows)
+
+
+def save_png(fig: Figure, path: Path) -> None:
+    """Lay out and write a matplotlib figure as PNG, atomically."""
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=PNG_DPI)
 
 
 def csv_rows(result: ScenarioResult) -> Iterator[list[str]]:
@@ -100,10 +126,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
 
 def write_csv(result: ScenarioResult, path: Path) -> None:
     """Write result.csv atomically."""
-    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.writer(handle, lineterminator="\n")
-        writer.writerow(csv_header(result.axis_names))
-        writer.writerows(csv_rows(result))
+    write_table(path, csv_header(result.axis_names), csv_rows(result))
 
 
 def active_axes(result: ScenarioResult) -> list[int]:
@@ -150,9 +173,7 @@ def write_plot(result: ScenarioResult, path: Path, title: str) -> None:
         panel.grid(True, alpha=0.3)
         panel.legend(loc="upper left", fontsize=7)
     fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
+    save_png(fig, path)
     plt.close(fig)
 
 

@@ -25,31 +25,22 @@ import yaml
 
 from lca_control.tuning import PiTuning, response_time_to_crossover, tune_pi
 from lca_sim.config import config_dir, load_robot, read_yaml
-from lca_sim.errors import ConfigError, LcaHilError
+from lca_sim.errors import EXIT_BAD_INPUT, ConfigError, LcaHilError, UnknownNameError
 from lca_sim.linear import (
     LinearAxisModel,
     LoopMargins,
     OperatingPoint,
+    PointLoops,
+    cascade_loops,
     default_operating_points,
     linearise,
-    loop_margins,
-    pi_transfer,
 )
+from lca_sim.results import atomic_path
 from lca_sim.simulator import Simulator
 
 PAPER_CURRENT_RESPONSE_TIME_S = 3e-3
 PAPER_VELOCITY_CROSSOVER_RAD_S = 100.0
 CONTROL_PERIOD_S = 0.004  # the controller's velocity loop (config/ros/controller.yaml)
-EXIT_BAD_INPUT = 2
-
-
-@dataclass(frozen=True, slots=True)
-class PointMargins:
-    """Both loops at one operating point, with the tuned gains."""
-
-    model: LinearAxisModel
-    current: LoopMargins
-    velocity: LoopMargins
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,7 +50,7 @@ class TuneReport:
     axis: str
     current: PiTuning
     velocity: PiTuning
-    points: tuple[PointMargins, ...]
+    points: tuple[PointLoops, ...]
 
 
 def tune_axis(
@@ -69,27 +60,30 @@ def tune_axis(
     current_response_time_s: float = PAPER_CURRENT_RESPONSE_TIME_S,
     velocity_crossover_rad_s: float = PAPER_VELOCITY_CROSSOVER_RAD_S,
     control_period_s: float = CONTROL_PERIOD_S,
+    models: Sequence[LinearAxisModel] | None = None,
 ) -> TuneReport:
-    """Tune the current loop, then the velocity loop around it (section 6)."""
-    models = [linearise(sim, axis, p) for p in (points or default_operating_points())]
+    """Tune the current loop, then the velocity loop around it (section 6).
+
+    `models` are the axis linearised at its operating points (`points`, or the defaults) when
+    the caller already has them.
+    """
+    if models is None:
+        models = [linearise(sim, axis, p) for p in (points or default_operating_points())]
     wc_i = response_time_to_crossover(current_response_time_s)
     current = tune_pi(wc_i, [abs(complex(m.current_plant()(1j * wc_i))) for m in models])
-    velocity_plants = [m.velocity_plant(current.kp, current.ti_s) for m in models]
+    wc_v = velocity_crossover_rad_s
     velocity = tune_pi(
-        velocity_crossover_rad_s,
-        [abs(complex(p(1j * velocity_crossover_rad_s))) for p in velocity_plants],
+        wc_v,
+        [abs(complex(m.velocity_plant(current.kp, current.ti_s)(1j * wc_v))) for m in models],
     )
-    c_i = pi_transfer(current.kp, current.ti_s)
-    c_v = pi_transfer(velocity.kp, velocity.ti_s)
-    margins = tuple(
-        PointMargins(
-            model=m,
-            current=loop_margins(c_i * m.current_plant(), sim.dt_s),
-            velocity=loop_margins(c_v * p, control_period_s),
-        )
-        for m, p in zip(models, velocity_plants, strict=True)
+    loops = cascade_loops(
+        models,
+        (current.kp, current.ti_s),
+        (velocity.kp, velocity.ti_s),
+        sim.dt_s,
+        control_period_s,
     )
-    return TuneReport(axis=axis, current=current, velocity=velocity, points=margins)
+    return TuneReport(axis=axis, current=current, velocity=velocity, points=loops)
 
 
 def params_document(report: TuneReport, base: dict[str, Any]) -> dict[str, Any]:
@@ -173,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         robot = load_robot(args.robot)
         if args.axis not in robot.axis_names:
-            raise ConfigError(robot.source, "axes", f"no axis {args.axis!r} to tune")
+            raise UnknownNameError("axis", args.axis, robot.axis_names)
         sim = Simulator(robot)
         report = tune_axis(
             sim,
@@ -194,11 +188,11 @@ def run(args: argparse.Namespace) -> int:
         f"# linearised models at {len(report.points)} operating points; base {base_path}.\n"
     )
     try:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(
-            header + yaml.safe_dump(params_document(report, base), sort_keys=False),
-            encoding="utf-8",
-        )
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(
+                header + yaml.safe_dump(params_document(report, base), sort_keys=False),
+                encoding="utf-8",
+            )
     except OSError as exc:
         print(f"lca-hil tune: error: cannot write {args.out}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lca_sim import kernel
-from lca_sim.config import load_robot
+from lca_sim.config import config_dir, load_robot
 from lca_sim.identify import (
     EstimateStatus,
     IdentificationError,
@@ -37,7 +37,7 @@ from lca_sim.scenario import ScenarioResult, parse_scenario, run_scenario
 from lca_sim.simulator import Simulator
 from lca_sim.state_machine import FIRST_MOVING_STATE, Efficiency, MotionState
 
-CONFIG = Path(__file__).resolve().parent.parent / "config"
+CONFIG = config_dir()
 DEFAULT_YAML = CONFIG / "robots" / "default.yaml"
 SCENARIO = CONFIG / "scenarios" / "identify_pivot.yaml"
 AXIS = "pivot"
