@@ -31,9 +31,8 @@ from lca_control.cascade import (
     PAPER_CURRENT_TI_S,
     PAPER_VELOCITY_KP_A_PER_RAD_S,
     PAPER_VELOCITY_TI_S,
-    AxisCascade,
-    paper_cascade,
 )
+from lca_control.pi import PIController, PIParams
 from lca_sim.linear import (
     LinearAxisModel,
     LinearisationError,
@@ -101,15 +100,17 @@ def _steady_motor_torque(sim: Simulator, axis: int, point: OperatingPoint) -> tu
 
 
 def constant_velocity_torques(
-    robot: RobotParams,
-    reversible: RobotParams,
+    sim: Simulator,
+    sim_rev: Simulator,
     velocity_rad_s: float,
     positions_rad: Sequence[float],
     axis: str = PIVOT,
 ) -> ConstantVelocityTorques:
-    """Figs 4-5: load torque and the two models' motor torques at constant velocity."""
-    sim = Simulator(robot)
-    sim_rev = Simulator(reversible)
+    """Figs 4-5: load torque and the two models' motor torques at constant velocity.
+
+    `sim` runs the robot, `sim_rev` the same robot with every efficiency 1 (eq. 5).
+    """
+    robot = sim.robot
     a = sim.axis_names.index(axis)
     order = sorted(positions_rad, reverse=velocity_rad_s < 0.0)
     ratio = robot.axes[a].gear_ratio
@@ -323,11 +324,14 @@ def current_step(
     sim = Simulator(robot, dt_s=1e-4)
     a = sim.axis_names.index(axis)
     sim.reset(position={axis: sim.position_limits[a][1]})
-    cascade = AxisCascade(paper_cascade(20.0, robot.axes[a].motor.voltage_limit_v))
+    limit_v = robot.axes[a].motor.voltage_limit_v
+    current_loop = PIController(
+        PIParams(PAPER_CURRENT_KP_V_PER_A, PAPER_CURRENT_TI_S, -limit_v, limit_v)
+    )
     volts = np.zeros(sim.n_axes)
     samples = np.empty(round(seconds / sim.dt_s))
     for k in range(len(samples)):
-        volts[a] = cascade.voltage_command(setpoint_a, float(sim.state_array[2, a]), sim.dt_s)
+        volts[a] = current_loop.update(setpoint_a, float(sim.state_array[2, a]), sim.dt_s)
         sim.step(volts)
         samples[k] = sim.state_array[2, a]
     t: FloatArray = np.arange(1, len(samples) + 1, dtype=np.float64) * sim.dt_s

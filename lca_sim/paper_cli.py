@@ -32,8 +32,8 @@ from lca_control.cascade import (
     PAPER_VELOCITY_TI_S,
 )
 from lca_sim.config import load_robot, load_scenario
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED, LcaHilError
-from lca_sim.linear import LinearAxisModel
+from lca_sim.errors import EXIT_FAILED, LcaHilError, OutputError, run_guarded
+from lca_sim.linear import DEFAULT_SPEED_DEG_S, LinearAxisModel
 from lca_sim.paper import (
     BodeStudy,
     ConstantVelocityTorques,
@@ -57,6 +57,7 @@ PHASE_COLOURS = {
     "load driving": "#ffe2c6",
     "braking": "#f3d1f4",
 }
+PROG = "lca-hil paper"
 # Where the paper sees the open loops stop depending on the operating point (Figs 12, 14).
 PAPER_FIG12_INDEPENDENT_RAD_S = 1000.0
 PAPER_FIG14_INDEPENDENT_RAD_S = 20.0
@@ -86,8 +87,9 @@ def write_fig45(robot: RobotParams, reversible: RobotParams, out: Path) -> dict[
     """Figs 4 (+7 deg/s) and 5 (-7 deg/s); returns where the load becomes driving."""
     positions = np.radians(np.arange(10.0, 110.0 + 1e-9, 0.25))
     numbers: dict[str, float] = {}
-    for fig_no, speed in ((4, 7.0), (5, -7.0)):
-        sweep = constant_velocity_torques(robot, reversible, math.radians(speed), positions)
+    sim, sim_rev = Simulator(robot), Simulator(reversible)
+    for fig_no, speed in ((4, DEFAULT_SPEED_DEG_S), (5, -DEFAULT_SPEED_DEG_S)):
+        sweep = constant_velocity_torques(sim, sim_rev, math.radians(speed), positions)
         stem = f"fig{fig_no:02d}_constant_velocity_{'plus' if speed > 0 else 'minus'}7deg_s"
         write_table(
             out / f"{stem}.csv",
@@ -463,19 +465,18 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run `lca-hil paper`."""
+    return run_guarded(PROG, lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
     out: Path = args.out
     if out.exists() and not out.is_dir():
-        print(f"lca-hil paper: error: --out {out} is a file", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    try:
-        robot = load_robot(args.robot)
-        reversible = load_robot("reversible")
-    except LcaHilError as exc:
-        print(f"lca-hil paper: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        raise OutputError(f"--out {out}: expected a folder, but it is a file")
+    robot = load_robot(args.robot)
+    reversible = load_robot("reversible")
+    sim = Simulator(robot)
     out.mkdir(parents=True, exist_ok=True)
     numbers: dict[str, Any] = {"robot": robot.name}
-    sim = Simulator(robot)
     pivot_models = functools.cache(lambda: linearise_points(sim))  # Figs 12/14 and the tuning
     steps: list[tuple[str, Callable[[], dict[str, Any]]]] = [
         ("Figs 4-5", lambda: write_fig45(robot, reversible, out)),
@@ -491,9 +492,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             numbers.update(make())
         except LcaHilError as exc:
-            print(f"lca-hil paper: error in {name}: {exc}", file=sys.stderr)
+            print(f"{PROG}: error in {name}: {exc}", file=sys.stderr)
             return EXIT_FAILED
-        print(f"lca-hil paper: {name} in {time.perf_counter() - start:.1f} s", flush=True)
+        print(f"{PROG}: {name} in {time.perf_counter() - start:.1f} s", flush=True)
     document = {"reproduced": numbers, "paper": PAPER}
     with atomic_path(out / "numbers.json") as tmp:
         tmp.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")

@@ -15,7 +15,6 @@ file for the controller node.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +24,7 @@ import yaml
 
 from lca_control.tuning import PiTuning, response_time_to_crossover, tune_pi
 from lca_sim.config import config_dir, load_robot, read_yaml
-from lca_sim.errors import EXIT_BAD_INPUT, ConfigError, LcaHilError, UnknownNameError
+from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, run_guarded
 from lca_sim.linear import (
     LinearAxisModel,
     LoopMargins,
@@ -164,24 +163,24 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run `lca-hil tune`."""
-    try:
-        robot = load_robot(args.robot)
-        if args.axis not in robot.axis_names:
-            raise UnknownNameError("axis", args.axis, robot.axis_names)
-        sim = Simulator(robot)
-        report = tune_axis(
-            sim,
-            args.axis,
-            current_response_time_s=args.current_response_time_s,
-            velocity_crossover_rad_s=args.velocity_crossover_rad_s,
-        )
-        base_path = args.base_params or config_dir() / "ros" / "controller.yaml"
-        base = read_yaml(base_path)
-        if not isinstance(base, dict):
-            raise ConfigError(str(base_path), "", "expected a controller params mapping")
-    except LcaHilError as exc:
-        print(f"lca-hil tune: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    return run_guarded("lca-hil tune", lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot)
+    if args.axis not in robot.axis_names:
+        raise UnknownNameError("axis", args.axis, robot.axis_names)
+    sim = Simulator(robot)
+    report = tune_axis(
+        sim,
+        args.axis,
+        current_response_time_s=args.current_response_time_s,
+        velocity_crossover_rad_s=args.velocity_crossover_rad_s,
+    )
+    base_path = args.base_params or config_dir() / "ros" / "controller.yaml"
+    base = read_yaml(base_path)
+    if not isinstance(base, dict):
+        raise ConfigError(str(base_path), "", "expected a controller params mapping")
     print(format_report(report))
     header = (
         f"# Written by lca-hil tune for {robot.name} ({args.axis}): section 6 gains from\n"
@@ -194,7 +193,6 @@ def run(args: argparse.Namespace) -> int:
                 encoding="utf-8",
             )
     except OSError as exc:
-        print(f"lca-hil tune: error: cannot write {args.out}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        raise OutputError(f"cannot write {args.out}: {exc}") from None
     print(f"wrote {args.out} (use: lca-controller --ros-args --params-file {args.out})")
-    return 0
+    return EXIT_OK

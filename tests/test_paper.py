@@ -200,10 +200,10 @@ def test_figs_4_5_torques_at_constant_velocity(
 ) -> None:
     """Eq. (10) at zero acceleration, the load switch at the gravity top, irreversibility."""
     positions = np.radians(np.arange(10.0, 110.0, 0.25))
-    sweep = constant_velocity_torques(
-        default_robot, reversible_robot, math.radians(speed_deg_s), positions
-    )
     sim = Simulator(default_robot)
+    sweep = constant_velocity_torques(
+        sim, Simulator(reversible_robot), math.radians(speed_deg_s), positions
+    )
     axis = default_robot.axes[PIVOT]
     n = axis.gear_ratio
     w_m = n * math.radians(speed_deg_s)
