@@ -123,33 +123,6 @@ class MotionRecord:
     velocity: FloatArray
     current_a: FloatArray
 
-    @classmethod
-    def single_axis(
-        cls,
-        time_s: FloatArray,
-        position: FloatArray,
-        velocity: FloatArray,
-        current_a: FloatArray,
-        axis_index: int,
-        fixed_position: FloatArray,
-    ) -> MotionRecord:
-        """A record of one moving axis, the others held at `fixed_position` (velocity 0).
-
-        Args:
-            time_s: [n] sample times, s.
-            position: [n] joint position of the moving axis.
-            velocity: [n] joint velocity of the moving axis.
-            current_a: [n] its armature current, A.
-            axis_index: index of the moving axis in the robot's axis order.
-            fixed_position: [n_axes] pose of the other axes (the entry of `axis_index` unused).
-        """
-        n = len(time_s)
-        pose = np.tile(np.asarray(fixed_position, dtype=np.float64), (n, 1))
-        pose[:, axis_index] = position
-        rate = np.zeros_like(pose)
-        rate[:, axis_index] = velocity
-        return cls(np.asarray(time_s, dtype=np.float64), pose, rate, np.asarray(current_a))
-
 
 @dataclass(frozen=True, slots=True)
 class IdentifyOptions:
@@ -194,6 +167,7 @@ class StateEstimate:
         ci_low, ci_high: its confidence interval (NaN when not estimated).
         n_samples: usable samples of this state (after every exclusion).
         n_effective: samples corrected for serial correlation, n / integrated correlation time.
+        block_length: the bootstrap's block length in samples (0 when no interval was drawn).
         prior: the coefficients of the robot config the identification started from.
         identified: what the identified config gets: the estimate (clipped to the range the
             config loader accepts) with the other coefficient at 1, or the prior when the status
@@ -214,6 +188,7 @@ class StateEstimate:
     ci_high: float
     n_samples: int
     n_effective: float
+    block_length: int
     prior: Efficiency
     identified: Efficiency
     clipped: bool
@@ -239,7 +214,6 @@ class IdentificationResult:
         current_noise_a: estimated standard deviation of the current noise, A.
         velocity_noise_rad_s: estimated standard deviation of the motor velocity noise, rad/s.
         moving_threshold_rad_s: motor speed below which a sample counts as stopped.
-        block_length: per estimate, the bootstrap's block length in samples (0 if none).
         options: the options used.
 
     """
@@ -256,7 +230,6 @@ class IdentificationResult:
     velocity_noise_rad_s: float
     moving_threshold_rad_s: float
     options: IdentifyOptions
-    block_length: tuple[int, ...]
 
     @property
     def n_samples(self) -> int:
@@ -347,11 +320,10 @@ def identify(
     smooth_v = _savgol(velocity, window, opts.polyorder, 0, period_s)
     accel = _savgol(velocity, window, opts.polyorder, 1, period_s)
     smooth_i = _savgol(current_a, window, opts.polyorder, 0, period_s)
-    gain = _smoothing_gain(window, opts.polyorder)
-    current_noise_a = _noise_sigma(current_a - smooth_i, window, opts.polyorder)
-    velocity_noise = params.gear_ratio * _noise_sigma(
-        velocity[:, a] - smooth_v[:, a], window, opts.polyorder
-    )
+    coeffs = np.asarray(savgol_coeffs(window, opts.polyorder), dtype=np.float64)
+    gain = _smoothing_gain(coeffs)
+    current_noise_a = _noise_sigma(current_a - smooth_i, coeffs)
+    velocity_noise = params.gear_ratio * _noise_sigma(velocity[:, a] - smooth_v[:, a], coeffs)
 
     k_t = params.motor.torque_constant_nm_per_a
     tau_m = k_t * smooth_i
@@ -378,11 +350,10 @@ def identify(
 
     rng = np.random.default_rng(opts.seed)
     estimates = []
-    blocks = []
     for rule_index, rule in enumerate(rules):
         for d in DIRECTIONS:
             select = used & (labels == rule_index) & (direction == int(d))
-            estimate, block = _estimate_state(
+            estimate = _estimate_state(
                 rule,
                 d,
                 params,
@@ -396,7 +367,6 @@ def identify(
                 rng,
             )
             estimates.append(estimate)
-            blocks.append(block)
     return IdentificationResult(
         axis=axis,
         estimates=tuple(estimates),
@@ -410,7 +380,6 @@ def identify(
         velocity_noise_rad_s=velocity_noise,
         moving_threshold_rad_s=threshold,
         options=opts,
-        block_length=tuple(blocks),
     )
 
 
@@ -507,20 +476,22 @@ def _savgol(
     return np.asarray(out, dtype=np.float64)
 
 
-def _smoothing_gain(window: int, polyorder: int) -> float:
-    """Standard deviation of smoothed white noise relative to the raw noise: sqrt(sum h^2)."""
-    h = np.asarray(savgol_coeffs(window, polyorder), dtype=np.float64)
+def _smoothing_gain(h: FloatArray) -> float:
+    """Standard deviation of smoothed white noise relative to the raw noise: sqrt(sum h^2).
+
+    `h` holds the smoother's coefficients (`savgol_coeffs`).
+    """
     return float(np.sqrt(np.sum(h * h)))
 
 
-def _noise_sigma(residual: FloatArray, window: int, polyorder: int) -> float:
+def _noise_sigma(residual: FloatArray, h: FloatArray) -> float:
     """Noise standard deviation from the raw-minus-smoothed residual, robust to kinks.
 
     For white noise of variance s^2 the residual of a least-squares smoother has variance
-    s^2 (1 - h0), h0 the filter's centre weight; the median absolute deviation ignores the few
-    large residuals where the signal has a kink.
+    s^2 (1 - h0), h0 the centre weight of the filter's coefficients `h` (`savgol_coeffs`); the
+    median absolute deviation ignores the few large residuals where the signal has a kink.
     """
-    h0 = float(savgol_coeffs(window, polyorder)[window // 2])
+    h0 = float(h[len(h) // 2])
     mad = float(np.median(np.abs(residual - np.median(residual))))
     return _MAD_TO_SIGMA * mad / math.sqrt(max(1.0 - h0, 1e-12))
 
@@ -583,10 +554,9 @@ def classify_samples(
     for m_index, motor in enumerate(motor_words):
         for l_index, load in enumerate(load_words):
             for d_index, dominant in enumerate(dominant_words):
+                # parse_state_machine guarantees every combination is covered (a rule, not None).
                 rule = match_rule(rules, motor, load, dominant)
-                # The config loader guarantees every combination is covered.
-                code = rules.index(rule) if rule is not None else _AMBIGUOUS
-                lookup[m_index, l_index, d_index] = code
+                lookup[m_index, l_index, d_index] = rules.index(rule)
     d = direction.astype(np.float64)
     motor_drives = d * tau_m > 0.0
     load_drives = -d * tau_l > 0.0
@@ -639,11 +609,8 @@ def _estimate_state(
     tau_margin_nm: float,
     opts: IdentifyOptions,
     rng: np.random.Generator,
-) -> tuple[StateEstimate, int]:
-    """Least squares on eq. (10) for one state and direction, with its bootstrap interval.
-
-    Returns the estimate and the bootstrap block length used (0 when none was drawn).
-    """
+) -> StateEstimate:
+    """Least squares on eq. (10) for one state and direction, with its bootstrap interval."""
     prior = params.efficiency[(direction, rule.name)]
     coefficient = emitter_coefficient(rule)
     n = len(y)
@@ -657,6 +624,7 @@ def _estimate_state(
         clipped: bool = False,
         residual: FloatArray | None = None,
         n_effective: float = 0.0,
+        block_length: int = 0,
         regressor_rms: float = nan,
     ) -> StateEstimate:
         mean = rms = nan
@@ -673,6 +641,7 @@ def _estimate_state(
             ci_high=ci[1],
             n_samples=n,
             n_effective=n_effective,
+            block_length=block_length,
             prior=prior,
             identified=identified,
             clipped=clipped,
@@ -682,7 +651,7 @@ def _estimate_state(
         )
 
     if n == 0:
-        return result(EstimateStatus.NOT_VISITED), 0
+        return result(EstimateStatus.NOT_VISITED)
     # Serial correlation is measured inside contiguous runs of the state only.
     runs = np.split(np.arange(n), np.nonzero(np.diff(index) != 1)[0] + 1)
     if coefficient is None:
@@ -690,43 +659,34 @@ def _estimate_state(
         # demands it of the prior too). Report the residual as a consistency check.
         residual = tau_m - tau_l - y
         tau = _pooled_correlation_time(residual, runs)
-        return (
-            result(
-                EstimateStatus.FIXED,
-                residual=residual,
-                n_effective=n / tau,
-            ),
-            0,
-        )
+        return result(EstimateStatus.FIXED, residual=residual, n_effective=n / tau)
     if coefficient == "eta_m":
         x, z = tau_m, y + tau_l  # eta_m tau_m = y + tau_l, eta_l = 1
     else:
         x, z = tau_l, tau_m - y  # eta_l tau_l = tau_m - y, eta_m = 1
     regressor_rms = float(np.sqrt(np.mean(x * x)))
     if n < opts.min_samples:
-        return result(EstimateStatus.TOO_FEW_SAMPLES, regressor_rms=regressor_rms), 0
+        return result(EstimateStatus.TOO_FEW_SAMPLES, regressor_rms=regressor_rms)
     if regressor_rms <= tau_margin_nm:
-        return result(EstimateStatus.WEAK_EXCITATION, regressor_rms=regressor_rms), 0
+        return result(EstimateStatus.WEAK_EXCITATION, regressor_rms=regressor_rms)
     estimate = float(np.dot(x, z) / np.dot(x, x))
     residual = z - estimate * x
     tau = _pooled_correlation_time(residual, runs)
     block = int(min(max(math.ceil(3.0 * tau), window), max(n // 4, 1)))
-    ci = _block_bootstrap(x, z, block, opts, rng)
+    ci = _block_bootstrap(x, z, estimate, block, opts, rng)
     low_limit = 0.0 if coefficient == "eta_l" else 1e-3
     value = min(max(estimate, low_limit), 1.0)
     identified = Efficiency(value, 1.0) if coefficient == "eta_m" else Efficiency(1.0, value)
-    return (
-        result(
-            EstimateStatus.IDENTIFIED,
-            estimate=estimate,
-            ci=ci,
-            identified=identified,
-            clipped=value != estimate,
-            residual=residual,
-            n_effective=n / tau,
-            regressor_rms=regressor_rms,
-        ),
-        block,
+    return result(
+        EstimateStatus.IDENTIFIED,
+        estimate=estimate,
+        ci=ci,
+        identified=identified,
+        clipped=value != estimate,
+        residual=residual,
+        n_effective=n / tau,
+        block_length=block,
+        regressor_rms=regressor_rms,
     )
 
 
@@ -759,11 +719,12 @@ def _pooled_correlation_time(residual: FloatArray, runs: list[IntArray]) -> floa
 def _block_bootstrap(
     x: FloatArray,
     z: FloatArray,
+    estimate: float,
     block: int,
     opts: IdentifyOptions,
     rng: np.random.Generator,
 ) -> tuple[float, float]:
-    """Confidence interval of eta = sum(x z) / sum(x^2) from a moving-block bootstrap.
+    """Confidence interval of `estimate` = sum(x z) / sum(x^2) from a moving-block bootstrap.
 
     Blocks of `block` consecutive samples (in time order, runs of the state concatenated) are
     drawn with replacement until they cover the sample count; each replicate's estimate comes
@@ -787,5 +748,4 @@ def _block_bootstrap(
     replicates = num[den > 0.0] / den[den > 0.0]
     spread = float(np.std(replicates, ddof=1))
     quantile = float(student_t.ppf(0.5 + opts.confidence / 2.0, max(n_blocks - 1, 1)))
-    centre = float(np.dot(x, z) / np.dot(x, x))
-    return centre - quantile * spread, centre + quantile * spread
+    return estimate - quantile * spread, estimate + quantile * spread

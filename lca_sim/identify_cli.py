@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -34,9 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from lca_sim.config import load_robot, resolve
+from lca_sim.config import load_robot
 from lca_sim.errors import EXIT_OK, LcaHilError, OutputError, UnknownNameError, run_guarded
 from lca_sim.identify import (
+    DIRECTIONS,
     EstimateStatus,
     FloatArray,
     IdentificationError,
@@ -107,7 +109,6 @@ def _run(args: argparse.Namespace) -> int:
     if args.min_samples < 1:
         raise InputFileError(f"--min-samples: expected >= 1, got {args.min_samples}")
     robot = load_robot(args.robot)
-    robot_path = resolve(args.robot, "robots").resolve()
     if args.axis not in robot.axis_names:
         raise UnknownNameError("axis", args.axis, robot.axis_names)
 
@@ -126,7 +127,7 @@ def _run(args: argparse.Namespace) -> int:
 
     print(_summary(result, robot, source))
     try:
-        written = write_outputs(result, robot, robot_path, source, out)
+        written = write_outputs(result, robot, source, out)
     except OSError as exc:
         raise OutputError(f"--out {out}: cannot write ({exc.strerror or exc})") from None
     for path in written:
@@ -223,7 +224,16 @@ def read_bag_record(path: Path, robot: RobotParams, axis: str, namespace: str) -
             f"{path}: motor_states has no joint {axis!r} (the armature current; found: "
             f"{', '.join(data.motors) or 'no motor_states'})"
         )
-    base_t, _ = _series(data.joints[axis].time_s, data.joints[axis].values["position"])
+    # Each joint's stamps sorted once: (time, position, velocity).
+    joints = {
+        name: _series(
+            data.joints[name].time_s,
+            data.joints[name].values["position"],
+            data.joints[name].values["velocity"],
+        )
+        for name in robot.axis_names
+    }
+    base_t = joints[axis][0]
     motor_t, current = _series(data.motors[axis].time_s, data.motors[axis].values["effort"])
     if len(motor_t) < 2:
         raise InputFileError(f"{path}: fewer than 2 motor_states samples of {axis!r}")
@@ -234,9 +244,7 @@ def read_bag_record(path: Path, robot: RobotParams, axis: str, namespace: str) -
     position = np.zeros((len(time_s), n_axes))
     velocity = np.zeros((len(time_s), n_axes))
     for b, name in enumerate(robot.axis_names):
-        series = data.joints[name]
-        t_b, q_b = _series(series.time_s, series.values["position"])
-        _, v_b = _series(series.time_s, series.values["velocity"])
+        t_b, q_b, v_b = joints[name]
         if not np.all(np.isfinite(v_b)) and len(t_b) > 1:
             # A driver may leave JointState.velocity empty: differentiate the position.
             v_b = np.gradient(q_b, t_b)
@@ -245,14 +253,16 @@ def read_bag_record(path: Path, robot: RobotParams, axis: str, namespace: str) -
     return MotionRecord(time_s, position, velocity, np.interp(time_s, motor_t, current))
 
 
-def _series(time_s: Sequence[float], values: Sequence[float]) -> tuple[FloatArray, FloatArray]:
-    """Samples sorted by time, one per stamp (the first of a repeated stamp)."""
+def _series(time_s: Sequence[float], *values: Sequence[float]) -> tuple[FloatArray, ...]:
+    """Samples sorted by time, one per stamp (the first of a repeated stamp).
+
+    Returns the sorted stamps, then each of `values` (sampled at `time_s`) in the same order.
+    """
     t = np.asarray(time_s, dtype=np.float64)
-    v = np.asarray(values, dtype=np.float64)
     order = np.argsort(t, kind="stable")
-    t, v = t[order], v[order]
-    unique, first = np.unique(t, return_index=True)
-    return unique, v[first]
+    unique, first = np.unique(t[order], return_index=True)
+    pick = order[first]
+    return (unique, *(np.asarray(v, dtype=np.float64)[pick] for v in values))
 
 
 # --- reporting ---------------------------------------------------------------------------------
@@ -291,7 +301,7 @@ def _summary(result: IdentificationResult, robot: RobotParams, source: Path) -> 
 
 def _row(e: StateEstimate) -> str:
     coef = e.coefficient or "-"
-    prior = _value(e.prior, e.coefficient) if e.coefficient else 1.0
+    prior = _value(e.prior, e.coefficient)
     if e.status is EstimateStatus.IDENTIFIED:
         value = f"{e.estimate:9.4f}"
         interval = f"[{e.ci_low:.4f}, {e.ci_high:.4f}]"
@@ -309,16 +319,17 @@ def _row(e: StateEstimate) -> str:
 
 
 def _reason(e: StateEstimate, options: IdentifyOptions) -> str:
+    """Why a state kept its prior: `e.status` keeps the prior and is not FIXED."""
     if e.status is EstimateStatus.NOT_VISITED:
         return "not visited"
     if e.status is EstimateStatus.TOO_FEW_SAMPLES:
         return f"{e.n_samples} usable samples, fewer than {options.min_samples}"
-    if e.status is EstimateStatus.WEAK_EXCITATION:
-        return f"the {e.coefficient} torque ({e.regressor_rms_nm:.2g} N m rms) is within the noise"
-    return str(e.status.value)
+    # WEAK_EXCITATION, the last status that keeps the prior with an emitter coefficient.
+    return f"the {e.coefficient} torque ({e.regressor_rms_nm:.2g} N m rms) is within the noise"
 
 
 def _value(efficiency: Efficiency, coefficient: str | None) -> float:
+    """The coefficient's prior; eta_m (1 by eq. 11, the config loader checks it) for None."""
     return efficiency.eta_l if coefficient == "eta_l" else efficiency.eta_m
 
 
@@ -326,11 +337,7 @@ def _value(efficiency: Efficiency, coefficient: str | None) -> float:
 
 
 def write_outputs(
-    result: IdentificationResult,
-    robot: RobotParams,
-    robot_path: Path,
-    source: Path,
-    out: Path,
+    result: IdentificationResult, robot: RobotParams, source: Path, out: Path
 ) -> list[Path]:
     """Write identified.yaml and identification.json into `out`; the paths written.
 
@@ -338,11 +345,10 @@ def write_outputs(
     `efficiency:` of its own (which a top-level table cannot override), the file lists the axes
     in full instead, every axis with its table.
     """
-    out.mkdir(parents=True, exist_ok=True)
     yaml_path = out / YAML_NAME
     table = result.efficiency_table()
     for per_axis in (False, True):
-        text = identified_yaml(result, robot, robot_path, source, per_axis=per_axis)
+        text = identified_yaml(result, robot, source, per_axis=per_axis)
         with atomic_path(yaml_path) as tmp:
             tmp.write_text(text, encoding="utf-8")
         reloaded = load_robot(str(yaml_path))
@@ -353,7 +359,7 @@ def write_outputs(
         raise OutputError(f"{yaml_path}: the written table does not load back")
     json_path = out / JSON_NAME
     with atomic_path(json_path) as tmp:
-        tmp.write_text(identification_json(result, robot, robot_path, source), encoding="utf-8")
+        tmp.write_text(identification_json(result, robot, source), encoding="utf-8")
     return [yaml_path, json_path]
 
 
@@ -371,19 +377,14 @@ def _same_table(
 
 
 def identified_yaml(
-    result: IdentificationResult,
-    robot: RobotParams,
-    robot_path: Path,
-    source: Path,
-    *,
-    per_axis: bool = False,
+    result: IdentificationResult, robot: RobotParams, source: Path, *, per_axis: bool = False
 ) -> str:
     """The identified robot config as YAML text, with a comment on every coefficient.
 
     Args:
         result: the identification.
-        robot: the robot it started from (prior values).
-        robot_path: that robot's YAML file, written as `base:` (absolute).
+        robot: the robot it started from (prior values); its file (`robot.source`) is written
+            as `base:`, absolute.
         source: the input, for the header comment.
         per_axis: also write the `axes:` list in full, the identified axis with the new table
             (needed when the base gives that axis a table of its own).
@@ -393,7 +394,7 @@ def identified_yaml(
         "# Each coefficient sits on the torque of the element that emits power (eq. 11,",
         "# docs/model.md). A state that was not identified keeps the prior value of the base.",
         "# The top-level table is the default of every axis without an efficiency of its own.",
-        f"base: {json.dumps(str(robot_path))}",
+        f"base: {json.dumps(str(_robot_file(robot)))}",
         "robot:",
         f"  name: {json.dumps(robot.name + '_identified')}",
         "efficiency:",
@@ -402,7 +403,7 @@ def identified_yaml(
     if per_axis:
         lines.append("axes:")
         for axis in robot.axes:
-            lines += _axis_lines(axis, result if axis.name == result.axis else None)
+            lines += _axis_lines(axis, result)
     return "\n".join(lines) + "\n"
 
 
@@ -410,12 +411,17 @@ def _efficiency_lines(result: IdentificationResult, indent: str) -> list[str]:
     lines = []
     for name in result.state_names:
         lines.append(f"{indent}{name}:")
-        for direction in (MotionState.DIRECT, MotionState.REVERSE):
+        for direction in DIRECTIONS:
             e = result.estimate(name, direction)
             key = f"{direction.name.lower()}:"
-            entry = f"{{eta_m: {_num(e.identified.eta_m)}, eta_l: {_num(e.identified.eta_l)}}}"
+            entry = _entry(e.identified)
             lines.append(f"{indent}  {key:8s} {entry:32s} # {_comment(e, result.options)}")
     return lines
+
+
+def _entry(efficiency: Efficiency) -> str:
+    """One (state, direction) entry of an efficiency table, as a YAML flow mapping."""
+    return f"{{eta_m: {_num(efficiency.eta_m)}, eta_l: {_num(efficiency.eta_l)}}}"
 
 
 def _comment(e: StateEstimate, options: IdentifyOptions) -> str:
@@ -431,7 +437,8 @@ def _comment(e: StateEstimate, options: IdentifyOptions) -> str:
     return f"prior kept: {_reason(e, options)}"
 
 
-def _axis_lines(axis: AxisParams, result: IdentificationResult | None) -> list[str]:
+def _axis_lines(axis: AxisParams, result: IdentificationResult) -> list[str]:
+    """One entry of the `axes:` list: the identified table for the identified axis, else its own."""
     m, f = axis.motor, axis.friction
     lines = [
         f"  - name: {json.dumps(axis.name)}",
@@ -451,21 +458,20 @@ def _axis_lines(axis: AxisParams, result: IdentificationResult | None) -> list[s
         f"      viscous_reverse_nm_s_per_rad: {_num(f.viscous_reverse_nm_s_per_rad)}",
         "    efficiency:",
     ]
-    if result is not None:
+    if axis.name == result.axis:
         return lines + _efficiency_lines(result, "      ")
-    states: list[str] = []
-    for _, state in axis.efficiency:
-        if state not in states:
-            states.append(state)
-    for state in states:
+    for state in result.state_names:
         lines.append(f"      {state}:")
-        for direction in (MotionState.DIRECT, MotionState.REVERSE):
-            eff = axis.efficiency[(direction, state)]
+        for direction in DIRECTIONS:
             lines.append(
-                f"        {direction.name.lower()}: "
-                f"{{eta_m: {_num(eff.eta_m)}, eta_l: {_num(eff.eta_l)}}}"
+                f"        {direction.name.lower()}: {_entry(axis.efficiency[(direction, state)])}"
             )
     return lines
+
+
+def _robot_file(robot: RobotParams) -> Path:
+    """The robot's YAML file (the path `load_robot` resolved), absolute."""
+    return Path(robot.source).resolve()
 
 
 def _num(value: float) -> str:
@@ -473,15 +479,12 @@ def _num(value: float) -> str:
     return repr(float(round(value, DIGITS))) if abs(value) >= 1e-3 else repr(float(value))
 
 
-def identification_json(
-    result: IdentificationResult, robot: RobotParams, robot_path: Path, source: Path
-) -> str:
+def identification_json(result: IdentificationResult, robot: RobotParams, source: Path) -> str:
     """The identification as a JSON document (NaN written as null)."""
-    opts = result.options
     doc = {
         "input": str(source),
         "robot": robot.name,
-        "robot_file": str(robot_path),
+        "robot_file": str(_robot_file(robot)),
         "axis": result.axis,
         "sample_period_s": result.sample_period_s,
         "n_samples": result.n_samples,
@@ -490,16 +493,7 @@ def identification_json(
         "current_noise_a": result.current_noise_a,
         "velocity_noise_rad_s": result.velocity_noise_rad_s,
         "moving_threshold_rad_s": result.moving_threshold_rad_s,
-        "options": {
-            "window_s": opts.window_s,
-            "polyorder": opts.polyorder,
-            "guard_s": opts.guard_s,
-            "margin_sigma": opts.margin_sigma,
-            "min_samples": opts.min_samples,
-            "confidence": opts.confidence,
-            "bootstrap_replicates": opts.bootstrap_replicates,
-            "seed": opts.seed,
-        },
+        "options": dataclasses.asdict(result.options),
         "estimates": [
             {
                 "state": e.state,
@@ -511,7 +505,7 @@ def identification_json(
                 "ci_high": _finite(e.ci_high),
                 "n_samples": e.n_samples,
                 "n_effective": _finite(e.n_effective),
-                "bootstrap_block_samples": block,
+                "bootstrap_block_samples": e.block_length,
                 "prior": {"eta_m": e.prior.eta_m, "eta_l": e.prior.eta_l},
                 "identified": {"eta_m": e.identified.eta_m, "eta_l": e.identified.eta_l},
                 "prior_kept": e.status.keeps_prior,
@@ -520,7 +514,7 @@ def identification_json(
                 "residual_rms_nm": _finite(e.residual_rms_nm),
                 "regressor_rms_nm": _finite(e.regressor_rms_nm),
             }
-            for e, block in zip(result.estimates, result.block_length, strict=True)
+            for e in result.estimates
         ],
         "not_identified": [
             {"state": e.state, "direction": e.direction.name.lower(), "status": e.status.value}
