@@ -31,6 +31,10 @@ the CPU milliseconds each process spends per loop step or round trip over the wi
 shows what limits the lockstep rate. Targets are reported, never enforced: the exit status is 0
 when every figure was measured, 1 when a phase failed. The last stdout line is one JSON object.
 
+The simulator runs with config/ros/simulator.yaml, so Pinocchio's rigid-body terms are held
+for its ``rigid_body_period_s`` (1 ms, 10 model steps); ``--rigid-body-period-s 1e-4``
+evaluates them at every step, the exact scheme, for comparison.
+
 Run from the repository root::
 
     .venv/bin/python bench/ros_loop.py            # 10 s windows, 3 pairs, about 2.5 min in all
@@ -662,6 +666,14 @@ def role_argv(
     ]
 
 
+def simulator_yaml_value(name: str) -> Any:
+    """One parameter of config/ros/simulator.yaml (what the simulator runs with by default)."""
+    import yaml
+
+    doc = yaml.safe_load(SIMULATOR_YAML.read_text(encoding="utf-8"))
+    return doc["simulator"]["ros__parameters"][name]
+
+
 def simulator_argv(*overrides: str) -> list[str]:
     """`lca-simulator` with config/ros/simulator.yaml and `-p` overrides."""
     argv = [str(BIN_DIR / "lca-simulator"), "--ros-args", "--params-file", str(SIMULATOR_YAML)]
@@ -711,7 +723,9 @@ def print_cpu(cpu: JsonDict, unit: str) -> None:
         )
 
 
-def phase_lockstep(children: Children, warmup_s: float, window_s: float) -> JsonDict:
+def phase_lockstep(
+    children: Children, warmup_s: float, window_s: float, sim_overrides: Sequence[str]
+) -> JsonDict:
     """[1] The lockstep closed loop, rate from the simulator's /diagnostics."""
     timeout_s = STARTUP_TIMEOUT_S + warmup_s + window_s + 10.0
     sim = children.start(
@@ -721,6 +735,7 @@ def phase_lockstep(children: Children, warmup_s: float, window_s: float) -> Json
             "command_interface:=current",
             f"control_period_s:={CONTROL_PERIOD_S}",
             f"initial_position:={INITIAL_POSITION}",
+            *sim_overrides,
         ),
         DOMAIN_LOCKSTEP,
     )
@@ -787,13 +802,21 @@ def phase_pingpong(children: Children, warmup_s: float, window_s: float, executo
     return {"round_trips_per_s": rate, "window_s": result["wall_s"], "cpu": cpu}
 
 
-def phase_realtime(children: Children, rate_hz: int, warmup_s: float, window_s: float) -> JsonDict:
+def phase_realtime(
+    children: Children,
+    rate_hz: int,
+    warmup_s: float,
+    window_s: float,
+    sim_overrides: Sequence[str],
+) -> JsonDict:
     """[3] Realtime mode at `rate_hz`: achieved rate, jitter, overruns."""
     timeout_s = STARTUP_TIMEOUT_S + warmup_s + window_s + 10.0
     domain_id = DOMAIN_REALTIME[rate_hz]
     sim = children.start(
         f"simulator_{rate_hz}",
-        simulator_argv("timing_mode:=realtime", f"publish_rate_hz:={float(rate_hz)}"),
+        simulator_argv(
+            "timing_mode:=realtime", f"publish_rate_hz:={float(rate_hz)}", *sim_overrides
+        ),
         domain_id,
     )
     obs = children.start(
@@ -889,6 +912,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="lockstep and ping-pong phases run in turn this many times; the headline ratio is "
         f"the median of the pairs' ratios (default {DEFAULT_PAIRS}; 1 with --quick)",
     )
+    parser.add_argument(
+        "--rigid-body-period-s",
+        type=positive_float,
+        default=None,
+        help="the simulator's rigid_body_period_s (default: config/ros/simulator.yaml's); "
+        "1e-4 evaluates Pinocchio's terms at every 0.1 ms step",
+    )
     # Internal: this script as one of its own child processes.
     parser.add_argument(
         "--role",
@@ -936,6 +966,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_role(args.role, args)
     window_s = args.window_s or (QUICK_WINDOW_S if args.quick else DEFAULT_WINDOW_S)
     pairs = args.pairs or (1 if args.quick else DEFAULT_PAIRS)
+    sim_overrides: tuple[str, ...] = ()
+    if args.rigid_body_period_s is not None:
+        sim_overrides = (f"rigid_body_period_s:={args.rigid_body_period_s!r}",)
     warmup_s = QUICK_WARMUP_S if args.quick else DEFAULT_WARMUP_S
     # This process starts no ROS context, but it runs under the same rules as its children.
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -969,7 +1002,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     children,
                     errors,
                     f"lockstep_{k}",
-                    lambda: phase_lockstep(children, warmup_s, window_s),
+                    lambda: phase_lockstep(children, warmup_s, window_s, sim_overrides),
                 )
                 pingpong = run_phase(
                     "[2] bare rclpy ping-pong: JointState -> Float64MultiArray, reliable depth "
@@ -995,7 +1028,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     children,
                     errors,
                     f"realtime_{rate_hz}",
-                    functools.partial(phase_realtime, children, rate_hz, warmup_s, window_s),
+                    functools.partial(
+                        phase_realtime, children, rate_hz, warmup_s, window_s, sim_overrides
+                    ),
                 )
         finally:
             children.stop_all()
@@ -1063,6 +1098,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "pingpong_cpu": pingpong["cpu"] if pingpong else None,
         "pingpong_events_cpu": pingpong_events["cpu"] if pingpong_events else None,
         "control_period_s": CONTROL_PERIOD_S,
+        "rigid_body_period_s": args.rigid_body_period_s
+        or simulator_yaml_value("rigid_body_period_s"),
         "window_s": window_s,
         "warmup_s": warmup_s,
         "cpus": os.cpu_count(),

@@ -60,10 +60,13 @@ def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyp
 
 
 @njit(cache=True)
-def _current_loops_step(volts, loops, gains, mass_matrix, nonlinear_effects, work, model, dt_s):  # type: ignore[no-untyped-def]
-    """One model step under the current loops' voltages (`Simulator.advance_with`)."""
-    _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
-    return kernel.step(mass_matrix, nonlinear_effects, volts, work, model, dt_s)
+def _current_loops_steps(n_steps, volts, loops, gains, mass, nle, work, model, dt_s):  # type: ignore[no-untyped-def]
+    """Model steps, each under the current loops' voltages (`Simulator.advance_with`)."""
+    for k in range(n_steps):
+        _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
+        if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
+            return k
+    return n_steps
 
 
 @dataclass
@@ -136,10 +139,12 @@ class DrivePlant:
         loop: on a fresh machine that took 0.2 s, which a CAN drive's watchdogs see as a lost
         master.
         """
-        snapshot = self.sim.state
-        _run_current_loops(self._loops.copy(), self.sim.state_array[2], self._gains, self._volts)
-        self.sim.step(np.zeros(self.sim.n_axes))
-        self.sim.set_state(snapshot)
+        sim = self.sim
+        snapshot = sim.state
+        sim.advance_with(1, _current_loops_steps, self._volts, self._loops.copy(), self._gains)
+        sim.advance(1, np.zeros(sim.n_axes))
+        sim.step(np.zeros(sim.n_axes))
+        sim.set_state(snapshot)
         self._volts[:] = 0.0
 
     @property
@@ -211,15 +216,13 @@ class DrivePlant:
         volts = self._volts
         if not self.enabled:
             volts[:] = 0.0
-            for _ in range(n_steps):
-                sim.step(volts)
+            sim.advance(n_steps, volts)
             return
         if self.interface == VOLTAGE:
             volts[:] = self._target
-            for _ in range(n_steps):
-                sim.step(volts)
+            sim.advance(n_steps, volts)
             return
         loops = self._loops
         gains = self._gains
         loops[_L_TARGET_A] = self._target
-        sim.advance_with(n_steps, _current_loops_step, volts, loops, gains)
+        sim.advance_with(n_steps, _current_loops_steps, volts, loops, gains)

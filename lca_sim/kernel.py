@@ -438,3 +438,23 @@ def step(
         work[S_COPPER_LOSS, a] = model[P_RESISTANCE_OHM, a] * i_a * i_a
         work[S_MOTOR_ACCELERATION, a] = acc
     return OK
+
+
+@njit(cache=True)
+def steps(
+    n_steps: int,
+    voltage_cmd_v: FloatArray,
+    mass_matrix: FloatArray,
+    nonlinear_effects: FloatArray,
+    work: FloatArray,
+    model: FloatArray,
+    dt_s: float,
+) -> int:
+    """`n_steps` of `step` under one voltage command and one set of rigid-body terms.
+
+    Returns the number of steps taken: `n_steps`, or 0 when the command is not finite.
+    """
+    for k in range(n_steps):
+        if step(mass_matrix, nonlinear_effects, voltage_cmd_v, work, model, dt_s) != OK:
+            return k
+    return n_steps

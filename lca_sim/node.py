@@ -82,7 +82,7 @@ class SimulatorNode(Node):
         self.params: SimulatorNodeParams = validate_simulator_params(self._values)
         p = self.params
         robot = load_robot(p.robot)
-        self.sim = Simulator(robot, dt_s=p.dt_s)
+        self.sim = Simulator(robot, dt_s=p.dt_s, rigid_body_update_steps=p.rigid_body_update_steps)
         self.plant = DrivePlant(
             sim=self.sim,
             joints=p.joints,

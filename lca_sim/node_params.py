@@ -25,6 +25,11 @@ SIMULATOR_PARAMETERS: dict[str, tuple[Any, str]] = {
     "timing_mode": ("realtime", "realtime (wall-clock paced) or lockstep (one period per command)"),
     "command_interface": ("voltage", "voltage (V, both loops in the controller) or current (A)"),
     "dt_s": (1e-4, "model integration step, s; read at start"),
+    "rigid_body_period_s": (
+        1e-3,
+        "Pinocchio's A(q), C qdot + Q evaluated every this long, a multiple of dt_s (dt_s: at "
+        "every step); read at start",
+    ),
     "publish_rate_hz": (250.0, "realtime: state publish rate, Hz"),
     "control_period_s": (0.004, "lockstep: simulated time advanced per command, s"),
     "command_timeout_s": (0.1, "realtime: command silence after which the voltage drops to 0, s"),
@@ -40,7 +45,9 @@ SIMULATOR_PARAMETERS: dict[str, tuple[Any, str]] = {
 }
 
 # Parameters that define the model or the wiring: changing them needs a restart.
-READ_ONLY = frozenset({"robot", "joints", "timing_mode", "command_interface", "dt_s"})
+READ_ONLY = frozenset(
+    {"robot", "joints", "timing_mode", "command_interface", "dt_s", "rigid_body_period_s"}
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,6 +59,7 @@ class SimulatorNodeParams:
     timing_mode: str
     command_interface: str
     dt_s: float
+    rigid_body_period_s: float
     publish_rate_hz: float
     control_period_s: float
     command_timeout_s: float
@@ -70,6 +78,11 @@ class SimulatorNodeParams:
         """Model steps per lockstep control period."""
         return round(self.control_period_s / self.dt_s)
 
+    @property
+    def rigid_body_update_steps(self) -> int:
+        """Model steps per evaluation of the rigid-body terms (`Simulator`)."""
+        return round(self.rigid_body_period_s / self.dt_s)
+
 
 def _positive(values: Mapping[str, Any], name: str, maximum: float = math.inf) -> float:
     value = values[name]
@@ -81,6 +94,14 @@ def _positive(values: Mapping[str, Any], name: str, maximum: float = math.inf) -
             "parameters", name, f"expected a number in (0, {maximum:g}], got {value!r}"
         )
     return number
+
+
+def _whole_multiple(values: Mapping[str, Any], name: str, dt_s: float, maximum: float) -> float:
+    period_s = _positive(values, name, maximum)
+    ratio = period_s / dt_s
+    if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6 * ratio:
+        raise ConfigError("parameters", name, f"expected a whole multiple of dt_s = {dt_s:g}")
+    return period_s
 
 
 def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
@@ -106,12 +127,8 @@ def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
             "parameters", "command_interface", f"expected one of {COMMAND_INTERFACES}"
         )
     dt_s = _positive(values, "dt_s", 0.01)
-    control_period_s = _positive(values, "control_period_s", 1.0)
-    ratio = control_period_s / dt_s
-    if abs(ratio - round(ratio)) > 1e-6 * ratio:
-        raise ConfigError(
-            "parameters", "control_period_s", f"expected a whole multiple of dt_s = {dt_s:g}"
-        )
+    control_period_s = _whole_multiple(values, "control_period_s", dt_s, 1.0)
+    rigid_body_period_s = _whole_multiple(values, "rigid_body_period_s", dt_s, 0.01)
     publish_rate_hz = _positive(values, "publish_rate_hz", 10_000.0)
     if 1.0 / publish_rate_hz < dt_s:
         raise ConfigError("parameters", "publish_rate_hz", "expected a period of at least dt_s")
@@ -131,6 +148,7 @@ def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
         timing_mode=timing_mode,
         command_interface=interface,
         dt_s=dt_s,
+        rigid_body_period_s=rigid_body_period_s,
         publish_rate_hz=publish_rate_hz,
         control_period_s=control_period_s,
         command_timeout_s=_positive(values, "command_timeout_s", 60.0),

@@ -97,14 +97,29 @@ class Simulator:
     Args:
         robot: validated robot parameters.
         dt_s: the fixed integration step (default 0.1 ms).
+        rigid_body_update_steps: Pinocchio's A(q) and C(q, qdot) qdot + Q(q) (eq. 2) are
+            evaluated once every this many steps and held in between (default 1: at every
+            step, the exact fixed-step scheme). With k > 1 they are evaluated at the hold's
+            mean position, q + qdot (k - 1) dt / 2, so the error is second order in the hold;
+            the motor, gear, state machine and current loops still run at every step. The
+            simulator node holds them for 1 ms (10 steps), which costs nothing measurable in
+            accuracy (tests/test_model_physics.py) and most of a control period's CPU.
 
     The simulator starts at rest at q = 0 with zero current; use `reset` for other states.
 
     """
 
-    def __init__(self, robot: RobotParams, dt_s: float = 1e-4) -> None:
+    def __init__(
+        self, robot: RobotParams, dt_s: float = 1e-4, rigid_body_update_steps: int = 1
+    ) -> None:
         if not (dt_s > 0.0 and np.isfinite(dt_s)):
             raise ConfigError(robot.source, "dt_s", f"expected a positive step, got {dt_s!r}")
+        if type(rigid_body_update_steps) is not int or rigid_body_update_steps < 1:
+            raise ConfigError(
+                robot.source,
+                "rigid_body_update_steps",
+                f"expected a whole number of steps >= 1, got {rigid_body_update_steps!r}",
+            )
         self.robot = robot
         self.dt_s = float(dt_s)
         self._gantry = Gantry(robot.urdf_xml, robot.gravity_m_s2, robot.source)
@@ -134,6 +149,15 @@ class Simulator:
         self._command = np.zeros(self.n_axes)
         self._command_shape = (self.n_axes,)
         self._dynamics = self._gantry.dynamics_terms
+        # The held rigid-body terms: Pinocchio's buffers themselves when evaluated at every
+        # step, copies when held (another Pinocchio call would overwrite its buffers).
+        self.rigid_body_update_steps = rigid_body_update_steps
+        self._hold_lead_s = 0.5 * (rigid_body_update_steps - 1) * self.dt_s
+        self._hold_position = np.zeros(self.n_axes)
+        self._held_mass = np.zeros((self.n_axes, self.n_axes))
+        self._held_nle = np.zeros(self.n_axes)
+        self._terms: tuple[FloatArray, FloatArray] = (self._held_mass, self._held_nle)
+        self._hold_age = 0  # steps taken on the held terms; 0: evaluate before the next step
         self._time_s = 0.0
         self.reset()
 
@@ -164,16 +188,21 @@ class Simulator:
         self._work[kernel.X_VELOCITY] = v
         self._work[kernel.X_MOTION] = np.sign(v)
         self._time_s = 0.0
+        self._hold_age = 0
         self._evaluate(np.zeros(self.n_axes) if voltage_v is None else voltage_v)
 
     def set_state(self, state: PlantState) -> None:
-        """Restore a state captured by `state` (for lockstep rewinds and determinism checks)."""
+        """Restore a state captured by `state` (for lockstep rewinds and determinism checks).
+
+        A new hold of the rigid-body terms starts from it (`rigid_body_update_steps`).
+        """
         self._work[kernel.X_POSITION] = state.position
         self._work[kernel.X_VELOCITY] = state.velocity
         self._work[kernel.X_CURRENT] = state.current_a
         self._work[kernel.X_MOTION] = [int(m) for m in state.motion]
         self._work[kernel.X_DRIVE] = state.drive
         self._time_s = state.time_s
+        self._hold_age = 0
         self._evaluate(self._command.copy())
 
     @property
@@ -251,38 +280,73 @@ class Simulator:
             command = np.asarray(voltage_v, dtype=np.float64)
         if command.shape != self._command_shape:
             raise InputError(f"expected {self.n_axes} voltages, got shape {command.shape}")
-        mass, nle = self._dynamics(self._position, self._velocity)
+        mass, nle = self._rigid_body_terms()
         code = kernel.step(mass, nle, command, self._work, self._model, self.dt_s)
         if code != kernel.OK:
             raise InputError(f"voltage commands must be finite, got {command.tolist()}")
         self._command = command
         self._time_s += self.dt_s
+        self._hold_age = (self._hold_age + 1) % self.rigid_body_update_steps
+
+    def advance(self, n_steps: int, voltage_v: FloatArray) -> None:
+        """`n_steps` of `step` under one voltage command, in compiled code per hold.
+
+        Raises:
+            InputError: wrong length, NaN or infinite command; the state is left unchanged.
+
+        """
+        command = np.array(voltage_v, dtype=np.float64)
+        if command.shape != self._command_shape or not np.all(np.isfinite(command)):
+            raise InputError(f"expected {self.n_axes} finite voltages, got {command.tolist()}")
+        self.advance_with(n_steps, kernel.steps, command)
 
     def advance_with(
         self, n_steps: int, stepper: Callable[..., int], volts: FloatArray, *args: FloatArray
     ) -> None:
         """Advance `n_steps` of `dt_s` under voltages a compiled drive computes at every step.
 
-        `stepper(volts, *args, mass_matrix, nonlinear_effects, work, model, dt_s)` is a numba
-        function that writes the voltage commands into `volts` from the state in `work` (rows
-        `kernel.X_*`, read only) and then calls `kernel.step` with them, returning its code.
-        The in-drive current loops (`lca_sim.drive`) run this way: per step, one compiled call
-        instead of two and no Python bookkeeping beyond the Pinocchio terms; the same arithmetic
-        as `step` with the voltages computed outside.
+        `stepper(n, volts, *args, mass_matrix, nonlinear_effects, work, model, dt_s)` is a numba
+        function that takes up to `n` steps on the given rigid-body terms: at each, it writes
+        the voltage commands into `volts` from the state in `work` (rows `kernel.X_*`, read
+        only) and calls `kernel.step` with them. It returns the number of steps taken, `n`
+        unless a step refused its voltages. The in-drive current loops (`lca_sim.drive`) run
+        this way: one compiled call per hold of the rigid-body terms, the same arithmetic as
+        `step` with the voltages computed outside.
 
         Raises:
             InputError: the voltages were not finite; the steps before stand, the state is as
                 after them.
 
         """
-        dynamics, position, velocity = self._dynamics, self._position, self._velocity
         work, model, dt_s = self._work, self._model, self.dt_s
-        for _ in range(n_steps):
-            mass, nle = dynamics(position, velocity)
-            if stepper(volts, *args, mass, nle, work, model, dt_s) != kernel.OK:
-                raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
+        hold = self.rigid_body_update_steps
+        left = n_steps
+        while left > 0:
+            mass, nle = self._rigid_body_terms()
+            chunk = min(hold - self._hold_age, left)
+            done = stepper(chunk, volts, *args, mass, nle, work, model, dt_s)
+            for _ in range(done):
+                self._time_s += dt_s
+            self._hold_age = (self._hold_age + done) % hold
             self._command = volts
-            self._time_s += dt_s
+            left -= done
+            if done < chunk:
+                raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
+
+    def _rigid_body_terms(self) -> tuple[FloatArray, FloatArray]:
+        """A(q) and C(q, qdot) qdot + Q(q) for the next step: evaluated, or still held."""
+        if self._hold_age == 0:
+            if self.rigid_body_update_steps == 1:
+                self._terms = self._dynamics(self._position, self._velocity)
+            else:
+                q = self._hold_position
+                np.multiply(self._velocity, self._hold_lead_s, out=q)
+                q += self._position
+                mass, nle = self._dynamics(q, self._velocity)
+                self._held_mass[:] = mass
+                self._held_nle[:] = nle
+                self._terms = (self._held_mass, self._held_nle)
+        return self._terms
 
     def derivative(
         self, state: PlantState, voltage_v: Sequence[float] | FloatArray

@@ -959,3 +959,29 @@ def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
     path.write_text("duration_s: 1\ndt_s: 1e-4\nrecord_period_s: 1e-2\n")
     scenario = load_scenario(str(path), AXIS_NAMES)
     assert (scenario.dt_s, scenario.record_period_s, scenario.n_steps) == (1e-4, 1e-2, 10_000)
+
+
+# --- simulator node parameters ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        (2.5e-4, "expected a whole multiple of dt_s = 0.0001"),
+        (5e-5, "expected a whole multiple of dt_s = 0.0001"),
+        (0.02, "expected a number in (0, 0.01]"),
+        (0.0, "expected a number in (0, 0.01]"),
+        ("1ms", "expected a number"),
+    ],
+)
+def test_bad_rigid_body_period(value: object, expected: str) -> None:
+    """The rigid-body update period must be a whole number of model steps, at most 10 ms."""
+    from lca_sim.node_params import SIMULATOR_PARAMETERS, validate_simulator_params
+
+    values = {name: default for name, (default, _) in SIMULATOR_PARAMETERS.items()}
+    assert validate_simulator_params(values).rigid_body_update_steps == 10  # 1 ms / 0.1 ms
+    values["rigid_body_period_s"] = value
+    with pytest.raises(ConfigError) as info:
+        validate_simulator_params(values)
+    assert info.value.key == "rigid_body_period_s"
+    assert expected in str(info.value)

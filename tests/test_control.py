@@ -189,16 +189,21 @@ def test_paper_current_step_fig13(default_robot: RobotParams) -> None:
     np.testing.assert_allclose(i, np.ravel(expected)[1:], atol=1e-6)
 
 
-def test_in_drive_current_loops_are_the_lca_control_pi(default_robot: RobotParams) -> None:
+@pytest.mark.parametrize("hold_steps", [1, 7])
+def test_in_drive_current_loops_are_the_lca_control_pi(
+    default_robot: RobotParams, hold_steps: int
+) -> None:
     """DrivePlant's compiled current loops give, sample for sample, PIController's voltages.
 
     A 30 A command saturates (the amplifier limit clamps the pivot's PI and freezes its
-    integral), then a live retune and a reversal exercise the bumpless re-base.
+    integral), then a live retune and a reversal exercise the bumpless re-base. With the
+    rigid-body terms held for 7 steps, a hold straddles the 40-step call: the step-by-step and
+    the whole-period paths must still agree bit for bit.
     """
     from lca_sim.drive import DrivePlant
 
-    sim_drive = Simulator(default_robot, dt_s=1e-4)
-    sim_ref = Simulator(default_robot, dt_s=1e-4)
+    sim_drive = Simulator(default_robot, dt_s=1e-4, rigid_body_update_steps=hold_steps)
+    sim_ref = Simulator(default_robot, dt_s=1e-4, rigid_body_update_steps=hold_steps)
     gains = PIParams(PAPER_CURRENT_KP_V_PER_A, PAPER_CURRENT_TI_S, -1.0, 1.0)
     plant = DrivePlant(
         sim=sim_drive,
