@@ -27,8 +27,8 @@ SIMULATOR_PARAMETERS: dict[str, tuple[Any, str]] = {
     "dt_s": (1e-4, "model integration step, s; read at start"),
     "rigid_body_period_s": (
         1e-3,
-        "Pinocchio's A(q), C qdot + Q evaluated every this long, a multiple of dt_s (dt_s: at "
-        "every step); read at start",
+        "Pinocchio's A(q), C qdot + Q evaluated every this long, s: a whole multiple of dt_s, "
+        "at most 0.01 (dt_s: at every step); read at start",
     ),
     "publish_rate_hz": (250.0, "realtime: state publish rate, Hz"),
     "control_period_s": (0.004, "lockstep: simulated time advanced per command, s"),

@@ -51,6 +51,10 @@ class InputError(LcaHilError, ValueError):
 class PlantState:
     """The full state of the plant: enough to restore a run exactly.
 
+    With the rigid-body terms held (`Simulator` `rigid_body_update_steps` > 1) the hold's phase
+    is not part of it: a restored state starts a new hold, so a run restored in the middle of
+    a hold follows the exact run of that simulator to within the hold's error, not bit for bit.
+
     Attributes:
         time_s: simulated time.
         position: joint positions (rad, m for the lift), in axis order.
@@ -100,10 +104,12 @@ class Simulator:
         rigid_body_update_steps: Pinocchio's A(q) and C(q, qdot) qdot + Q(q) (eq. 2) are
             evaluated once every this many steps and held in between (default 1: at every
             step, the exact fixed-step scheme). With k > 1 they are evaluated at the hold's
-            mean position, q + qdot (k - 1) dt / 2, so the error is second order in the hold;
-            the motor, gear, state machine and current loops still run at every step. The
-            simulator node holds them for 1 ms (10 steps), which costs nothing measurable in
-            accuracy (tests/test_model_physics.py) and most of a control period's CPU.
+            mean position, q + qdot (k - 1) dt / 2, so the error of A(q) and Q(q) is second
+            order in the hold (the velocity in C(q, qdot) qdot is the hold's first); the motor,
+            gear, state machine and current loops still run at every step. The simulator node
+            holds them for 1 ms (10 steps): the results move by microradians
+            (tests/test_model_physics.py) and a control period's model CPU drops by three
+            quarters.
 
     The simulator starts at rest at q = 0 with zero current; use `reset` for other states.
 
@@ -151,7 +157,7 @@ class Simulator:
         self._dynamics = self._gantry.dynamics_terms
         # The held rigid-body terms: Pinocchio's buffers themselves when evaluated at every
         # step, copies when held (another Pinocchio call would overwrite its buffers).
-        self.rigid_body_update_steps = rigid_body_update_steps
+        self._hold_steps = rigid_body_update_steps
         self._hold_lead_s = 0.5 * (rigid_body_update_steps - 1) * self.dt_s
         self._hold_position = np.zeros(self.n_axes)
         self._held_mass = np.zeros((self.n_axes, self.n_axes))
@@ -286,7 +292,7 @@ class Simulator:
             raise InputError(f"voltage commands must be finite, got {command.tolist()}")
         self._command = command
         self._time_s += self.dt_s
-        self._hold_age = (self._hold_age + 1) % self.rigid_body_update_steps
+        self._hold_age = (self._hold_age + 1) % self._hold_steps
 
     def advance(self, n_steps: int, voltage_v: FloatArray) -> None:
         """`n_steps` of `step` under one voltage command, in compiled code per hold.
@@ -319,7 +325,7 @@ class Simulator:
 
         """
         work, model, dt_s = self._work, self._model, self.dt_s
-        hold = self.rigid_body_update_steps
+        hold = self._hold_steps
         left = n_steps
         while left > 0:
             mass, nle = self._rigid_body_terms()
@@ -328,15 +334,21 @@ class Simulator:
             for _ in range(done):
                 self._time_s += dt_s
             self._hold_age = (self._hold_age + done) % hold
-            self._command = volts
             left -= done
             if done < chunk:
+                # The last command stays the last good one (set_state re-evaluates with it).
                 raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
+        self._command = volts.copy()
+
+    @property
+    def rigid_body_update_steps(self) -> int:
+        """Steps per evaluation of Pinocchio's terms (fixed at construction)."""
+        return self._hold_steps
 
     def _rigid_body_terms(self) -> tuple[FloatArray, FloatArray]:
         """A(q) and C(q, qdot) qdot + Q(q) for the next step: evaluated, or still held."""
         if self._hold_age == 0:
-            if self.rigid_body_update_steps == 1:
+            if self._hold_steps == 1:
                 self._terms = self._dynamics(self._position, self._velocity)
             else:
                 q = self._hold_position

@@ -257,6 +257,31 @@ def test_held_rigid_body_terms_match_the_exact_run(default_robot: RobotParams) -
     assert (stored_j(len(held.time_s) - 1) - stored_j(0) + losses) == pytest.approx(e_in, rel=2e-3)
 
 
+@pytest.mark.parametrize("hold_steps", [1, 10])
+def test_refused_voltages_change_nothing(default_robot: RobotParams, hold_steps: int) -> None:
+    """NaN commands through every entry point: refused, state and time kept, still usable."""
+    from lca_sim import kernel
+    from lca_sim.simulator import InputError
+
+    sim = Simulator(default_robot, rigid_body_update_steps=hold_steps)
+    sim.reset(position={"pivot": 0.9})
+    good = np.array([0.0, 8.0, 0.0, 0.0])
+    bad = np.array([0.0, math.nan, 0.0, 0.0])
+    sim.advance(3, good)  # mid-hold when held
+    before = sim.state
+    with pytest.raises(InputError):
+        sim.step(bad)
+    with pytest.raises(InputError):
+        sim.advance(5, bad)
+    with pytest.raises(InputError):
+        sim.advance_with(5, kernel.steps, bad.copy())
+    assert sim.state == before
+    sim.set_state(before)  # re-evaluates with the last good command, which is finite
+    sim.advance(7, good)
+    assert sim.time_s == pytest.approx(before.time_s + 7 * sim.dt_s)
+    assert sim.state.current_a[PIVOT] > before.current_a[PIVOT] > 0.0  # still driven
+
+
 def test_fig9_transition_angle_with_held_terms(default_robot: RobotParams) -> None:
     """The motor driving -> load driving switch of Fig 9 moves by under 0.01 deg with a hold."""
     angles = []

@@ -259,8 +259,10 @@ def test_parameters_are_validated_live() -> None:
         executor.add_node(sim)
         bad = sim.set_parameters([Parameter("command_timeout_s", value=-1.0)])[0]
         assert not bad.successful and "command_timeout_s" in bad.reason
-        fixed = sim.set_parameters([Parameter("dt_s", value=2e-4)])[0]
-        assert not fixed.successful and "restart" in fixed.reason
+        for name, value in (("dt_s", 2e-4), ("rigid_body_period_s", 2e-3)):
+            fixed = sim.set_parameters([Parameter(name, value=value)])[0]
+            assert not fixed.successful and "restart" in fixed.reason and name in fixed.reason
+        assert sim.sim.rigid_body_update_steps == 10  # the 1 ms default, unchanged
         good = sim.set_parameters([Parameter("current_kp_v_per_a", value=20.0)])[0]
         assert good.successful
         assert sim.params.current_kp_v_per_a == 20.0
