@@ -18,8 +18,9 @@ The time axis (`--time`): `header` uses the messages' header stamps (the plant's
 simulated or wall; seconds from the earliest sample plotted), `bag` the recorder's reception
 stamps (its node clock: simulated time when it ran with `use_sim_time:=true`, all 0 if no /clock
 came; seconds from the bag's first message). `auto`, the default, takes the header stamps when
-every plotted message has one (non-zero) and the bag stamps otherwise. A missing topic skips its
-plots with a note.
+every plotted message has one and the bag stamps otherwise. A zero stamp counts as none, except
+at the start of a series: simulated time starts at exactly 0 (the lockstep simulator's first
+state). A missing topic skips its plots with a note.
 
 Exit codes: 0 success, 2 the bag cannot be read (one line on stderr).
 """
@@ -107,7 +108,7 @@ class BagData:
         """Fill every series' `time_s` from `base` ("header", "bag" or "auto", see the module)."""
         every = self.series()
         if base == "auto":
-            stamped = all(0 not in s.header_ns for s in every)
+            stamped = all(_stamped(s.header_ns) for s in every)
             base = "header" if stamped and every else "bag"
         self.time_base = base
         stamps = [s.header_ns if base == "header" else s.bag_ns for s in every]
@@ -117,6 +118,12 @@ class BagData:
             start_ns = self.bag_start_ns
         for series, ns in zip(every, stamps, strict=True):
             series.time_s = [(t - start_ns) / NS_PER_S for t in ns]
+
+
+def _stamped(header_ns: list[int]) -> bool:
+    """Every message has a header stamp: none is zero after the first non-zero one."""
+    first = next((k for k, ns in enumerate(header_ns) if ns), None)
+    return first is not None and 0 not in header_ns[first:]
 
 
 class BagReadError(Exception):

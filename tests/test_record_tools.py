@@ -522,11 +522,17 @@ def test_message_to_plain_nested_and_arrays() -> None:
 
 
 def write_test_bag(
-    path: Path, topics: tuple[str, ...], n_messages: int = 50, *, header_stamps: bool = True
+    path: Path,
+    topics: tuple[str, ...],
+    n_messages: int = 50,
+    *,
+    header_stamps: bool = True,
+    header_start_ns: int = 2_000_000_000,
 ) -> None:
     """A small MCAP bag: joint/motor JointStates and drive-chain DiagnosticArrays.
 
-    Bag stamps are 10 ms apart, header stamps 20 ms apart (or all zero without header_stamps).
+    Bag stamps are 10 ms apart, header stamps 20 ms apart from `header_start_ns` (or all zero
+    without header_stamps).
     """
     ts = get_typestore(Stores.ROS2_JAZZY)
     types = ts.types
@@ -549,7 +555,7 @@ def write_test_bag(
         }
         for i in range(n_messages):
             t_ns = 1_000_000_000 + i * 10_000_000
-            head_ns = (2_000_000_000 + i * 20_000_000) if header_stamps else 0
+            head_ns = (header_start_ns + i * 20_000_000) if header_stamps else 0
             head = header(stamp=stamp(sec=head_ns // 10**9, nanosec=head_ns % 10**9), frame_id="")
             value = np.array([0.01 * i, 0.02 * i, -0.01 * i, 0.001 * i])
             msgs = {
@@ -627,6 +633,12 @@ def test_plot_reads_drive_states_and_units(tmp_path: Path) -> None:
     fallback = bagplot.read_bag(unstamped)
     assert fallback.time_base == "bag"
     assert fallback.joints["lift"].time_s == pytest.approx([0.0, 0.01, 0.02])
+    # Simulated time starts at exactly 0 (lockstep): that first zero stamp is a stamp.
+    from_zero = tmp_path / "from_zero"
+    write_test_bag(from_zero, (JOINT_STATES, DRIVE_CHAIN_STATES), n_messages=4, header_start_ns=0)
+    sim_time = bagplot.read_bag(from_zero)
+    assert sim_time.time_base == "header"
+    assert sim_time.joints["pivot"].time_s == pytest.approx([0.0, 0.02, 0.04, 0.06])
     order = bagplot.state_order(["motor_driving", "stop_hold"])
     assert order[0] == "stop_hold"
     assert order[-1] == "motor_driving"
