@@ -102,12 +102,16 @@ def run_fig15(out: Path, duration_s: float) -> int:
     ctx = Context()
     rclpy.init(context=ctx, domain_id=int(_env()["ROS_DOMAIN_ID"]))
     node = Node("lca_hil_progress", context=ctx)
-    clock = {"t": 0.0, "first_wall": 0.0}
+    # The loop's rate over the span this node saw of it: it may match /clock after the loop
+    # has started (the simulator waits for the controller and the recorder, not for it).
+    clock = {"t": 0.0, "first_t": math.nan, "first_wall": math.nan, "last_wall": math.nan}
 
     def on_clock(msg: Clock) -> None:
-        if clock["first_wall"] == 0.0:
-            clock["first_wall"] = time.monotonic()
+        now = time.monotonic()
         clock["t"] = from_stamp(msg.clock)
+        if math.isnan(clock["first_wall"]):
+            clock["first_wall"], clock["first_t"] = now, clock["t"]
+        clock["last_wall"] = now
 
     node.create_subscription(
         Clock, ri.CLOCK, on_clock, QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -131,11 +135,16 @@ def run_fig15(out: Path, duration_s: float) -> int:
             if int(clock["t"]) != shown:
                 shown = int(clock["t"])
                 print(f"\r  simulated {clock['t']:6.2f} / {duration_s:g} s", end="", flush=True)
-        wall_s = time.monotonic() - clock["first_wall"] if clock["first_wall"] else math.nan
+        seen_wall_s = clock["last_wall"] - clock["first_wall"]
+        steps_per_s = (
+            (clock["t"] - clock["first_t"]) / CONTROL_PERIOD_S / seen_wall_s
+            if seen_wall_s > 0.0
+            else math.nan
+        )
         print()
     except KeyboardInterrupt:
         code = 130
-        wall_s = math.nan
+        steps_per_s = math.nan
     finally:
         executor.shutdown()
         node.destroy_node()
@@ -143,10 +152,10 @@ def run_fig15(out: Path, duration_s: float) -> int:
         _stop(procs[::-1])  # simulator first, the recorder last
     if code != 0:
         return code
-    return _summarise(out, bag, wall_s)
+    return _summarise(out, bag, steps_per_s)
 
 
-def _summarise(out: Path, bag: Path, wall_s: float) -> int:
+def _summarise(out: Path, bag: Path, steps_per_s: float) -> int:
     subprocess.run([_script("lca-plot"), str(bag), "--out", str(out)], env=_env(), check=False)
     try:
         data = read_bag(bag)
@@ -189,7 +198,7 @@ def _summarise(out: Path, bag: Path, wall_s: float) -> int:
         ),
         "travel_deg": math.degrees(positions[-1] - positions[0]),
         "states_recorded": steps,
-        "closed_loop_steps_per_s": steps / wall_s if wall_s > 0 else math.nan,
+        "closed_loop_steps_per_s": steps_per_s,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     print(
