@@ -668,10 +668,9 @@ def role_argv(
 
 def simulator_yaml_value(name: str) -> Any:
     """One parameter of config/ros/simulator.yaml (what the simulator runs with by default)."""
-    import yaml
+    from lca_sim.config import read_yaml
 
-    doc = yaml.safe_load(SIMULATOR_YAML.read_text(encoding="utf-8"))
-    return doc["simulator"]["ros__parameters"][name]
+    return read_yaml(SIMULATOR_YAML)["simulator"]["ros__parameters"][name]
 
 
 def simulator_argv(*overrides: str) -> list[str]:

@@ -36,14 +36,13 @@ from canopen.sdo.base import SdoArray, SdoRecord
 from lca_sim import can_master as cm
 from lca_sim.can_master import TorqueScale, Want
 from lca_sim.cia402 import CW_HALT, PowerState
+from lca_sim.runtime import FREEZE_THRESHOLD_S
 
 log = logging.getLogger(__name__)
 
 # Python's default GIL switch interval (5 ms) lets one thread hold the interpreter for several
 # CAN periods; processes that run a CanBridge (the node, the benchmark) set this instead.
 GIL_SWITCH_INTERVAL_S = 5e-4
-# Two cycle starts this much further apart than a period: the process was frozen (`_run`).
-FREEZE_THRESHOLD_S = 0.01
 SYNC_COB_ID = 0x80
 HEARTBEAT_BASE = 0x700
 NMT_OPERATIONAL_CODE = 0x05

@@ -143,8 +143,7 @@ class DrivePlant:
         snapshot = sim.state
         sim.advance_with(1, _current_loops_steps, self._volts, self._loops.copy(), self._gains)
         sim.advance(1, np.zeros(sim.n_axes))
-        sim.step(np.zeros(sim.n_axes))
-        sim.set_state(snapshot)
+        sim.set_state(snapshot)  # kernel.step itself: set_state evaluates the state with it
         self._volts[:] = 0.0
 
     @property

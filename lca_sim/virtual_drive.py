@@ -89,7 +89,7 @@ from lca_sim.config import config_dir, load_robot, read_yaml
 from lca_sim.drive import CURRENT, DrivePlant
 from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
 from lca_sim.params import AXIS_NAMES, RobotParams
-from lca_sim.runtime import settle_heap, yield_gil
+from lca_sim.runtime import FREEZE_THRESHOLD_S, settle_heap, yield_gil
 from lca_sim.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 
 logger = logging.getLogger(__name__)
@@ -98,10 +98,6 @@ SYNC_COB_ID = 0x080
 NMT_COB_ID = 0x000
 HEARTBEAT_COB_BASE = 0x700
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
-# A monitor tick this much later than due means this process was frozen (the GIL held, the host
-# paused): that time is not counted against the master's deadlines (see `_monitor`). It must stay
-# below the tightest deadline (SYNC loss: 10 periods, 20 ms at 500 Hz).
-FREEZE_THRESHOLD_S = 0.01
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
 

@@ -32,7 +32,7 @@ from lca_control.profiles import RampProfile
 from lca_sim import ros_interface as ri
 from lca_sim.can_bridge_node import CanBridgeNode
 from lca_sim.config import config_dir
-from lca_sim.rosutil import make_executor
+from lca_sim.rosutil import from_stamp, make_executor
 
 DOMAIN_ID = 131
 LONG_FREEZE_MS = 40  # 10 periods of the 4 ms loop with stale commands
@@ -60,12 +60,11 @@ def _roomy_rack_config(tmp_path: Path) -> Path:
 class SwapRun:
     """What one closed-loop run over CAN recorded."""
 
-    # The pivot's joint states as plain floats: stamp (s), position (rad), velocity (rad/s).
-    # array('d') is invisible to the garbage collector, so recording 2900 states adds nothing
-    # to the full collections that would stall this process's CAN cycle (JointState objects
-    # did: 20-30 ms a collection).
+    # The pivot's joint states as plain floats: stamp (s) and velocity (rad/s). array('d') is
+    # invisible to the garbage collector, so recording 2900 states adds nothing to the full
+    # collections that would stall this process's CAN cycle (JointState objects did: 20-30 ms
+    # a collection).
     stamp_s: array[float]
-    position_rad: array[float]
     velocity_rad_s: array[float]
     transitions: list[tuple[float, str, float]]  # (stamp s, pivot drive state, position rad)
     ramp: RampProfile
@@ -134,7 +133,7 @@ def _run_swap(tmp_path: Path) -> SwapRun:
         last_state = {"name": ""}
 
         def on_joint(msg: JointState) -> None:
-            stamp_s.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+            stamp_s.append(from_stamp(msg.header.stamp))
             position_rad.append(msg.position[1])
             velocity_rad_s.append(msg.velocity[1])
 
@@ -142,7 +141,7 @@ def _run_swap(tmp_path: Path) -> SwapRun:
             for status in msg.status:
                 pivot = status.name == ri.DRIVE_STATUS_PREFIX + "pivot"
                 if pivot and status.message != last_state["name"]:
-                    t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+                    t = from_stamp(msg.header.stamp)
                     position = position_rad[-1] if position_rad else math.nan
                     transitions.append((t, status.message, position))
                     last_state["name"] = status.message
@@ -162,12 +161,10 @@ def _run_swap(tmp_path: Path) -> SwapRun:
         finally:
             watch.stop()
         ramp = ctl.core.params.profile
-        assert ramp is not None
         freeze_ms = round(watch.longest_s * 1e3)
         assert isinstance(ramp, RampProfile)
         return SwapRun(
             stamp_s,
-            position_rad,
             velocity_rad_s,
             transitions,
             ramp,
