@@ -36,7 +36,7 @@ from canopen.sdo.base import SdoArray, SdoRecord
 from lca_sim import can_master as cm
 from lca_sim.can_master import TorqueScale, Want
 from lca_sim.cia402 import CW_HALT, PowerState
-from lca_sim.runtime import FREEZE_THRESHOLD_S
+from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
 
 log = logging.getLogger(__name__)
 
@@ -545,7 +545,7 @@ class CanBridge:
             now = time.monotonic()
             frozen_s = now - previous_start - period
             if frozen_s > FREEZE_THRESHOLD_S:
-                self._discount_freeze(frozen_s)
+                self._discount_freeze(frozen_s, now)
             previous_start = now
             self.cycle(now)
             next_t += period
@@ -587,20 +587,20 @@ class CanBridge:
             self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
             self._send(HEARTBEAT_BASE + p.master_node_id, bytes([NMT_OPERATIONAL_CODE]))
 
-    def _discount_freeze(self, frozen_s: float) -> None:
+    def _discount_freeze(self, frozen_s: float, now: float) -> None:
         """Move the silence deadlines on by `frozen_s`: this process stood still, not the others.
 
         Two cycle starts further apart than a period plus `FREEZE_THRESHOLD_S` mean the cycle
         thread was frozen (the GIL held by a library load, a paused host). The commands and
         TPDOs sent meanwhile wait unread in the queues; judging the controller's and the drives'
         silence on waking would blame them for the freeze. A controller or drive that is silent
-        while this thread runs is still caught on time.
+        while this thread runs is still caught on time: no deadline moves past `now`.
         """
         with self._lock:
             self.counters.process_freezes += 1
-            self._last_command_t += frozen_s
+            self._last_command_t = discounted(self._last_command_t, frozen_s, now)
             for axis in self._axes:
-                axis.last_tpdo_t += frozen_s
+                axis.last_tpdo_t = discounted(axis.last_tpdo_t, frozen_s, now)
         if self.counters.process_freezes == 1:
             log.warning(
                 "the cycle thread stood still for %.0f ms; silence deadlines do not count it "

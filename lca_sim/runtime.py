@@ -26,6 +26,16 @@ import time
 FREEZE_THRESHOLD_S = 0.01
 
 
+def discounted(stamp_s: float, frozen_s: float, now_s: float) -> float:
+    """A last-heard time moved on by a freeze of this process, but never past now.
+
+    A frame taken between the freeze and the thread that noticed it has stamped the time
+    afresh already; moving that stamp on too would let the sender's silence go unseen for
+    another freeze's length.
+    """
+    return min(stamp_s + frozen_s, now_s)
+
+
 def settle_heap() -> int:
     """Collect now, then move every live object out of the collector's sight.
 

@@ -89,7 +89,7 @@ from lca_sim.config import config_dir, load_robot, read_yaml
 from lca_sim.drive import CURRENT, DrivePlant
 from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
 from lca_sim.params import AXIS_NAMES, RobotParams
-from lca_sim.runtime import FREEZE_THRESHOLD_S, settle_heap, yield_gil
+from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted, settle_heap, yield_gil
 from lca_sim.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 
 logger = logging.getLogger(__name__)
@@ -364,9 +364,13 @@ def _frame_codec(objects: Sequence[ODVariable]) -> struct.Struct:
 
 
 def _number_format(obj: ODVariable) -> str:
-    """The struct format of a number object; a string or domain cannot be mapped."""
+    """The struct format of a number object; a string or domain cannot be mapped.
+
+    Neither can a 24-, 40-, 48- or 56-bit number: canopen packs those with the next wider
+    format, which would code the whole frame at the wrong length.
+    """
     packer = None if obj.data_type is None else ODVariable.STRUCT_TYPES.get(obj.data_type)
-    if packer is None:
+    if packer is None or packer.size != struct.calcsize(packer.format):
         raise SdoAbortedError(ABORT_NOT_MAPPABLE)
     return packer.format.lstrip("<")
 
@@ -1133,15 +1137,18 @@ class VirtualDriveRack:
                     frozen_s = now - due
                     due = now + MONITOR_PERIOD_S
                     if frozen_s > FREEZE_THRESHOLD_S:
-                        self._discount_freeze(frozen_s)
+                        self._discount_freeze(frozen_s, now)
                     self._check_watchdogs(now)
                     self._service_event_tpdos(now)
             except Exception:
                 self._counters.handler_errors += 1
                 logger.exception("virtual drive: error in the monitor")
 
-    def _discount_freeze(self, frozen_s: float) -> None:
+    def _discount_freeze(self, frozen_s: float, now: float) -> None:
         """Move every armed deadline on by `frozen_s`: this process, not the master, stood still.
+
+        No further than `now`: a frame the receive thread took after the freeze, before this
+        tick, has already stamped its deadline afresh.
 
         A real drive's watchdog runs on its own hardware. This one shares an interpreter with
         its receive thread (and, with interface virtual, with the master): while the process is
@@ -1157,12 +1164,12 @@ class VirtualDriveRack:
         )
         for axis in self._axes:
             if axis.heartbeat_last_rx_s is not None:
-                axis.heartbeat_last_rx_s += frozen_s
+                axis.heartbeat_last_rx_s = discounted(axis.heartbeat_last_rx_s, frozen_s, now)
             for pdo in axis.rpdos:
                 if pdo.last_rx_s is not None:
-                    pdo.last_rx_s += frozen_s
-            axis.sync_armed_s += frozen_s
-        self._last_sync_done_s += frozen_s
+                    pdo.last_rx_s = discounted(pdo.last_rx_s, frozen_s, now)
+            axis.sync_armed_s = discounted(axis.sync_armed_s, frozen_s, now)
+        self._last_sync_done_s = discounted(self._last_sync_done_s, frozen_s, now)
 
     def _check_watchdogs(self, now: float) -> None:
         for axis in self._axes:

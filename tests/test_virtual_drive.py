@@ -694,3 +694,28 @@ def test_main_runs_until_sigterm() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.parametrize(
+    ("data_type", "mappable"),
+    [(0x04, True), (0x07, True), (0x08, True), (0x10, False), (0x16, False), (0x09, False)],
+)
+def test_only_whole_byte_numbers_map(data_type: int, mappable: bool) -> None:
+    """INTEGER32, UNSIGNED32 and REAL32 map; INTEGER24, UNSIGNED24 and strings are refused.
+
+    canopen packs 24-bit numbers with a 32-bit struct: mapped, they would code the frame one
+    byte too long.
+    """
+    from canopen.objectdictionary import ODVariable
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    from lca_sim.virtual_drive import ABORT_NOT_MAPPABLE, _frame_codec
+
+    obj = ODVariable("x", 0x2000, 0)
+    obj.data_type = data_type
+    if mappable:
+        assert _frame_codec([obj]).size == len(obj) // 8
+    else:
+        with pytest.raises(SdoAbortedError) as info:
+            _frame_codec([obj])
+        assert info.value.code == ABORT_NOT_MAPPABLE
