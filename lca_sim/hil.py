@@ -34,9 +34,9 @@ from lca_sim import identify_cli, paper_cli, tune
 from lca_sim import ros_interface as ri
 from lca_sim.bagplot import BagReadError, read_bag
 from lca_sim.config import config_dir
+from lca_sim.linear import CONTROL_PERIOD_S
 from lca_sim.rosutil import from_stamp
 
-CONTROL_PERIOD_S = 0.004
 PIVOT_START_DEG = 35.0
 EXIT_FAILED = 1
 

@@ -324,7 +324,7 @@ def _reason(e: StateEstimate, options: IdentifyOptions) -> str:
         return "not visited"
     if e.status is EstimateStatus.TOO_FEW_SAMPLES:
         return f"{e.n_samples} usable samples, fewer than {options.min_samples}"
-    # WEAK_EXCITATION, the last status that keeps the prior with an emitter coefficient.
+    assert e.status is EstimateStatus.WEAK_EXCITATION, e.status  # the last one keeping the prior
     return f"the {e.coefficient} torque ({e.regressor_rms_nm:.2g} N m rms) is within the noise"
 
 

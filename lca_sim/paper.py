@@ -34,16 +34,15 @@ from lca_control.cascade import (
 )
 from lca_control.pi import PIController, PIParams
 from lca_sim.linear import (
+    CONTROL_PERIOD_S,
     LinearAxisModel,
     LinearisationError,
     LoopMargins,
     OperatingPoint,
     axis_moving_state,
     cascade_loops,
-    default_operating_points,
     equilibrium_current,
     independence_frequency,
-    linearise,
 )
 from lca_sim.params import RobotParams
 from lca_sim.scenario import ScenarioResult
@@ -54,7 +53,6 @@ from lca_sim.state_machine import (
     MotorCondition,
     StopState,
 )
-from lca_sim.tune import CONTROL_PERIOD_S
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -281,13 +279,6 @@ def bode_study(
         tolerance_db=tolerance_db,
         tolerance_deg=tolerance_deg,
     )
-
-
-def linearise_points(
-    sim: Simulator, axis: str = PIVOT, points: Sequence[OperatingPoint] | None = None
-) -> list[LinearAxisModel]:
-    """The axis linearised at `points` (the default operating points if None)."""
-    return [linearise(sim, axis, p) for p in (points or default_operating_points())]
 
 
 # --- Fig. 13 -----------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ from lca_control.cascade import (
 )
 from lca_sim.config import load_robot, load_scenario
 from lca_sim.errors import EXIT_FAILED, LcaHilError, OutputError, run_guarded
-from lca_sim.linear import DEFAULT_SPEED_DEG_S, LinearAxisModel
+from lca_sim.linear import LinearAxisModel, linearise_points
 from lca_sim.paper import (
     BodeStudy,
     ConstantVelocityTorques,
@@ -42,7 +42,6 @@ from lca_sim.paper import (
     bode_study,
     constant_velocity_torques,
     current_step,
-    linearise_points,
     open_loop_phases,
 )
 from lca_sim.params import RobotParams
@@ -58,6 +57,7 @@ PHASE_COLOURS = {
     "braking": "#f3d1f4",
 }
 PROG = "lca-hil paper"
+FIG45_SPEED_DEG_S = 7.0  # Figs 4 and 5: the pivot at +7 and -7 deg/s
 # Where the paper sees the open loops stop depending on the operating point (Figs 12, 14).
 PAPER_FIG12_INDEPENDENT_RAD_S = 1000.0
 PAPER_FIG14_INDEPENDENT_RAD_S = 20.0
@@ -88,9 +88,10 @@ def write_fig45(robot: RobotParams, reversible: RobotParams, out: Path) -> dict[
     positions = np.radians(np.arange(10.0, 110.0 + 1e-9, 0.25))
     numbers: dict[str, float] = {}
     sim, sim_rev = Simulator(robot), Simulator(reversible)
-    for fig_no, speed in ((4, DEFAULT_SPEED_DEG_S), (5, -DEFAULT_SPEED_DEG_S)):
+    for fig_no, speed in ((4, FIG45_SPEED_DEG_S), (5, -FIG45_SPEED_DEG_S)):
         sweep = constant_velocity_torques(sim, sim_rev, math.radians(speed), positions)
-        stem = f"fig{fig_no:02d}_constant_velocity_{'plus' if speed > 0 else 'minus'}7deg_s"
+        sign = "plus" if speed > 0 else "minus"
+        stem = f"fig{fig_no:02d}_constant_velocity_{sign}{abs(speed):g}deg_s"
         write_table(
             out / f"{stem}.csv",
             [

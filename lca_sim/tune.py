@@ -26,20 +26,18 @@ from lca_control.tuning import PiTuning, response_time_to_crossover, tune_pi
 from lca_sim.config import config_dir, load_robot, read_yaml
 from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, run_guarded
 from lca_sim.linear import (
+    CONTROL_PERIOD_S,
     LinearAxisModel,
     LoopMargins,
-    OperatingPoint,
     PointLoops,
     cascade_loops,
-    default_operating_points,
-    linearise,
+    linearise_points,
 )
 from lca_sim.results import atomic_path
 from lca_sim.simulator import Simulator
 
 PAPER_CURRENT_RESPONSE_TIME_S = 3e-3
 PAPER_VELOCITY_CROSSOVER_RAD_S = 100.0
-CONTROL_PERIOD_S = 0.004  # the controller's velocity loop (config/ros/controller.yaml)
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,7 +53,6 @@ class TuneReport:
 def tune_axis(
     sim: Simulator,
     axis: str,
-    points: Sequence[OperatingPoint] | None = None,
     current_response_time_s: float = PAPER_CURRENT_RESPONSE_TIME_S,
     velocity_crossover_rad_s: float = PAPER_VELOCITY_CROSSOVER_RAD_S,
     control_period_s: float = CONTROL_PERIOD_S,
@@ -63,11 +60,11 @@ def tune_axis(
 ) -> TuneReport:
     """Tune the current loop, then the velocity loop around it (section 6).
 
-    `models` are the axis linearised at its operating points (`points`, or the defaults) when
-    the caller already has them.
+    `models` are the axis linearised at the default operating points when the caller already
+    has them (`linearise_points`).
     """
     if models is None:
-        models = [linearise(sim, axis, p) for p in (points or default_operating_points())]
+        models = linearise_points(sim, axis)
     wc_i = response_time_to_crossover(current_response_time_s)
     current = tune_pi(wc_i, [abs(complex(m.current_plant()(1j * wc_i))) for m in models])
     wc_v = velocity_crossover_rad_s

@@ -28,11 +28,11 @@ from lca_sim.linear import (
     OperatingPoint,
     independence_frequency,
     linearise,
+    linearise_points,
 )
 from lca_sim.paper import (
     bode_study,
     constant_velocity_torques,
-    linearise_points,
     open_loop_phases,
 )
 from lca_sim.scenario import run_scenario
