@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from setuptools import setup
+from setuptools import find_packages, setup
 
 PACKAGE = "lca_hil"
 HERE = Path(__file__).parent
@@ -20,7 +20,10 @@ setup(
     long_description_content_type="text/markdown",
     license="Apache-2.0",
     python_requires=">=3.11",
-    packages=["lca_sim", "lca_sim.data", "lca_control"],
+    packages=[
+        *find_packages(include=["lca_sim", "lca_sim.*", "lca_control", "lca_control.*"]),
+        "lca_sim.data",
+    ],
     # The shipped configs live in the top-level config/ folder (the ROS convention) and are also
     # package data of lca_sim.data, so a non-editable install finds them.
     package_dir={"lca_sim.data": "config"},
@@ -73,21 +76,21 @@ setup(
     },
     entry_points={
         "console_scripts": [
-            "lca-sim = lca_sim.cli:main",
-            "lca-hil = lca_sim.hil:main",
-            "lca-simulator = lca_sim.node:main",
-            "lca-controller = lca_control.node:main",
-            "lca-record = lca_sim.record:main",
-            "lca-echo = lca_sim.echo:main",
-            "lca-plot = lca_sim.bagplot:main",
-            "lca-virtual-drive = lca_sim.virtual_drive:main",
-            "lca-can-bridge = lca_sim.can_bridge_node:main",
+            "lca-sim = lca_sim.cli.sim:main",
+            "lca-hil = lca_sim.cli.hil:main",
+            "lca-simulator = lca_sim.ros.simulator_node:main",
+            "lca-controller = lca_control.ros.controller_node:main",
+            "lca-record = lca_sim.ros.record:main",
+            "lca-echo = lca_sim.ros.echo:main",
+            "lca-plot = lca_sim.cli.bagplot:main",
+            "lca-virtual-drive = lca_sim.canbus.virtual_rack:main",
+            "lca-can-bridge = lca_sim.ros.can_bridge_node:main",
             # The names `ros2 run lca_hil <exe>` expects (installed to lib/lca_hil by colcon).
-            "simulator = lca_sim.node:main",
-            "controller = lca_control.node:main",
-            "record = lca_sim.record:main",
-            "virtual_drive = lca_sim.virtual_drive:main",
-            "can_bridge = lca_sim.can_bridge_node:main",
+            "simulator = lca_sim.ros.simulator_node:main",
+            "controller = lca_control.ros.controller_node:main",
+            "record = lca_sim.ros.record:main",
+            "virtual_drive = lca_sim.canbus.virtual_rack:main",
+            "can_bridge = lca_sim.ros.can_bridge_node:main",
         ],
     },
     zip_safe=False,

@@ -2,7 +2,7 @@
 
 For each cycle rate (250, 500 and 1000 Hz), in one process as `lca-can-bridge` runs it with
 `interface: virtual`: the virtual drive rack (four CANopen nodes, one coupled lca_sim plant) on
-one python-can virtual bus instance, the bridge's master (`lca_sim.can_bridge.CanBridge`) on
+one python-can virtual bus instance, the bridge's master (`lca_sim.canbus.master.Cia402Master`) on
 another, the drives enabled in cyclic synchronous torque mode, and a stand-in controller that
 answers every complete state with a current command (0.5 A on the pivot), as the controller node
 does. Over a window of `--window-s` (10 s by default) it reports:
@@ -12,7 +12,7 @@ does. Over a window of `--window-s` (10 s by default) it reports:
 * the latency from SYNC to the last TPDO of the cycle, p50 and p99;
 * the bridge thread's period jitter (p50 and p99 of |period - 1/rate|);
 * frames per second on the bus (both directions), and the load those frames would put on a
-  1 Mbit/s classical CAN bus (worst-case bit stuffing, `lca_sim.can_master.frame_bits`).
+  1 Mbit/s classical CAN bus (worst-case bit stuffing, `lca_sim.cia402.master.frame_bits`).
 
 Target: at least 99 % of cycles on time at 500 Hz. The script ends with one JSON line.
 
@@ -38,12 +38,12 @@ import can
 import canopen
 import numpy as np
 
-from lca_sim.can_bridge import GIL_SWITCH_INTERVAL_S, BridgeParams, CanBridge, Snapshot
-from lca_sim.can_master import bus_load_pct
-from lca_sim.cia402 import PowerState
-from lca_sim.config import config_dir, load_robot
+from lca_sim.canbus.master import GIL_SWITCH_INTERVAL_S, BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.cia402.device import PowerState
+from lca_sim.cia402.master import bus_load_pct
+from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.runtime import settle_heap
-from lca_sim.virtual_drive import VirtualDriveRack, load_rack_config
 
 RATES_HZ = (250, 500, 1000)
 TARGET_ON_TIME = 0.99
@@ -86,7 +86,7 @@ def run_rate(rate_hz: int, window_s: float, warmup_s: float) -> JsonDict:
     rack_bus = can.Bus(interface="virtual", channel=channel)
     rack = VirtualDriveRack(rack_bus, load_rack_config(None))
     network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-    bridge: CanBridge | None = None
+    bridge: Cia402Master | None = None
     try:
         rack.start()
         network.connect()
@@ -95,7 +95,7 @@ def run_rate(rate_hz: int, window_s: float, warmup_s: float) -> JsonDict:
             assert bridge is not None
             bridge.set_currents(COMMAND_A)
 
-        bridge = CanBridge(
+        bridge = Cia402Master(
             network, bridge_params(rate_hz), config_dir() / "can" / "lca_drive.eds", on_state
         )
         bridge.init()

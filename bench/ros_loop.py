@@ -88,7 +88,7 @@ QUICK_WARMUP_S = 1.0
 STARTUP_TIMEOUT_S = 30.0  # first data from a freshly started node (numba cache, discovery)
 STOP_TIMEOUT_S = 5.0  # SIGTERM -> exit, then SIGKILL
 POLL_S = 0.1  # the parent's polling (and CPU sampling) period
-SPIN_TIMEOUT_S = 0.1  # spin_once timeout, as in lca_sim.rosutil.run_node
+SPIN_TIMEOUT_S = 0.1  # spin_once timeout, as in lca_sim.ros.node_util.run_node
 
 SIMULATOR_STATUS = "lca_hil/simulator"
 PING_TOPIC = "bench_ping"
@@ -182,7 +182,7 @@ def spin_until(
     executor_kind: `single` (rclpy's default SingleThreadedExecutor, what `rclpy.spin` uses) or
     `events` (the C++ events executor the lca_hil nodes use when rclpy has it).
     """
-    from lca_sim.rosutil import make_executor
+    from lca_sim.ros.node_util import make_executor
 
     executor = make_executor(node.context, executor_kind)
     executor.add_node(node)
@@ -354,7 +354,7 @@ def subscribe_diagnostics(node: Any, samples: list[DiagSample], timing_mode: str
     """Append every simulator status of `timing_mode` on /diagnostics to `samples`."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from lca_sim import ros_interface as ri
+    from lca_control import contract as ri
 
     def on_diag(msg: Any) -> None:
         now = time.monotonic()
@@ -370,7 +370,7 @@ def subscribe_diagnostics(node: Any, samples: list[DiagSample], timing_mode: str
 
 def foreign_publishers(node: Any) -> str | None:
     """An error when joint_states has other publishers than our simulator (shared domain)."""
-    from lca_sim import ros_interface as ri
+    from lca_control import contract as ri
 
     count = node.count_publishers(ri.JOINT_STATES)
     if count == 1:
@@ -432,7 +432,7 @@ def role_observe_realtime(
     from rclpy.node import Node
     from sensor_msgs.msg import JointState
 
-    from lca_sim import ros_interface as ri
+    from lca_control import contract as ri
 
     node = Node("bench_observe_realtime")
     samples: list[DiagSample] = []
@@ -668,7 +668,7 @@ def role_argv(
 
 def simulator_yaml_value(name: str) -> Any:
     """One parameter of config/ros/simulator.yaml (what the simulator runs with by default)."""
-    from lca_sim.config import read_yaml
+    from lca_sim.config.loader import read_yaml
 
     return read_yaml(SIMULATOR_YAML)["simulator"]["ros__parameters"][name]
 

@@ -9,11 +9,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from lca_sim.errors import LcaHilError
 
+class ControlParamError(ValueError):
+    """PI or cascade parameters that cannot work (non-finite, Ti <= 0, empty limits).
 
-class ControlParamError(LcaHilError, ValueError):
-    """PI or cascade parameters that cannot work (non-finite, Ti <= 0, empty limits)."""
+    The control core's only exception. It does not derive from `lca_sim.errors.LcaHilError`
+    because lca_control sits below lca_sim and imports nothing from it; the tools and nodes
+    catch both through `lca_sim.errors.USER_ERRORS`.
+    """
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,8 +62,9 @@ def pi_law(
 
     u = Kp e + I with I += Kp / Ti * e * dt (backward Euler), u clamped to the limits; while u
     is clamped and the error pushes further into the limit the integral is frozen, and it never
-    exceeds the limits itself. Plain float arithmetic only, so `lca_sim.drive` compiles this
-    very function with numba for its bank of in-drive current loops.
+    exceeds the limits itself. Plain float arithmetic only, so
+    `lca_sim.model.commanded_plant` compiles this very function with numba for its bank of
+    in-drive current loops.
     """
     new_integral = integral + kp / ti_s * error * dt_s
     unclamped = kp * error + new_integral

@@ -7,7 +7,7 @@ magnitude |P(j wc)| and set Kp for unity gain there, Kp = 1 / |P(j wc)| ("graphi
 the smallest one, so that the crossover is at wc or above at every operating point and the PI
 zero (at 1/Ti) never falls above the crossover, where its phase lag would eat the margin.
 
-Pure: numbers in, numbers out (the plants' frequency responses come from `lca_sim.linear`).
+Pure: numbers in, numbers out (the plants' frequency responses come from `lca_sim.analysis.linear`).
 """
 
 from __future__ import annotations

@@ -1,7 +1,20 @@
-"""lca_sim: the drive-chain model of the LCA robot and a headless simulator.
+"""lca_sim: the drive-chain model of the LCA robot, its backends and its tools.
 
-Pure core (numpy, Pinocchio, numba): no ROS, no clock, no I/O beyond `lca_sim.config`, which
-reads YAML files. Start with::
+Layers, lowest first (imports go down only; tests/test_architecture.py enforces it):
+
+* `lca_sim.errors`, `lca_sim.runtime`: the project's exceptions and exit codes; process set-up.
+* `lca_sim.model`: the pure core: robot parameters, the efficiency state machine, the compiled
+  drive-chain kernel, the Pinocchio gantry, the simulator and the commanded plant.
+* `lca_sim.config`: YAML files -> validated, typed parameters (the one place that reads them).
+* `lca_sim.analysis`: linearisation, identification, the paper's figures as data (pure).
+* `lca_sim.cia402`: the CANopen object table, the unit codec, the drive's and the master's
+  CiA 402 state logic (pure).
+* `lca_sim.canbus`: the virtual drive rack and the bridge's CANopen master (python-can, canopen).
+* `lca_sim.ros`: the node shells, the plant-contract message builder, record and echo.
+* `lca_sim.cli`: the console scripts (lca-sim, lca-hil, lca-plot), result files and plots.
+
+The names below are faces of the model layer, loaded on first use so that `import lca_sim`
+stays cheap (no numba, Pinocchio or SciPy until a model is built)::
 
     from lca_sim import load_robot, Simulator
     sim = Simulator(load_robot("default"), dt_s=1e-4)
@@ -9,12 +22,57 @@ reads YAML files. Start with::
     print(sim.signals.drive)
 """
 
-from lca_sim.config import load_robot, load_scenario
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
-from lca_sim.params import AXIS_NAMES, RobotParams
-from lca_sim.scenario import Scenario, ScenarioResult, run_scenario
-from lca_sim.simulator import SIGNAL_NAMES, AxisSignals, InputError, PlantState, Simulator
-from lca_sim.state_machine import MotionState, StopState
+
+if TYPE_CHECKING:
+    from lca_sim.config.loader import load_robot, load_scenario
+    from lca_sim.model.params import AXIS_NAMES, RobotParams
+    from lca_sim.model.scenario import Scenario, ScenarioResult, run_scenario
+    from lca_sim.model.simulator import (
+        SIGNAL_NAMES,
+        AxisSignals,
+        InputError,
+        PlantState,
+        Simulator,
+    )
+    from lca_sim.model.state_machine import MotionState, StopState
+
+# Public name -> the module that defines it (PEP 562 lazy attributes).
+_LAZY = {
+    "load_robot": "lca_sim.config.loader",
+    "load_scenario": "lca_sim.config.loader",
+    "AXIS_NAMES": "lca_sim.model.params",
+    "RobotParams": "lca_sim.model.params",
+    "Scenario": "lca_sim.model.scenario",
+    "ScenarioResult": "lca_sim.model.scenario",
+    "run_scenario": "lca_sim.model.scenario",
+    "SIGNAL_NAMES": "lca_sim.model.simulator",
+    "AxisSignals": "lca_sim.model.simulator",
+    "InputError": "lca_sim.model.simulator",
+    "PlantState": "lca_sim.model.simulator",
+    "Simulator": "lca_sim.model.simulator",
+    "MotionState": "lca_sim.model.state_machine",
+    "StopState": "lca_sim.model.state_machine",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lca_sim' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_LAZY])
+
 
 __all__ = [
     "AXIS_NAMES",

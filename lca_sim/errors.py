@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
+from lca_control.pi import ControlParamError
+
 # Exit codes of the command-line tools.
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -45,6 +47,10 @@ class OutputError(LcaHilError):
     """The --out folder cannot take the results."""
 
 
+# What a user's input can raise: caught by every tool and node and turned into one line.
+USER_ERRORS: tuple[type[Exception], ...] = (LcaHilError, ControlParamError)
+
+
 def run_guarded(prog: str, body: Callable[[], int], interrupted: str = "interrupted") -> int:
     """Run a tool's `body`: an LcaHilError becomes one line on stderr, Ctrl-C a short note.
 
@@ -52,7 +58,7 @@ def run_guarded(prog: str, body: Callable[[], int], interrupted: str = "interrup
     """
     try:
         return body()
-    except LcaHilError as exc:
+    except USER_ERRORS as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:

@@ -29,11 +29,11 @@ from rclpy.node import Node, NodeNameNonExistentError
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
+from support import ROOT
 
-from lca_sim import ros_interface as ri
-from lca_sim.config import shipped_names
+from lca_control import contract as ri
+from lca_sim.config.loader import shipped_names
 
-ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
 SIMULATOR_PARAMS = ROOT / "config" / "ros" / "simulator.yaml"
 CONTROLLER_PARAMS = ROOT / "config" / "ros" / "controller.yaml"
@@ -296,8 +296,8 @@ def test_record_executable_records_and_stops_cleanly(
     exe: str, domain_id: int, tmp_path: Path
 ) -> None:
     """The recorder subscribes to the named topic, writes it and closes the bag on SIGINT."""
-    if importlib.util.find_spec("lca_sim.record") is None:
-        pytest.skip("lca_sim/record.py (the lca-record CLI) does not exist yet")
+    if importlib.util.find_spec("lca_sim.ros.record") is None:
+        pytest.skip("lca_sim/ros/record.py (the lca-record CLI) does not exist yet")
     pytest.importorskip("rosbags")
     bag = tmp_path / "bag"
     with observer(domain_id) as obs:
@@ -376,8 +376,8 @@ def one_error_line_and_exit_2(command: list[str], domain_id: int, cwd: Path) -> 
 _SIGNAL_DURING_BUILD = """
 import os, signal, sys, time
 import rclpy
-from lca_sim.node import SimulatorNode
-from lca_sim.rosutil import run_node
+from lca_sim.ros.simulator_node import SimulatorNode
+from lca_sim.ros.node_util import run_node
 
 class SignalledWhileBuilding(SimulatorNode):
     def __init__(self):

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from support import ROOT
 
 
 def _tracked_files() -> list[str]:
@@ -32,7 +32,7 @@ def test_non_editable_install_finds_shipped_configs(tmp_path: Path) -> None:
     assert (target / "lca_sim" / "data" / "robots" / "default.yaml").is_file()
     assert (target / "bin" / "lca-sim").is_file()
     probe = (
-        "import lca_sim, lca_sim.config as c;"
+        "import lca_sim, lca_sim.config.loader as c;"
         "r = lca_sim.load_robot('reversible');"
         "print(lca_sim.__file__); print(c.config_dir()); print(r.name, len(r.axes))"
     )

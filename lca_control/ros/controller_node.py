@@ -1,0 +1,200 @@
+"""The controller node: `ros2 run lca_hil controller` (console script `lca-controller`).
+
+Runs the paper's cascaded PI loops over topics only, so it drives the simulator node and the CAN
+bridge alike. Every new plant state (joint_states; with voltage commands also motor_states of the
+same stamp, for the currents) yields one command. The period is the difference of the state
+stamps, never the node clock, so the loop runs on simulated time exactly in lockstep without
+`use_sim_time` (which then only changes the stamps of the controller's diagnostics).
+
+    lca-controller --ros-args --params-file config/ros/controller.yaml
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
+
+from lca_control import contract as ri
+from lca_control.controller import (
+    CONTROLLER_PARAMETERS,
+    READ_ONLY,
+    JointController,
+    validate_controller_params,
+)
+from lca_control.pi import ControlParamError
+from lca_sim.errors import ConfigError
+from lca_sim.ros.node_util import (
+    accepted,
+    declare_parameters,
+    from_stamp,
+    rejected,
+    run_node,
+    status,
+    with_changes,
+)
+
+
+class ControllerNode(Node):
+    """Cascaded PI control of the LCA axes over topics."""
+
+    def __init__(self, node_name: str = "controller", **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._values = declare_parameters(self, CONTROLLER_PARAMETERS)
+        try:
+            params = validate_controller_params(self._values)
+        except ControlParamError as exc:
+            raise ConfigError("parameters", "", str(exc)) from exc
+        self.core = JointController(params)
+        self._motor: JointState | None = None
+        self._joint: JointState | None = None
+        self._index: list[int] | None = None
+        self._plant_t_s = 0.0
+        self.commands_sent = 0
+        self.states_skipped = 0
+        self.bad_states = 0
+        state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        topic = (
+            ri.VOLTAGE_COMMANDS if params.command_interface == "voltage" else ri.CURRENT_COMMANDS
+        )
+        self._command_pub = self.create_publisher(Float64MultiArray, topic, command_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
+        self.create_subscription(JointState, ri.JOINT_STATES, self._on_joint_states, state_qos)
+        if params.command_interface == "voltage":
+            # Only the current loop needs the motor currents; with current commands the drive
+            # runs that loop, and every message not taken is executor time saved per step.
+            self.create_subscription(JointState, ri.MOTOR_STATES, self._on_motor_states, state_qos)
+        self.create_subscription(
+            Float64MultiArray, ri.VELOCITY_REFERENCE, self._on_reference, command_qos
+        )
+        self.create_service(SetBool, "~/enable", self._on_enable)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(
+            f"{params.reference_source} reference, {params.command_interface} commands on "
+            f"{topic} for {list(params.joints)}"
+        )
+
+    # --- plant states --------------------------------------------------------------------
+
+    def _on_motor_states(self, msg: JointState) -> None:
+        self._motor = msg
+        self._try_step()
+
+    def _on_joint_states(self, msg: JointState) -> None:
+        self._joint = msg
+        self._try_step()
+
+    def _try_step(self) -> None:
+        joint = self._joint
+        if joint is None:
+            return
+        voltage = self.core.params.command_interface == "voltage"
+        motor = self._motor
+        if voltage and (motor is None or motor.header.stamp != joint.header.stamp):
+            return  # wait for the currents of the same instant
+        index = self._joint_index(list(joint.name))
+        if index is None:
+            return
+        t_s = from_stamp(joint.header.stamp)
+        try:
+            positions = [joint.position[i] for i in index]
+            velocities = [joint.velocity[i] for i in index]
+            currents = [motor.effort[i] for i in index] if voltage and motor is not None else None
+        except IndexError:
+            self.bad_states += 1
+            self.get_logger().warning("malformed joint or motor state", throttle_duration_sec=5.0)
+            return
+        commands = self.core.update(t_s, positions, velocities, currents)
+        if commands is None:
+            self.states_skipped += 1
+            return
+        self._plant_t_s = t_s
+        self._command_pub.publish(Float64MultiArray(data=commands))
+        self.commands_sent += 1
+
+    def _joint_index(self, names: list[str]) -> list[int] | None:
+        if self._index is None or len(names) != len(self._index):
+            try:
+                self._index = [names.index(j) for j in self.core.params.joints]
+            except ValueError:
+                self.bad_states += 1
+                self.get_logger().warning(
+                    f"joint_states lacks some of {list(self.core.params.joints)}: {names}",
+                    throttle_duration_sec=5.0,
+                )
+                return None
+        return self._index
+
+    def _on_reference(self, msg: Float64MultiArray) -> None:
+        reason = self.core.set_topic_reference(list(msg.data), self._plant_t_s)
+        if reason is not None:
+            self.get_logger().warning(
+                f"velocity reference rejected ({self.core.rejected_references}): {reason}",
+                throttle_duration_sec=1.0,
+            )
+
+    # --- services, parameters, diagnostics -----------------------------------------------
+
+    def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        self._values["enabled"] = bool(request.data)
+        params = validate_controller_params(self._values)
+        self.core.set_params(params)
+        self.core.reset()
+        response.success = True
+        response.message = "enabled" if request.data else "disabled: zero commands"
+        return response
+
+    def _on_set_parameters(self, changes: Sequence[Parameter]) -> SetParametersResult:
+        fixed = [c.name for c in changes if c.name in READ_ONLY]
+        if fixed:
+            return rejected(f"{', '.join(fixed)} cannot change while running; restart the node")
+        proposed = with_changes(self._values, changes)
+        try:
+            params = validate_controller_params(proposed)
+        except ControlParamError as exc:
+            return rejected(str(exc))
+        self._values = proposed
+        self.core.set_params(params)
+        return accepted()
+
+    def _publish_diagnostics(self) -> None:
+        core = self.core
+        level = (
+            DiagnosticStatus.WARN
+            if (core.rejected_references or self.bad_states)
+            else (DiagnosticStatus.OK)
+        )
+        values: dict[str, object] = {
+            "enabled": core.params.enabled,
+            "reference_source": core.params.reference_source,
+            "elapsed_s": core.elapsed_s,
+            "commands_sent": self.commands_sent,
+            "states_skipped": self.states_skipped,
+            "bad_states": self.bad_states,
+            "references_rejected": core.rejected_references,
+        }
+        for joint, reference in zip(core.params.joints, core.last_velocity_reference, strict=True):
+            values[f"{joint}_velocity_reference"] = reference
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status.append(status("lca_hil/controller", level, "running", values))
+        self._diag_pub.publish(array)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Entry point of `lca-controller` / `ros2 run lca_hil controller`."""
+    return run_node("lca-controller", ControllerNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

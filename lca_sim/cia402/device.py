@@ -1,0 +1,492 @@
+"""CiA 402 drive logic: the power state machine, statusword, CST torque demand, units (pure core).
+
+What a CiA 402 servo drive decides, with no bus and no clock: how a controlword moves the power
+state machine (CiA 402-2 / IEC 61800-7-201, figure "state machine", transitions 0-16), what the
+statusword reports, what torque the drive may apply in cyclic synchronous torque (CST) mode, and
+how the drive's integer units map to SI. Also the two small CiA 301 codecs the drive needs:
+PDO mapping entries and heartbeat-consumer entries.
+
+`lca_sim.canbus.virtual_rack` is the shell around this: it owns the CANopen nodes and the
+plant, turns frames into calls here, and times the watchdogs. Nothing here imports can,
+canopen or rclpy, reads a clock or touches a file: states are frozen values and every function
+returns a new one.
+
+State of one drive axis::
+
+    state = settle(Cia402AxisState(), standstill=True, quick_stop_option=2)  # SWITCH_ON_DISABLED
+    state = apply_controlword(state, 0x06, quick_stop_option=2)          # -> READY_TO_SWITCH_ON
+    statusword(state, target_reached=False, internal_limit=False)        # -> 0x0231
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+# --- object indices (CiA 301 communication, CiA 402 drive profile, lca_hil manufacturer) ---
+
+DEVICE_TYPE = 0x1000
+ERROR_REGISTER = 0x1001
+COB_ID_SYNC = 0x1005
+CYCLE_PERIOD = 0x1006  # us
+COB_ID_EMCY = 0x1014
+HEARTBEAT_CONSUMER = 0x1016
+HEARTBEAT_PRODUCER = 0x1017  # ms
+RPDO_COMMUNICATION = 0x1400  # + PDO number - 1
+RPDO_MAPPING = 0x1600
+TPDO_COMMUNICATION = 0x1800
+TPDO_MAPPING = 0x1A00
+DRIVE_STATE = 0x2010  # gear functional state index (u8)
+MOTION_STATE = 0x2011  # -1, 0, +1 (i8)
+ETA_M = 0x2012  # per mille (u16)
+ETA_L = 0x2013
+ABORT_CONNECTION_OPTION = 0x6007
+ERROR_CODE = 0x603F
+CONTROLWORD = 0x6040
+STATUSWORD = 0x6041
+QUICK_STOP_OPTION = 0x605A
+MODES_OF_OPERATION = 0x6060
+MODES_OF_OPERATION_DISPLAY = 0x6061
+POSITION_ACTUAL = 0x6064  # increments
+VELOCITY_ACTUAL = 0x606C  # increments/s
+TARGET_TORQUE = 0x6071  # per mille of rated torque
+MAX_TORQUE = 0x6072
+MOTOR_RATED_CURRENT = 0x6075  # mA
+MOTOR_RATED_TORQUE = 0x6076  # mN m
+TORQUE_ACTUAL = 0x6077  # per mille of rated torque
+CURRENT_ACTUAL = 0x6078  # per mille of rated current
+POSITION_ENCODER_RESOLUTION = 0x608F
+SUPPORTED_DRIVE_MODES = 0x6502
+
+# --- modes of operation (0x6060) ---
+
+MODE_NONE = 0
+MODE_CST = 10  # cyclic synchronous torque
+# Modes a write of 0x6060 may select; CSV (9) and the others are refused.
+SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CST})
+SUPPORTED_DRIVE_MODES_BITS = 1 << (MODE_CST - 1)  # 0x6502: bit 9 = CST
+
+# --- controlword bits (0x6040) ---
+
+CW_SWITCH_ON = 1 << 0
+CW_ENABLE_VOLTAGE = 1 << 1
+CW_QUICK_STOP = 1 << 2  # active low: 0 commands a quick stop
+CW_ENABLE_OPERATION = 1 << 3
+CW_FAULT_RESET = 1 << 7  # acts on its rising edge only
+CW_HALT = 1 << 8
+
+# --- statusword bits (0x6041) ---
+
+SW_READY_TO_SWITCH_ON = 1 << 0
+SW_SWITCHED_ON = 1 << 1
+SW_OPERATION_ENABLED = 1 << 2
+SW_FAULT = 1 << 3
+SW_VOLTAGE_ENABLED = 1 << 4
+SW_QUICK_STOP = 1 << 5  # active low: 0 while a quick stop is active
+SW_SWITCH_ON_DISABLED = 1 << 6
+SW_REMOTE = 1 << 9  # the drive follows the controlword it receives over the bus
+SW_TARGET_REACHED = 1 << 10
+SW_INTERNAL_LIMIT = 1 << 11  # the torque demand is being clamped to 0x6072
+SW_FOLLOWS_COMMAND = 1 << 12  # cyclic synchronous modes: the drive follows the target
+
+# Masks a master uses to read the state out of a statusword (the standard's table).
+SW_MASK_WITH_QUICK_STOP = 0x6F  # ready to switch on, switched on, operation enabled, quick stop
+SW_MASK = 0x4F  # the others
+
+# |torque actual - torque demand| within which statusword bit 10 says "target reached".
+TARGET_TORQUE_WINDOW_PERMILLE = 10
+
+# --- 0x6007 abort connection option codes ---
+
+ABORT_NONE = 0
+ABORT_FAULT = 1
+ABORT_DISABLE_VOLTAGE = 2
+ABORT_QUICK_STOP = 3
+ABORT_OPTIONS: frozenset[int] = frozenset(
+    {ABORT_NONE, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP}
+)
+
+# 0x605A quick stop option codes: 0 disable drive function; 1-4 stop, then switch on disabled;
+# 5-8 stop and stay in quick stop active. In CST, "stop" is torque 0: the gear brakes.
+QUICK_STOP_OPTIONS: frozenset[int] = frozenset(range(9))
+_LAST_QUICK_STOP_TO_DISABLED = 4
+
+# --- EMCY error codes (CiA 301 / 402) and the error register (0x1001) ---
+
+EMCY_ERROR_RESET = 0x0000
+EMCY_HEARTBEAT = 0x8130  # life guard or heartbeat error
+EMCY_RPDO_TIMEOUT = 0x8250
+EMCY_SYNC_LOSS = 0x8700  # sync controller error (no SYNC within the watch time)
+ERROR_REGISTER_GENERIC = 1 << 0
+ERROR_REGISTER_COMMUNICATION = 1 << 4
+
+INT16_MIN, INT16_MAX = -(1 << 15), (1 << 15) - 1
+
+
+class PowerState(enum.Enum):
+    """The power states of the CiA 402 state machine; values are the names masters use."""
+
+    NOT_READY_TO_SWITCH_ON = "NOT READY TO SWITCH ON"
+    SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
+    READY_TO_SWITCH_ON = "READY TO SWITCH ON"
+    SWITCHED_ON = "SWITCHED ON"
+    OPERATION_ENABLED = "OPERATION ENABLED"
+    QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
+    FAULT_REACTION_ACTIVE = "FAULT REACTION ACTIVE"
+    FAULT = "FAULT"
+
+
+class Command(enum.Enum):
+    """A device control command decoded from the controlword (bits 0-3 and 7)."""
+
+    NONE = "none"  # fault-reset bit held high: the other bits are ignored
+    DISABLE_VOLTAGE = "disable voltage"  # xxxx xx0x
+    QUICK_STOP = "quick stop"  # xxxx x01x
+    SHUTDOWN = "shutdown"  # xxxx x110
+    SWITCH_ON = "switch on"  # xxxx 0111; from OPERATION ENABLED this is "disable operation"
+    ENABLE_OPERATION = "enable operation"  # xxxx 1111; from READY TO SWITCH ON: switch on too
+    FAULT_RESET = "fault reset"  # rising edge of bit 7
+
+
+_S = PowerState
+_C = Command
+
+# (state, command) -> next state, numbered as the transitions of the CiA 402 state diagram.
+# A pair missing here is not a legal transition: the state stays as it is.
+TRANSITIONS: Mapping[tuple[PowerState, Command], PowerState] = {
+    (_S.SWITCH_ON_DISABLED, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,  # 2
+    (_S.READY_TO_SWITCH_ON, _C.SWITCH_ON): _S.SWITCHED_ON,  # 3
+    (_S.READY_TO_SWITCH_ON, _C.ENABLE_OPERATION): _S.OPERATION_ENABLED,  # 3 + 4
+    (_S.SWITCHED_ON, _C.ENABLE_OPERATION): _S.OPERATION_ENABLED,  # 4
+    (_S.OPERATION_ENABLED, _C.SWITCH_ON): _S.SWITCHED_ON,  # 5 (disable operation)
+    (_S.SWITCHED_ON, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,  # 6
+    (_S.READY_TO_SWITCH_ON, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,  # 7
+    (_S.READY_TO_SWITCH_ON, _C.QUICK_STOP): _S.SWITCH_ON_DISABLED,  # 7
+    (_S.OPERATION_ENABLED, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,  # 8
+    (_S.OPERATION_ENABLED, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,  # 9
+    (_S.SWITCHED_ON, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,  # 10
+    (_S.SWITCHED_ON, _C.QUICK_STOP): _S.SWITCH_ON_DISABLED,  # 10
+    (_S.OPERATION_ENABLED, _C.QUICK_STOP): _S.QUICK_STOP_ACTIVE,  # 11
+    (_S.QUICK_STOP_ACTIVE, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,  # 12
+    (_S.FAULT, _C.FAULT_RESET): _S.SWITCH_ON_DISABLED,  # 15
+    (_S.QUICK_STOP_ACTIVE, _C.ENABLE_OPERATION): _S.OPERATION_ENABLED,  # 16 (options 5-8)
+}
+
+# Statusword bits 0-6 per state (with bit 4 "voltage enabled" where the power stage is live).
+_STATE_BITS: Mapping[PowerState, int] = {
+    _S.NOT_READY_TO_SWITCH_ON: 0x0000,
+    _S.SWITCH_ON_DISABLED: 0x0040,
+    _S.READY_TO_SWITCH_ON: 0x0031,
+    _S.SWITCHED_ON: 0x0033,
+    _S.OPERATION_ENABLED: 0x0037,
+    _S.QUICK_STOP_ACTIVE: 0x0017,
+    _S.FAULT_REACTION_ACTIVE: 0x001F,
+    _S.FAULT: 0x0008,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Cia402AxisState:
+    """The CiA 402 logic state of one drive axis.
+
+    Attributes:
+        power: the power state.
+        controlword: the last controlword applied (its bit 7 is the reference for the next
+            fault-reset edge, its bit 8 is halt).
+        mode: modes of operation (0x6060), one of `SUPPORTED_MODES`.
+    """
+
+    power: PowerState = PowerState.NOT_READY_TO_SWITCH_ON
+    controlword: int = 0
+    mode: int = MODE_CST
+
+    @property
+    def halted(self) -> bool:
+        """Controlword bit 8: hold the axis (in CST: torque 0) while operation stays enabled."""
+        return bool(self.controlword & CW_HALT)
+
+
+@dataclass(frozen=True, slots=True)
+class TorqueDemand:
+    """What the drive applies for a target torque.
+
+    Attributes:
+        permille: torque demand, per mille of the motor rated torque (0x6076).
+        limited: True when the target was clamped to the max torque 0x6072 (statusword bit 11).
+    """
+
+    permille: int
+    limited: bool
+
+
+def decode_command(controlword: int, previous_controlword: int) -> Command:
+    """The device control command of a controlword, given the one applied before it.
+
+    Fault reset acts on the rising edge of bit 7 only; while bit 7 stays high the other bits are
+    ignored (the standard's command table defines them with bit 7 = 0).
+    """
+    if controlword & CW_FAULT_RESET:
+        return Command.NONE if previous_controlword & CW_FAULT_RESET else Command.FAULT_RESET
+    if not controlword & CW_ENABLE_VOLTAGE:
+        return Command.DISABLE_VOLTAGE
+    if not controlword & CW_QUICK_STOP:
+        return Command.QUICK_STOP
+    if not controlword & CW_SWITCH_ON:
+        return Command.SHUTDOWN
+    if not controlword & CW_ENABLE_OPERATION:
+        return Command.SWITCH_ON
+    return Command.ENABLE_OPERATION
+
+
+def next_power_state(power: PowerState, command: Command, quick_stop_option: int) -> PowerState:
+    """The state a command leads to from `power`; an illegal command leaves it unchanged.
+
+    Transition 16 (quick stop active -> operation enabled) exists only for quick stop option
+    codes 5-8; with 0-4 the drive goes on to switch on disabled instead.
+    """
+    if (
+        power is PowerState.QUICK_STOP_ACTIVE
+        and command is Command.ENABLE_OPERATION
+        and quick_stop_option <= _LAST_QUICK_STOP_TO_DISABLED
+    ):
+        return power
+    return TRANSITIONS.get((power, command), power)
+
+
+def apply_controlword(
+    state: Cia402AxisState, controlword: int, quick_stop_option: int
+) -> Cia402AxisState:
+    """Apply a controlword (by SDO, or by RPDO at a SYNC): the state it leads to."""
+    command = decode_command(controlword, state.controlword)
+    power = next_power_state(state.power, command, quick_stop_option)
+    return replace(state, power=power, controlword=controlword & 0xFFFF)
+
+
+def is_fault_reset_edge(controlword: int, previous_controlword: int) -> bool:
+    """True when `controlword` raises bit 7 (the drive then clears its error register)."""
+    return decode_command(controlword, previous_controlword) is Command.FAULT_RESET
+
+
+def fault(state: Cia402AxisState) -> Cia402AxisState:
+    """A fault occurred (transition 13): fault reaction active, unless already faulted."""
+    if state.power in (PowerState.FAULT_REACTION_ACTIVE, PowerState.FAULT):
+        return state
+    return replace(state, power=PowerState.FAULT_REACTION_ACTIVE)
+
+
+def abort_connection(
+    state: Cia402AxisState, option: int, quick_stop_option: int
+) -> Cia402AxisState:
+    """The 0x6007 reaction to a lost connection (heartbeat, RPDO deadline, SYNC, NMT stop).
+
+    The reaction acts on a drive that can produce torque (operation enabled, quick stop
+    active); a drive whose power stage is off has nothing to stop, so it stays as it is (the
+    shell still reports the error by EMCY and 0x603F).
+
+    Args:
+        state: the drive state before the reaction.
+        option: 0 none, 1 fault, 2 disable voltage command, 3 quick stop command.
+        quick_stop_option: 0x605A, for the quick stop command.
+
+    Returns:
+        The state after the reaction.
+    """
+    if state.power not in (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE):
+        return state
+    if option == ABORT_FAULT:
+        return fault(state)
+    if option == ABORT_DISABLE_VOLTAGE:
+        command = Command.DISABLE_VOLTAGE
+    elif option == ABORT_QUICK_STOP:
+        command = Command.QUICK_STOP
+    else:
+        return state
+    return replace(state, power=next_power_state(state.power, command, quick_stop_option))
+
+
+def settle(state: Cia402AxisState, *, standstill: bool, quick_stop_option: int) -> Cia402AxisState:
+    """Take the automatic transitions that are due.
+
+    0/1: not ready to switch on -> switch on disabled (the self-test of a simulated drive
+    passes at once); 14: fault reaction active -> fault (the reaction, torque off, is immediate);
+    quick stop active -> switch on disabled (transition 12) once the axis stands still, for
+    quick stop options 1-4, and at once for option 0.
+
+    Args:
+        state: the drive state.
+        standstill: the axis is not moving (the plant's motion state is stopped).
+        quick_stop_option: 0x605A.
+    """
+    power = state.power
+    if power is PowerState.NOT_READY_TO_SWITCH_ON:
+        power = PowerState.SWITCH_ON_DISABLED
+    elif power is PowerState.FAULT_REACTION_ACTIVE:
+        power = PowerState.FAULT
+    elif power is PowerState.QUICK_STOP_ACTIVE and (
+        quick_stop_option == 0 or (standstill and quick_stop_option <= _LAST_QUICK_STOP_TO_DISABLED)
+    ):
+        power = PowerState.SWITCH_ON_DISABLED
+    return state if power is state.power else replace(state, power=power)
+
+
+def torque_demand(state: Cia402AxisState, target_permille: int, max_permille: int) -> TorqueDemand:
+    """The torque the drive applies, per mille of rated torque (CST mode).
+
+    Zero unless operation is enabled in CST without halt; otherwise the target clamped to
+    +-`max_permille` (0x6072).
+    """
+    if state.power is not PowerState.OPERATION_ENABLED or state.mode != MODE_CST or state.halted:
+        return TorqueDemand(0, False)
+    if abs(target_permille) > max_permille:
+        return TorqueDemand(max_permille if target_permille > 0 else -max_permille, True)
+    return TorqueDemand(target_permille, False)
+
+
+def statusword(state: Cia402AxisState, *, target_reached: bool, internal_limit: bool) -> int:
+    """The statusword (0x6041) of a drive in `state`.
+
+    Bits 0-6 encode the power state (read them with `SW_MASK_WITH_QUICK_STOP` or `SW_MASK`),
+    bit 9 (remote) is always set, bit 10 and 11 come from the caller, bit 12 says the drive
+    follows the target torque (operation enabled in CST, no halt).
+    """
+    word = _STATE_BITS[state.power] | SW_REMOTE
+    if target_reached:
+        word |= SW_TARGET_REACHED
+    if internal_limit:
+        word |= SW_INTERNAL_LIMIT
+    if state.power is PowerState.OPERATION_ENABLED and state.mode == MODE_CST and not state.halted:
+        word |= SW_FOLLOWS_COMMAND
+    return word
+
+
+def power_state_of(word: int) -> PowerState | None:
+    """The power state a statusword reports (the master's view), or None if it is malformed."""
+    for power, bits in _STATE_BITS.items():
+        mask = (
+            SW_MASK_WITH_QUICK_STOP
+            if power
+            in (
+                PowerState.READY_TO_SWITCH_ON,
+                PowerState.SWITCHED_ON,
+                PowerState.OPERATION_ENABLED,
+                PowerState.QUICK_STOP_ACTIVE,
+            )
+            else SW_MASK
+        )
+        if word & mask == bits & mask:
+            return power
+    return None
+
+
+def is_supported_mode(mode: int) -> bool:
+    """True for the modes of operation this drive runs (0 no mode, 10 CST)."""
+    return mode in SUPPORTED_MODES
+
+
+# --- unit scaling --------------------------------------------------------------------------
+
+
+def saturate_int16(value: float) -> int:
+    """Round to the nearest integer and clamp to the int16 range."""
+    return int(min(max(round(value), INT16_MIN), INT16_MAX))
+
+
+def wrap_int32(value: int) -> int:
+    """Two's-complement wrap into int32, as an encoder counter register overflows."""
+    return (value + (1 << 31)) % (1 << 32) - (1 << 31)
+
+
+def permille_to_current_a(permille: float, rated_current_a: float) -> float:
+    """Per mille of rated torque (or current) -> armature current, A.
+
+    Rated torque is k_t x rated current, so a torque in per mille of it is the same per mille of
+    the rated current.
+    """
+    return permille / 1000.0 * rated_current_a
+
+
+def current_a_to_permille(current_a: float, rated_current_a: float) -> int:
+    """Armature current, A -> per mille of rated current (0x6078), rounded, int16-saturated."""
+    return saturate_int16(current_a / rated_current_a * 1000.0)
+
+
+def permille_to_torque_nm(permille: float, rated_torque_nm: float) -> float:
+    """Per mille of rated torque -> motor torque, N m."""
+    return permille / 1000.0 * rated_torque_nm
+
+
+def torque_nm_to_permille(torque_nm: float, rated_torque_nm: float) -> int:
+    """Motor torque, N m -> per mille of rated torque (0x6071/0x6077), rounded, saturated."""
+    return saturate_int16(torque_nm / rated_torque_nm * 1000.0)
+
+
+def rated_torque_mnm(torque_constant_nm_per_a: float, rated_current_a: float) -> int:
+    """0x6076 motor rated torque, mN m: k_t x rated current."""
+    return round(torque_constant_nm_per_a * rated_current_a * 1000.0)
+
+
+def motor_rad_to_increments(angle_rad: float, increments_per_rev: int) -> int:
+    """Motor shaft angle, rad -> encoder increments (0x6064), rounded, wrapped to int32."""
+    return wrap_int32(round(angle_rad / (2.0 * math.pi) * increments_per_rev))
+
+
+def increments_to_motor_rad(increments: float, increments_per_rev: int) -> float:
+    """Encoder increments (or increments/s) -> motor angle, rad (or rad/s)."""
+    return increments / increments_per_rev * 2.0 * math.pi
+
+
+def motor_rad_s_to_increments_s(velocity_rad_s: float, increments_per_rev: int) -> int:
+    """Motor speed, rad/s -> increments per second (0x606C), rounded, int32-saturated."""
+    value = round(velocity_rad_s / (2.0 * math.pi) * increments_per_rev)
+    return int(min(max(value, -(1 << 31)), (1 << 31) - 1))
+
+
+def efficiency_to_permille(efficiency: float) -> int:
+    """eta_m or eta_l -> per mille (0x2012/0x2013); NaN (axis stopped) -> 0xFFFF."""
+    if math.isnan(efficiency):
+        return 0xFFFF
+    return int(min(max(round(efficiency * 1000.0), 0), 0xFFFE))
+
+
+# --- CiA 301 codecs ------------------------------------------------------------------------
+
+PDO_COB_ID_INVALID = 1 << 31  # sub 1 of a PDO communication object: the PDO does not exist
+PDO_COB_ID_NO_RTR = 1 << 30
+PDO_COB_ID_EXTENDED = 1 << 29
+PDO_MAX_ENTRIES = 8
+PDO_MAX_BITS = 64
+SYNC_TRANSMISSION_MAX = 240  # 0-240: synchronous; 254/255: event driven
+TRANSMISSION_EVENT_TYPES = frozenset({254, 255})
+
+
+@dataclass(frozen=True, slots=True)
+class MappingEntry:
+    """One entry of a PDO mapping object: which object, and its length in bits."""
+
+    index: int
+    subindex: int
+    bits: int
+
+    @classmethod
+    def decode(cls, value: int) -> MappingEntry:
+        """From the u32 written to a mapping object (index << 16 | sub-index << 8 | bits)."""
+        return cls((value >> 16) & 0xFFFF, (value >> 8) & 0xFF, value & 0xFF)
+
+    def encode(self) -> int:
+        """The u32 of the mapping object."""
+        return (self.index << 16) | (self.subindex << 8) | self.bits
+
+
+def heartbeat_consumer_entry(value: int) -> tuple[int, int]:
+    """A 0x1016 entry -> (producer node id, consumer time ms); either 0 means unused."""
+    return (value >> 16) & 0x7F, value & 0xFFFF
+
+
+def is_valid_transmission_type(transmission_type: int) -> bool:
+    """0-240 synchronous, 254/255 event driven; the RTR-only types 252/253 are not supported."""
+    return (
+        0 <= transmission_type <= SYNC_TRANSMISSION_MAX
+        or transmission_type in TRANSMISSION_EVENT_TYPES
+    )

@@ -1,0 +1,200 @@
+"""Writing scenario results: the result.csv table and a Fig. 9/10-style PNG (the I/O edge).
+
+Files are written to a temporary name in the target folder and renamed into place, so an
+interrupted run never leaves a half-written result behind.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from lca_sim.model.scenario import ScenarioResult
+from lca_sim.model.simulator import SIGNAL_NAMES
+from lca_sim.model.state_machine import MotionState
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+PNG_DPI = 110  # every PNG the tools write
+
+# Per-axis CSV columns after the axis-name prefix, in order.
+CSV_AXIS_COLUMNS: tuple[str, ...] = (
+    "position",
+    "velocity",
+    "motor_velocity_rad_s",
+    "current_a",
+    "voltage_v",
+    "motor_torque_nm",
+    "load_torque_nm",
+    "friction_torque_nm",
+    "motion_state",
+    "drive_state",
+    "eta_m",
+    "eta_l",
+)
+
+_MOTION_NAMES = {int(m): m.name.lower() for m in MotionState}
+
+
+def csv_header(axis_names: tuple[str, ...]) -> list[str]:
+    """The result.csv header: t_s, then NAME_<column> for every axis."""
+    return ["t_s"] + [f"{axis}_{col}" for axis in axis_names for col in CSV_AXIS_COLUMNS]
+
+
+def _number(x: float) -> str:
+    return "nan" if math.isnan(x) else repr(float(x))
+
+
+def _cell(x: object) -> str:
+    """A CSV cell: floats in shortest round-trip form (nan as such), the rest as text."""
+    return _number(float(x)) if isinstance(x, float | np.floating) else str(x)
+
+
+def write_table(path: Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
+    """Write a CSV table atomically, floats in shortest round-trip form."""
+    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows([_cell(x) for x in row] for row in rows)
+
+
+def save_png(fig: Figure, path: Path) -> None:
+    """Lay out and write a matplotlib figure as PNG, atomically."""
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=PNG_DPI)
+
+
+def csv_rows(result: ScenarioResult) -> Iterator[list[str]]:
+    """The rows of result.csv; floats in shortest round-trip form, states as names."""
+    signal_columns = [
+        result.signals[:, row, :]
+        for row in (
+            _signal_row("motor_velocity_rad_s"),
+            _signal_row("current_a"),
+            _signal_row("voltage_v"),
+            _signal_row("motor_torque_nm"),
+            _signal_row("load_torque_nm"),
+            _signal_row("friction_torque_nm"),
+        )
+    ]
+    eta_m = result.signals[:, _signal_row("eta_m"), :]
+    eta_l = result.signals[:, _signal_row("eta_l"), :]
+    for k in range(len(result.time_s)):
+        row = [_number(result.time_s[k])]
+        for a in range(len(result.axis_names)):
+            row.append(_number(result.position[k, a]))
+            row.append(_number(result.velocity[k, a]))
+            row.extend(_number(col[k, a]) for col in signal_columns)
+            row.append(_MOTION_NAMES[int(result.motion[k, a])])
+            row.append(result.state_names[int(result.drive[k, a])])
+            row.append(_number(eta_m[k, a]))
+            row.append(_number(eta_l[k, a]))
+        yield row
+
+
+def _signal_row(name: str) -> int:
+    return SIGNAL_NAMES.index(name)
+
+
+@contextmanager
+def atomic_path(target: Path) -> Iterator[Path]:
+    """A temporary path next to `target`, renamed onto it only if the block succeeds."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp.chmod(0o666 & ~umask)  # mkstemp makes 0600; the result is an ordinary file
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_csv(result: ScenarioResult, path: Path) -> None:
+    """Write result.csv atomically."""
+    write_table(path, csv_header(result.axis_names), csv_rows(result))
+
+
+def active_axes(result: ScenarioResult) -> list[int]:
+    """Axes that received a voltage or moved (the ones worth plotting)."""
+    volts = result.signals[:, _signal_row("voltage_v"), :]
+    moved = np.any(result.motion != 0, axis=0) | np.any(volts != 0.0, axis=0)
+    return [a for a in range(len(result.axis_names)) if moved[a]] or [0]
+
+
+def write_plot(result: ScenarioResult, path: Path, title: str) -> None:
+    """Plot voltage, current, velocity, position and drive state over time (Figs 9-10).
+
+    With one active axis its drive-state phases are shaded.
+    """
+    # Imported here: matplotlib costs about a second, and only plotting needs it.
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    axes_idx = active_axes(result)
+    fig, panels = plt.subplots(5, 1, figsize=(9, 11), sharex=True)
+    t = result.time_s
+    for a in axes_idx:
+        name = result.axis_names[a]
+        unit_scale = 1.0 if name == "lift" else 180.0 / math.pi
+        unit = "m" if name == "lift" else "deg"
+        panels[0].plot(t, result.signals[:, _signal_row("voltage_v"), a], label=name)
+        panels[1].plot(t, result.signals[:, _signal_row("current_a"), a], label=name)
+        panels[2].plot(t, result.velocity[:, a] * unit_scale, label=f"{name} ({unit}/s)")
+        panels[3].plot(t, result.position[:, a] * unit_scale, label=f"{name} ({unit})")
+        panels[4].step(t, result.drive[:, a], where="post", label=name)
+    panels[0].set_ylabel("voltage (V)")
+    panels[1].set_ylabel("current (A)")
+    panels[2].set_ylabel("velocity")
+    panels[3].set_ylabel("position")
+    panels[4].set_ylabel("drive state")
+    panels[4].set_yticks(range(len(result.state_names)))
+    panels[4].set_yticklabels(result.state_names, fontsize=7)
+    panels[4].set_xlabel("time (s)")
+    if len(axes_idx) == 1:
+        _shade_phases(result, axes_idx[0], panels)
+    for panel in panels:
+        panel.grid(True, alpha=0.3)
+        panel.legend(loc="upper left", fontsize=7)
+    fig.suptitle(title)
+    save_png(fig, path)
+    plt.close(fig)
+
+
+def _shade_phases(result: ScenarioResult, axis: int, panels: np.ndarray) -> None:
+    name = result.axis_names[axis]
+    phases = result.phases(name)
+    colours = [
+        "#dddddd",
+        "#cfe8ff",
+        "#ffe2c6",
+        "#d8f5d0",
+        "#f3d1f4",
+        "#fff6b3",
+        "#e0e0ff",
+        "#ffd0d0",
+        "#d0fff4",
+    ]
+    end_time = float(result.time_s[-1])
+    for i, phase in enumerate(phases):
+        start = phase.time_s
+        stop = phases[i + 1].time_s if i + 1 < len(phases) else end_time
+        colour = colours[result.state_names.index(phase.state) % len(colours)]
+        for panel in panels:
+            panel.axvspan(start, stop, color=colour, alpha=0.5, linewidth=0)

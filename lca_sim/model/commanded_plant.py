@@ -1,0 +1,227 @@
+"""The plant as a drive sees it: command intake, the in-drive current loop, stepping (pure core).
+
+`CommandedPlant` sits between a transport (the simulator node, later the virtual CAN drive) and the
+`Simulator`: it validates command arrays, holds the last good command, runs the current loop "in
+the drive" at the model rate when the commands are currents, and advances the model. No ROS, no
+clock: callers say how many steps to take.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit
+
+from lca_control.pi import PIParams, pi_law, pi_rebase
+from lca_sim.model import kernel
+from lca_sim.model.simulator import Simulator
+
+FloatArray = npt.NDArray[np.float64]
+
+VOLTAGE = "voltage"
+CURRENT = "current"
+
+# Rows of the in-drive current loops' array (one column per simulator axis).
+_L_INTEGRAL = 0
+_L_OUTPUT = 1
+_L_LAST_ERROR = 2
+_L_LIMIT_V = 3  # amplifier voltage limit: the loop's output is clamped to +-this
+_L_TARGET_A = 4
+_L_ACTIVE = 5  # 1.0 for axes in `joints`, whose loop runs; the others get 0 V
+_N_LOOP_ROWS = 6
+
+# lca_control's PI law itself, compiled: the drive's loops are the controller's PI, not a copy.
+_pi_law_compiled = njit(cache=True)(pi_law)
+
+
+@njit(cache=True)
+def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyped-def]
+    """One sample of every active axis's current PI: volts from targets and measured currents.
+
+    gains is [kp_v_per_a, ti_s, dt_s]; the limits are per axis (row _L_LIMIT_V).
+    """
+    for a in range(volts.shape[0]):
+        if loops[_L_ACTIVE, a] == 0.0:
+            volts[a] = 0.0
+            continue
+        limit = loops[_L_LIMIT_V, a]
+        error = loops[_L_TARGET_A, a] - current_a[a]
+        output, integral = _pi_law_compiled(
+            gains[0], gains[1], -limit, limit, loops[_L_INTEGRAL, a], error, gains[2]
+        )
+        loops[_L_INTEGRAL, a] = integral
+        loops[_L_OUTPUT, a] = output
+        loops[_L_LAST_ERROR, a] = error
+        volts[a] = output
+
+
+@njit(cache=True)
+def _current_loops_steps(n_steps, volts, loops, gains, mass, nle, work, model, dt_s):  # type: ignore[no-untyped-def]
+    """Model steps, each under the current loops' voltages (`Simulator.advance_with`)."""
+    for k in range(n_steps):
+        _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
+        if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
+            return k
+    return n_steps
+
+
+@dataclass
+class CommandCounters:
+    """How many command messages were taken or refused, and why."""
+
+    accepted: int = 0
+    rejected_length: int = 0
+    rejected_nonfinite: int = 0
+    rejected_absurd: int = 0
+    timeouts: int = 0
+    saturated: int = 0
+
+    @property
+    def rejected(self) -> int:
+        """All refused commands."""
+        return self.rejected_length + self.rejected_nonfinite + self.rejected_absurd
+
+    def as_dict(self) -> dict[str, int]:
+        """The counters by name (for diagnostics)."""
+        return {
+            "commands_accepted": self.accepted,
+            "commands_rejected_length": self.rejected_length,
+            "commands_rejected_nonfinite": self.rejected_nonfinite,
+            "commands_rejected_absurd": self.rejected_absurd,
+            "command_timeouts": self.timeouts,
+            "commands_saturated": self.saturated,
+        }
+
+
+@dataclass
+class CommandedPlant:
+    """A simulator behind voltage or current commands.
+
+    Args:
+        sim: the model.
+        joints: the order of the command arrays (a subset of the simulator's axes).
+        interface: `voltage` (V) or `current` (A, the current PI runs here at the model rate).
+        current_pi: gains of the in-drive current loop; its output limits are replaced by each
+            axis's amplifier voltage limit.
+        max_abs_command: a command beyond this magnitude is absurd and refused outright
+            (commands within it but beyond the amplifier or current limit are saturated).
+        current_limit_a: saturation of current setpoints (current interface).
+    """
+
+    sim: Simulator
+    joints: tuple[str, ...]
+    interface: str
+    current_pi: PIParams
+    max_abs_command: float
+    current_limit_a: float = 20.0
+    enabled: bool = True
+    counters: CommandCounters = field(default_factory=CommandCounters)
+
+    def __post_init__(self) -> None:
+        self._index = [self.sim.axis_names.index(j) for j in self.joints]
+        self._target = np.zeros(self.sim.n_axes)
+        self._volts = np.zeros(self.sim.n_axes)
+        self._voltage_limits = [a.motor.voltage_limit_v for a in self.sim.robot.axes]
+        self._loops = np.zeros((_N_LOOP_ROWS, self.sim.n_axes))
+        self._loops[_L_LIMIT_V] = self._voltage_limits
+        self._loops[_L_ACTIVE, self._index] = 1.0
+        self._gains = np.array([self.current_pi.kp, self.current_pi.ti_s, self.sim.dt_s])
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Run one step of the whole path now, and rewind.
+
+        Nothing is then compiled (or loaded from numba's cache) in the first step of a running
+        loop: on a fresh machine that took 0.2 s, which a CAN drive's watchdogs see as a lost
+        master.
+        """
+        sim = self.sim
+        snapshot = sim.state
+        sim.advance_with(1, _current_loops_steps, self._volts, self._loops.copy(), self._gains)
+        sim.advance(1, np.zeros(sim.n_axes))
+        sim.set_state(snapshot)  # kernel.step itself: set_state evaluates the state with it
+        self._volts[:] = 0.0
+
+    @property
+    def target(self) -> FloatArray:
+        """The command in force per simulator axis (V or A); read only."""
+        view = self._target.view()
+        view.flags.writeable = False
+        return view
+
+    def command(self, values: Sequence[float]) -> str | None:
+        """Take a command array in `joints` order; return None, or why it was refused.
+
+        The last good command stays in force when one is refused.
+        """
+        if len(values) != len(self.joints):
+            self.counters.rejected_length += 1
+            return (
+                f"expected {len(self.joints)} values ({', '.join(self.joints)}), got {len(values)}"
+            )
+        if not all(math.isfinite(v) for v in values):
+            self.counters.rejected_nonfinite += 1
+            return f"values must be finite, got {list(values)}"
+        if any(abs(v) > self.max_abs_command for v in values):
+            self.counters.rejected_absurd += 1
+            return f"|value| above {self.max_abs_command:g}: {list(values)}"
+        for joint_index, axis in enumerate(self._index):
+            value = float(values[joint_index])
+            limit = (
+                self._voltage_limits[axis] if self.interface == VOLTAGE else self.current_limit_a
+            )
+            if abs(value) > limit:
+                self.counters.saturated += 1
+                value = math.copysign(limit, value)
+            self._target[axis] = value
+        self.counters.accepted += 1
+        return None
+
+    def hold_zero(self, timed_out: bool = False) -> None:
+        """Drop the command to zero (command timeout, disable): the gear holds the load."""
+        if timed_out:
+            self.counters.timeouts += 1
+        self._target[:] = 0.0
+        self._loops[[_L_INTEGRAL, _L_OUTPUT, _L_LAST_ERROR]] = 0.0
+
+    def set_enabled(self, enabled: bool) -> None:
+        """Amplifiers on or off; off means 0 V on every axis and reset current loops."""
+        self.enabled = enabled
+        self.hold_zero()
+
+    def set_current_gains(self, kp_v_per_a: float, ti_s: float) -> None:
+        """Retune the in-drive current loop (bumpless)."""
+        self.current_pi = PIParams(kp_v_per_a, ti_s, -1.0, 1.0)
+        loops = self._loops
+        for a, limit in enumerate(self._voltage_limits):
+            loops[_L_INTEGRAL, a], loops[_L_OUTPUT, a] = pi_rebase(
+                kp_v_per_a, -limit, limit, loops[_L_OUTPUT, a], loops[_L_LAST_ERROR, a]
+            )
+        self._gains[:2] = (kp_v_per_a, ti_s)
+
+    @property
+    def current_loop_outputs_v(self) -> FloatArray:
+        """The last output of each axis's in-drive current loop, V (0 for inactive axes)."""
+        outputs: FloatArray = self._loops[_L_OUTPUT].copy()
+        return outputs
+
+    def advance(self, n_steps: int) -> None:
+        """Run the model n_steps of its dt under the command in force."""
+        sim = self.sim
+        volts = self._volts
+        if not self.enabled:
+            volts[:] = 0.0
+            sim.advance(n_steps, volts)
+            return
+        if self.interface == VOLTAGE:
+            volts[:] = self._target
+            sim.advance(n_steps, volts)
+            return
+        loops = self._loops
+        gains = self._gains
+        loops[_L_TARGET_A] = self._target
+        sim.advance_with(n_steps, _current_loops_steps, volts, loops, gains)

@@ -1,0 +1,445 @@
+r"""The CAN bridge node: `ros2 run lca_hil can_bridge` (console script `lca-can-bridge`).
+
+Swaps the simulator node for CiA 402 drives on a CAN bus, with the same topics (see
+`lca_control.contract`): it takes `current_commands` from the controller and publishes
+`joint_states`, `motor_states`, `drive_chain_states` (when the drives report it: the virtual
+drive does) and `/diagnostics`. The CANopen master itself is `lca_sim.canbus.master.Cia402Master`.
+
+    lca-can-bridge --ros-args --params-file config/ros/can_bridge.yaml           # virtual rack
+    lca-can-bridge --ros-args --params-file config/ros/can_bridge.yaml \\
+        -p interface:=socketcan -p channel:=can0                               # a real bus
+
+With `interface: virtual` the node also starts the virtual drive rack
+(`lca_sim.canbus.virtual_rack`) in its own process, on python-can's in-process virtual bus.
+
+Services (std_srvs/Trigger, named like ros2_canopen's CiA 402 driver): `~/init`, `~/enable`,
+`~/disable`, `~/halt`, `~/recover`, `~/cyclic_torque_mode`. SDO access for diagnosis, with
+rcl_interfaces types (an ament_python package cannot define its own): `~/sdo_read`
+(GetParameters; names `<joint>/<index>[/<subindex>]`, e.g. `pivot/0x6041`, `lift/0x1400/5`)
+and `~/sdo_write` (SetParameters; the same names, integer or double values).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import ParameterType, ParameterValue, SetParametersResult
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from lca_control import contract as ri
+from lca_sim.canbus.master import (
+    GIL_SWITCH_INTERVAL_S,
+    BridgeError,
+    BridgeParams,
+    Cia402Master,
+    Snapshot,
+)
+from lca_sim.cia402.master import bus_load_pct
+from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.errors import ConfigError
+from lca_sim.ros.can_bridge_params import (
+    CAN_BRIDGE_PARAMETERS,
+    CanBridgeNodeParams,
+    validate_can_bridge_params,
+)
+from lca_sim.ros.node_util import declare_parameters, run_node, status, to_stamp
+from lca_sim.runtime import settle_heap
+
+MOTION_NAMES = {-1: "reverse", 0: "stopped", 1: "direct"}
+SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
+
+
+def _parameter_value(raw: object) -> ParameterValue:
+    """An SDO value (or an error text) as an rcl_interfaces ParameterValue."""
+    if isinstance(raw, bool):
+        return ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=raw)
+    if isinstance(raw, int):
+        return ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=raw)
+    if isinstance(raw, float):
+        return ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=raw)
+    return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=str(raw))
+
+
+def open_bus(interface: str, channel: str, bitrate: int) -> can.BusABC:
+    """Open a python-can bus, or raise ConfigError with one clear line (no traceback).
+
+    Only the bus differs between a real drive (`socketcan`, `can0`) and the virtual rack
+    (`virtual`): everything above it is the same code.
+    """
+    try:
+        return can.Bus(interface=interface, channel=channel, bitrate=bitrate)
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
+        hint = (
+            " (is the interface up? `ip link show` lists them; this machine may have no "
+            "SocketCAN at all: use interface virtual)"
+            if interface == "socketcan"
+            else ""
+        )
+        raise ConfigError(
+            "parameters", "interface", f"cannot open {interface} channel {channel!r}: {exc}{hint}"
+        ) from exc
+
+
+def parse_object_name(name: str) -> tuple[str, int, int]:
+    """`pivot/0x6041` or `lift/0x1400/5` -> (joint, index, subindex)."""
+    parts = name.split("/")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"expected <joint>/<index>[/<subindex>], got {name!r}")
+    index = int(parts[1], 0)
+    subindex = int(parts[2], 0) if len(parts) == 3 else 0
+    if not (0 <= index <= 0xFFFF and 0 <= subindex <= 0xFF):
+        raise ValueError(f"index or subindex out of range in {name!r}")
+    return parts[0], index, subindex
+
+
+class CanBridgeNode(Node):
+    """Publishes the drives' states and sends them the controller's current commands."""
+
+    def __init__(self, node_name: str = "can_bridge", **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._values = declare_parameters(self, CAN_BRIDGE_PARAMETERS)
+        self.params: CanBridgeNodeParams = validate_can_bridge_params(self._values)
+        p = self.params
+        # The cycle thread, the notifier threads (and with `virtual` the rack's) share the GIL
+        # with the executor; Python's default 5 ms switch interval lets one of them hold it
+        # for several CAN periods. 0.5 ms keeps the 500 Hz cycle regular.
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+        robot = load_robot(p.robot)
+        axes = {a.name: a for a in robot.axes}
+        eds = Path(p.eds) if p.eds else config_dir() / "can" / "lca_drive.eds"
+        if not eds.is_file():
+            raise ConfigError("parameters", "eds", f"no such file: {eds}")
+        self._rack: Any = None
+        self._rack_bus: can.BusABC | None = None
+        bus = open_bus(p.interface, p.channel, p.bitrate)
+        try:
+            if p.interface == "virtual":
+                self._start_rack(p)
+            self.network = canopen.Network(bus)
+            self.network.connect()
+            self.bridge = Cia402Master(
+                self.network,
+                BridgeParams(
+                    joints=p.joints,
+                    node_ids=p.node_ids,
+                    torque_constants_nm_per_a=tuple(
+                        axes[j].motor.torque_constant_nm_per_a for j in p.joints
+                    ),
+                    gear_ratios=tuple(axes[j].gear_ratio for j in p.joints),
+                    drive_state_names=robot.state_machine.state_names,
+                    master_node_id=p.master_node_id,
+                    cycle_hz=p.cycle_hz,
+                    bitrate_bit_s=float(p.bitrate),
+                    command_timeout_s=p.command_timeout_s,
+                    quick_stop_after_s=p.quick_stop_after_s,
+                    stale_timeout_s=p.stale_timeout_s,
+                    heartbeat_producer_ms=p.heartbeat_producer_ms,
+                    heartbeat_consumer_ms=p.heartbeat_consumer_ms,
+                    rpdo_deadline_ms=p.rpdo_deadline_ms,
+                    max_send_failures=p.max_send_failures,
+                ),
+                eds,
+                on_state=self._on_state,
+            )
+        except Exception:
+            self._close_bus(bus)
+            raise
+        self._bus = bus
+        self._state_names = robot.state_machine.state_names
+        self._published = 0
+        self._wrong_interface = 0
+        self._last_diag_t = time.monotonic()
+        self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
+        self._init_lock = threading.Lock()
+
+        state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        self._joint_pub = self.create_publisher(JointState, ri.JOINT_STATES, state_qos)
+        self._motor_pub = self.create_publisher(JointState, ri.MOTOR_STATES, state_qos)
+        self._drive_pub = self.create_publisher(DiagnosticArray, ri.DRIVE_CHAIN_STATES, state_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
+        self.create_subscription(
+            Float64MultiArray, ri.CURRENT_COMMANDS, self._on_command, command_qos
+        )
+        self.create_subscription(
+            Float64MultiArray, ri.VOLTAGE_COMMANDS, self._on_voltage_command, command_qos
+        )
+        for name, handler in (
+            ("init", self._srv_init),
+            ("enable", self._srv_enable),
+            ("disable", self._srv_disable),
+            ("halt", self._srv_halt),
+            ("recover", self._srv_recover),
+            ("cyclic_torque_mode", self._srv_cst),
+        ):
+            self.create_service(Trigger, f"~/{name}", handler)
+        self.create_service(GetParameters, "~/sdo_read", self._srv_sdo_read)
+        self.create_service(SetParameters, "~/sdo_write", self._srv_sdo_write)
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        drives = dict(zip(p.joints, p.node_ids, strict=True))
+        self.get_logger().info(
+            f"{p.interface} bus {p.channel!r}, drives {drives}, {p.cycle_hz:g} Hz, EDS {eds}"
+        )
+        if p.auto_init:
+            message = self._init()
+            if message:
+                self.get_logger().error(f"init failed: {message} (retry with ~/init)")
+            elif p.auto_enable:
+                self.get_logger().info(self.bridge.enable(True))
+
+    # --- set-up and tear-down ------------------------------------------------------------
+
+    def _start_rack(self, p: CanBridgeNodeParams) -> None:
+        from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config  # noqa: PLC0415
+
+        config = load_rack_config(Path(p.rack_config) if p.rack_config else None)
+        self._rack_bus = open_bus("virtual", p.channel, p.bitrate)
+        self._rack = VirtualDriveRack(self._rack_bus, config)
+        self._rack.start()
+
+    def _init(self) -> str:
+        """Configure and start the drives, then the cycle; '' or the error."""
+        with self._init_lock:
+            self.bridge.stop()
+            try:
+                self.bridge.init()
+            except BridgeError as exc:
+                return str(exc)
+            settle_heap()  # before the cycle runs: a full collection would stall it
+            self.bridge.start()
+            return ""
+
+    def destroy_node(self) -> None:
+        """Stop the cycle (the drives' watchdogs take over), the rack, and close the buses."""
+        bridge = getattr(self, "bridge", None)
+        if bridge is not None:
+            bridge.stop()
+            self.network.disconnect()
+        if self._rack is not None:
+            self._rack.stop()
+        if self._rack_bus is not None:
+            self._rack_bus.shutdown()
+        super().destroy_node()
+
+    @staticmethod
+    def _close_bus(bus: can.BusABC) -> None:
+        with contextlib.suppress(can.CanError):
+            bus.shutdown()
+
+    # --- topics --------------------------------------------------------------------------
+
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        reason = self.bridge.set_currents(list(msg.data))
+        if reason is not None:
+            self.get_logger().warning(
+                f"command rejected ({self.bridge.counters.commands_rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
+
+    def _on_voltage_command(self, msg: Float64MultiArray) -> None:
+        self._wrong_interface += 1
+        self.get_logger().warning(
+            f"ignoring voltage commands ({self._wrong_interface} so far): CiA 402 drives take "
+            "torque; run the controller with command_interface: current",
+            throttle_duration_sec=5.0,
+        )
+
+    def _on_state(self, snap: Snapshot) -> None:
+        """A complete cycle (notifier thread): publish it. rclpy publishers are thread-safe."""
+        stamp = to_stamp(snap.sync_wall_s)
+        names = list(self.params.joints)
+        axes = snap.axes
+        torque_scale = self.bridge.params.torque_constants_nm_per_a
+        gears = self.bridge.params.gear_ratios
+        joint = JointState(name=names)
+        joint.header.stamp = stamp
+        joint.position = [a.position for a in axes]
+        joint.velocity = [a.velocity for a in axes]
+        joint.effort = [
+            a.current_a * k * n for a, k, n in zip(axes, torque_scale, gears, strict=True)
+        ]
+        self._joint_pub.publish(joint)
+        if self._motor_pub.get_subscription_count():
+            motor = JointState(name=names)
+            motor.header.stamp = stamp
+            motor.position = [a.motor_position_rad for a in axes]
+            motor.velocity = [a.motor_velocity_rad_s for a in axes]
+            motor.effort = [a.current_a for a in axes]
+            self._motor_pub.publish(motor)
+        if self.bridge.has_drive_state() and self._drive_pub.get_subscription_count():
+            self._drive_pub.publish(self._drive_chain(snap, stamp))
+        self._published += 1
+
+    def _drive_chain(self, snap: Snapshot, stamp: Any) -> DiagnosticArray:
+        array = DiagnosticArray()
+        array.header.stamp = stamp
+        gears = self.bridge.params.gear_ratios
+        for name, a, k_t, gear in zip(
+            self.params.joints,
+            snap.axes,
+            self.bridge.params.torque_constants_nm_per_a,
+            gears,
+            strict=True,
+        ):
+            drive_state = (
+                self._state_names[a.drive_state]
+                if 0 <= a.drive_state < len(self._state_names)
+                else "unknown"
+            )
+            values = {
+                "motion_state": MOTION_NAMES.get(a.motion_state, "unknown"),
+                "drive_state": drive_state,
+                "eta_m": a.eta_m,
+                "eta_l": a.eta_l,
+                "motor_torque_nm": k_t * a.current_a,
+                "current_a": a.current_a,
+                "gear_ratio": gear,
+            }
+            array.status.append(
+                status(ri.DRIVE_STATUS_PREFIX + name, DiagnosticStatus.OK, drive_state, values)
+            )
+        return array
+
+    # --- services ------------------------------------------------------------------------
+
+    def _srv_init(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        message = self._init()
+        res.success = not message
+        res.message = message or "drives configured and operational; call ~/enable"
+        return res
+
+    def _srv_enable(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        res.message = self.bridge.enable(True)
+        res.success = res.message == "enabling"
+        return res
+
+    def _srv_disable(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        res.message = self.bridge.enable(False)
+        res.success = True
+        return res
+
+    def _srv_halt(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        self.bridge.halt()
+        res.success, res.message = True, "halted: zero torque until the next ~/enable"
+        return res
+
+    def _srv_recover(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        self.bridge.recover()
+        res.success, res.message = True, "latches cleared, faults reset; call ~/enable"
+        return res
+
+    def _srv_cst(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        try:
+            for joint in self.params.joints:
+                self.bridge.sdo_write(joint, 0x6060, 0, 10)
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+            res.success, res.message = False, f"mode 10 refused: {exc}"
+            return res
+        res.success, res.message = True, "cyclic synchronous torque (mode 10) on every drive"
+        return res
+
+    def _srv_sdo_read(
+        self, req: GetParameters.Request, res: GetParameters.Response
+    ) -> GetParameters.Response:
+        for name in req.names:
+            try:
+                joint, index, subindex = parse_object_name(name)
+                raw = self.bridge.sdo_read(joint, index, subindex)
+            except SDO_ERRORS as exc:
+                raw = f"error: {exc}"
+            res.values.append(_parameter_value(raw))
+        return res
+
+    def _srv_sdo_write(
+        self, req: SetParameters.Request, res: SetParameters.Response
+    ) -> SetParameters.Response:
+        for param in req.parameters:
+            result = SetParametersResult(successful=True)
+            try:
+                joint, index, subindex = parse_object_name(param.name)
+                v = param.value
+                if v.type == ParameterType.PARAMETER_INTEGER:
+                    self.bridge.sdo_write(joint, index, subindex, int(v.integer_value))
+                elif v.type == ParameterType.PARAMETER_DOUBLE:
+                    self.bridge.sdo_write(joint, index, subindex, float(v.double_value))
+                else:
+                    raise ValueError("only integer or double values can be written")
+            except SDO_ERRORS as exc:
+                result = SetParametersResult(successful=False, reason=str(exc))
+            res.results.append(result)
+        return res
+
+    # --- diagnostics ---------------------------------------------------------------------
+
+    def _publish_diagnostics(self) -> None:
+        bridge = self.bridge
+        c = bridge.counters
+        now = time.monotonic()
+        span = max(now - self._last_diag_t, 1e-6)
+        frames = c.frames_sent + c.frames_received
+        bits = c.bits_sent + c.bits_received
+        last_frames, last_bits = self._last_frames_bits
+        frames_per_s = (frames - last_frames) / span
+        bits_per_s = (bits - last_bits) / span
+        self._last_diag_t, self._last_frames_bits = now, (frames, bits)
+        latched = bridge.latched_reason()
+        level = DiagnosticStatus.ERROR if latched else DiagnosticStatus.OK
+        message = latched or "running"
+        if not latched and (c.commands_rejected or c.send_failures or self._wrong_interface):
+            level, message = DiagnosticStatus.WARN, "rejected commands or failed sends"
+        values: dict[str, object] = {
+            "interface": self.params.interface,
+            "channel": self.params.channel,
+            "cycle_hz": self.params.cycle_hz,
+            "frames_per_s": frames_per_s,
+            "bus_load_pct": bus_load_pct(bits_per_s, float(self.params.bitrate)),
+            "command_age_s": bridge.command_age_s(now),
+            "states_published": self._published,
+            "commands_wrong_interface": self._wrong_interface,
+            **{k: getattr(c, k) for k in c.__slots__},
+        }
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status.append(status("lca_hil/can_bridge", level, message, values))
+        emcy = bridge.emcy_codes()
+        for joint in self.params.joints:
+            s = bridge.axis_state(joint)
+            power = s.power_state
+            axis_level = DiagnosticStatus.ERROR if emcy[joint] else DiagnosticStatus.OK
+            array.status.append(
+                status(
+                    f"lca_hil/can_bridge/{joint}",
+                    axis_level,
+                    power.name.lower() if power else f"statusword 0x{s.statusword:04X}",
+                    {
+                        "statusword": f"0x{s.statusword:04X}",
+                        "emcy_code": f"0x{emcy[joint]:04X}",
+                        "position": s.position,
+                        "current_a": s.current_a,
+                    },
+                )
+            )
+        self._diag_pub.publish(array)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Entry point of `lca-can-bridge` / `ros2 run lca_hil can_bridge`."""
+    return run_node("lca-can-bridge", CanBridgeNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,225 @@
+"""`lca-echo`: print the messages of a topic as YAML documents, like `ros2 topic echo`.
+
+    lca-echo joint_states
+    lca-echo drive_chain_states --once
+    lca-echo /clock -n 10 --qos-reliability best_effort --ros-args -r __ns:=/robot1
+
+The topic's type is read from the ROS graph (waiting up to `--wait-s` for it to appear) and each
+message is printed as YAML with its fields in declaration order, arrays as lists, followed by a
+`---` line. The QoS is keep-last `STATE_QOS_DEPTH`; the reliability matches the publishers by
+default (best-effort if any publisher is) or is forced with `--qos-reliability`.
+
+(`rosidl_runtime_py.convert.message_to_yaml` is not part of the PyPI ROS wheels this project
+installs, so the conversion below walks the message fields itself.)
+
+Exit codes: 0 after the requested messages or on SIGINT/SIGTERM, 2 bad arguments or a topic
+that did not appear within `--wait-s` (one line on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import array
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from types import FrameType
+from typing import Any, cast
+
+import rclpy
+import yaml
+from rclpy.context import Context
+from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from lca_sim.ros.record import RecorderError, first_line, import_message_class, subscription_qos
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+NODE_NAME = "lca_echo"
+DEFAULT_WAIT_S = 5.0
+RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
+
+# YAML scalars a message field can hold; everything else is converted.
+_PLAIN = (bool, int, float, str)
+
+
+def message_to_plain(msg: Any) -> Any:
+    """A ROS message (or field value) as plain dicts, lists and scalars, fields in order.
+
+    Nested messages become dicts keyed by field name, sequences and arrays (Python lists,
+    `array.array`, numpy arrays) become lists, `bytes` a list of ints.
+    """
+    if msg is None or isinstance(msg, _PLAIN):
+        return msg
+    if hasattr(msg, "get_fields_and_field_types"):
+        return {
+            name: message_to_plain(getattr(msg, name)) for name in msg.get_fields_and_field_types()
+        }
+    if isinstance(msg, bytes | bytearray):
+        return list(msg)
+    if isinstance(msg, array.array | list | tuple):
+        return [message_to_plain(item) for item in msg]
+    if hasattr(msg, "tolist"):  # numpy arrays and scalars
+        return message_to_plain(msg.tolist())
+    return str(msg)
+
+
+def message_to_yaml(msg: Any) -> str:
+    """A ROS message as a block-style YAML document (no trailing `---`)."""
+    return yaml.safe_dump(
+        message_to_plain(msg), sort_keys=False, default_flow_style=False, allow_unicode=True
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of lca-echo (ROS arguments are removed before it runs)."""
+    parser = argparse.ArgumentParser(
+        prog="lca-echo",
+        description="Print the messages of a ROS 2 topic as YAML.",
+        epilog="ROS arguments go last: --ros-args -p use_sim_time:=true -r __ns:=/robot1",
+    )
+    parser.add_argument("topic", metavar="TOPIC", help="topic name (relative names get the ns)")
+    count = parser.add_mutually_exclusive_group()
+    count.add_argument("--once", action="store_true", help="print one message and exit")
+    count.add_argument("-n", "--count", type=int, default=None, help="print N messages and exit")
+    parser.add_argument(
+        "--wait-s",
+        type=float,
+        default=DEFAULT_WAIT_S,
+        help=f"wait this long for the topic to appear (default {DEFAULT_WAIT_S:g}; inf ok)",
+    )
+    parser.add_argument(
+        "--qos-reliability",
+        choices=RELIABILITY_CHOICES,
+        default="auto",
+        help="subscription reliability (default auto: match the publishers)",
+    )
+    return parser
+
+
+class _Printer:
+    """Subscription callback: print each message, count, and signal when enough were printed."""
+
+    def __init__(self, limit: int | None, done: threading.Event) -> None:
+        self.limit = limit
+        self.printed = 0
+        self.broken_pipe = False
+        self._done = done
+
+    def __call__(self, msg: Any) -> None:
+        if self._done.is_set():
+            return
+        try:
+            sys.stdout.write(message_to_yaml(msg) + "---\n")
+            sys.stdout.flush()
+        except BrokenPipeError:  # e.g. piped into `head`
+            # Later writes (and the interpreter's final flush) go nowhere instead of failing.
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+            self.broken_pipe = True
+            self._done.set()
+            return
+        self.printed += 1
+        if self.limit is not None and self.printed >= self.limit:
+            self._done.set()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the lca-echo console script."""
+    all_args = ["lca-echo", *(sys.argv[1:] if argv is None else argv)]
+    parser = build_parser()
+    try:
+        own_args = remove_ros_args(all_args)[1:]
+    except Exception as exc:  # rclpy's RCLInvalidROSArgsError
+        return _fail(f"bad ROS arguments: {first_line(exc)}")
+    args = parser.parse_args(own_args)
+    limit: int | None = 1 if args.once else args.count
+    if limit is not None and limit < 1:
+        parser.error("--count must be >= 1")
+    if math.isnan(args.wait_s) or args.wait_s < 0:
+        parser.error("--wait-s must be >= 0")
+
+    done = threading.Event()
+
+    def on_signal(_signum: int, _frame: FrameType | None) -> None:
+        done.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    context = Context()
+    try:
+        try:
+            rclpy.init(
+                args=all_args, context=context, signal_handler_options=SignalHandlerOptions.NO
+            )
+        except Exception as exc:  # rclpy reports bad ROS arguments with its own exceptions
+            return _fail(f"cannot start ROS: {first_line(exc)}")
+        node = Node(NODE_NAME, context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        try:
+            try:
+                topic = node.resolve_topic_name(args.topic)
+            except Exception as exc:  # rclpy's name validation errors
+                return _fail(f"bad topic name {args.topic!r}: {first_line(exc)}")
+            msgtype = _wait_for_type(node, executor, topic, args.wait_s, done)
+            if msgtype is None:
+                if done.is_set():  # interrupted while waiting
+                    return EXIT_OK
+                return _fail(f"topic {topic} did not appear within {args.wait_s:g} s")
+            msg_class = import_message_class(msgtype)
+            qos = subscription_qos(topic, node.get_publishers_info_by_topic(topic))
+            if args.qos_reliability == "reliable":
+                qos.reliability = ReliabilityPolicy.RELIABLE
+            elif args.qos_reliability == "best_effort":
+                qos.reliability = ReliabilityPolicy.BEST_EFFORT
+            printer = _Printer(limit, done)
+            node.create_subscription(msg_class, topic, cast("Callable[[Any], None]", printer), qos)
+            while not done.is_set():
+                executor.spin_once(timeout_sec=0.05)
+        except RecorderError as exc:
+            return _fail(str(exc))
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+            node.destroy_node()
+    finally:
+        if context.ok():
+            rclpy.shutdown(context=context)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return EXIT_OK
+
+
+def _wait_for_type(
+    node: Node, executor: Executor, topic: str, wait_s: float, done: threading.Event
+) -> str | None:
+    """The first type of `topic` once it is in the graph; None after `wait_s` or a signal."""
+    deadline_s = time.monotonic() + wait_s
+    while not done.is_set():
+        types = dict(node.get_topic_names_and_types())
+        if types.get(topic):
+            type_names: list[str] = types[topic]
+            if len(type_names) > 1:
+                print(
+                    f"lca-echo: warning: {topic} has several types {type_names}; "
+                    f"echoing {type_names[0]}",
+                    file=sys.stderr,
+                )
+            return type_names[0]
+        if time.monotonic() >= deadline_s:
+            return None
+        executor.spin_once(timeout_sec=0.05)
+    return None
+
+
+def _fail(text: str) -> int:
+    print(f"lca-echo: error: {text}", file=sys.stderr, flush=True)
+    return EXIT_BAD_INPUT

@@ -1,0 +1,379 @@
+"""The simulator node: `ros2 run lca_hil simulator` (console script `lca-simulator`).
+
+A thin shell around `CommandedPlant`: parameters in, commands in, states out. See
+`lca_control.contract` for the topics and `lca_sim.ros.simulator_params` for the parameters:
+
+    lca-simulator --ros-args --params-file config/ros/simulator.yaml
+
+Timing modes:
+
+* realtime: a wall-clock timer at `publish_rate_hz`; each tick runs as many fixed model steps as
+  wall time has passed (at most four periods' worth, the rest counted as overrun) and publishes.
+  Stamps are the simulated time, which starts at the wall time of start-up.
+* lockstep: every accepted command advances exactly `control_period_s` of simulated time, then
+  the state is published with /clock. Simulated time starts at 0. The first state goes out once
+  `lockstep_subscribers` subscribers of joint_states have matched; if no command comes for
+  `lockstep_resend_s`, the last state is sent again (a controller ignores stamps it has seen).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
+
+from lca_control import contract as ri
+from lca_control.pi import ControlParamError, PIParams
+from lca_sim.config.loader import load_robot
+from lca_sim.errors import ConfigError
+from lca_sim.model.commanded_plant import CommandedPlant
+from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
+from lca_sim.model.state_machine import MotionState
+from lca_sim.ros.node_util import (
+    accepted,
+    declare_parameters,
+    rejected,
+    run_node,
+    status,
+    to_stamp,
+    with_changes,
+)
+from lca_sim.ros.simulator_params import (
+    READ_ONLY,
+    SIMULATOR_PARAMETERS,
+    SimulatorNodeParams,
+    validate_simulator_params,
+)
+
+MAX_CATCH_UP_PERIODS = 4
+_ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
+_MOTION_NAMES = {int(m): m.name.lower() for m in MotionState}
+# The numeric drive-chain values per axis, in message order after motion and drive state.
+_DRIVE_SIGNALS = (
+    "eta_m",
+    "eta_l",
+    "motor_torque_nm",
+    "load_torque_nm",
+    "friction_torque_nm",
+    "current_a",
+    "voltage_v",
+)
+_DRIVE_SIGNAL_ROWS = tuple(_ROW[name] for name in _DRIVE_SIGNALS)
+
+
+class SimulatorNode(Node):
+    """Publishes the simulated robot's states and takes voltage or current commands."""
+
+    def __init__(self, node_name: str = "simulator", **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self._values = declare_parameters(self, SIMULATOR_PARAMETERS)
+        self.params: SimulatorNodeParams = validate_simulator_params(self._values)
+        p = self.params
+        robot = load_robot(p.robot)
+        self.sim = Simulator(robot, dt_s=p.dt_s, rigid_body_update_steps=p.rigid_body_update_steps)
+        self.plant = CommandedPlant(
+            sim=self.sim,
+            joints=p.joints,
+            interface=p.command_interface,
+            current_pi=PIParams(p.current_kp_v_per_a, p.current_ti_s, -1.0, 1.0),
+            max_abs_command=(
+                p.max_command_voltage_v
+                if p.command_interface == "voltage"
+                else p.max_command_current_a
+            ),
+            enabled=p.enabled,
+        )
+        self._reset_pose()
+        self._lockstep = p.timing_mode == "lockstep"
+        self._time_base_s = 0.0 if self._lockstep else time.time()
+        self._started = not self._lockstep
+        self._last_command_wall = time.monotonic()
+        self._last_publish_wall = time.monotonic()
+        self._wall_start = time.monotonic()
+        self._steps_done = 0
+        self._overrun_steps = 0
+        self._published = 0
+        self._wrong_interface = 0
+        self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
+        self._joint_msg = JointState(name=list(self.sim.axis_names))
+        self._motor_msg = JointState(name=list(self.sim.axis_names))
+        self._drive_msg = self._drive_chain_template()
+
+        state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        self._joint_pub = self.create_publisher(JointState, ri.JOINT_STATES, state_qos)
+        self._motor_pub = self.create_publisher(JointState, ri.MOTOR_STATES, state_qos)
+        self._drive_pub = self.create_publisher(DiagnosticArray, ri.DRIVE_CHAIN_STATES, state_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
+        self._clock_pub = self.create_publisher(Clock, ri.CLOCK, 10) if self._lockstep else None
+        command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        active, other = (
+            (ri.VOLTAGE_COMMANDS, ri.CURRENT_COMMANDS)
+            if p.command_interface == "voltage"
+            else (ri.CURRENT_COMMANDS, ri.VOLTAGE_COMMANDS)
+        )
+        self.create_subscription(Float64MultiArray, active, self._on_command, command_qos)
+        self.create_subscription(Float64MultiArray, other, self._on_wrong_interface, command_qos)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(SetBool, "~/enable", self._on_enable)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        if self._lockstep:
+            self._kick_timer = self.create_timer(0.05, self._lockstep_kick)
+        else:
+            self._tick_timer = self.create_timer(1.0 / p.publish_rate_hz, self._realtime_tick)
+        self._diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(
+            f"robot {robot.name}, {p.timing_mode}, {p.command_interface} commands on "
+            f"{active} for {list(p.joints)}, dt {p.dt_s:g} s"
+        )
+
+    # --- time ----------------------------------------------------------------------------
+
+    @property
+    def sim_time_s(self) -> float:
+        """Simulated time of the published states (the /clock value in lockstep)."""
+        return self._time_base_s + self._steps_done * self.params.dt_s
+
+    def _reset_pose(self) -> None:
+        position = dict(zip(self.sim.axis_names, self.params.initial_position, strict=True))
+        try:
+            self.sim.reset(position=position)
+        except ValueError as exc:
+            raise ConfigError("parameters", "initial_position", str(exc)) from exc
+        self.plant.hold_zero()
+
+    # --- commands ------------------------------------------------------------------------
+
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        reason = self.plant.command(list(msg.data))
+        if reason is not None:
+            self.get_logger().warning(
+                f"command rejected ({self.plant.counters.rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
+            if not self._lockstep:
+                return
+            # In lockstep the loop must go on: the last good command stays in force.
+        self._last_command_wall = time.monotonic()
+        if self._lockstep and self._started:
+            self.plant.advance(self.params.substeps_per_period)
+            self._steps_done += self.params.substeps_per_period
+            self._publish_state()
+
+    def _on_wrong_interface(self, msg: Float64MultiArray) -> None:
+        self._wrong_interface += 1
+        self.get_logger().warning(
+            f"ignoring commands on the inactive interface ({self._wrong_interface} so far); "
+            f"command_interface is {self.params.command_interface}",
+            throttle_duration_sec=5.0,
+        )
+
+    # --- stepping ------------------------------------------------------------------------
+
+    def _realtime_tick(self) -> None:
+        p = self.params
+        silent_s = time.monotonic() - self._last_command_wall
+        if silent_s > p.command_timeout_s and np.any(self.plant.target != 0.0):
+            self.plant.hold_zero(timed_out=True)
+            self.get_logger().warning(
+                f"no command for {p.command_timeout_s:g} s: 0 V, the gear holds the load",
+                throttle_duration_sec=5.0,
+            )
+        due = round((time.monotonic() - self._wall_start) / p.dt_s) - self._steps_done
+        cap = MAX_CATCH_UP_PERIODS * round(1.0 / (p.publish_rate_hz * p.dt_s))
+        if due > cap:
+            self._overrun_steps += due - cap
+            self._wall_start += (due - cap) * p.dt_s  # drop the backlog: simulated time slips
+            due = cap
+        if due > 0:
+            self.plant.advance(due)
+            self._steps_done += due
+        self._publish_state()
+
+    def _lockstep_kick(self) -> None:
+        p = self.params
+        if not self._started:
+            if self._joint_pub.get_subscription_count() >= p.lockstep_subscribers:
+                self._started = True
+                self._publish_state()
+            return
+        if time.monotonic() - max(self._last_command_wall, self._last_publish_wall) > (
+            p.lockstep_resend_s
+        ):
+            self._publish_state()
+
+    # --- publishing ----------------------------------------------------------------------
+
+    def _publish_state(self) -> None:
+        """Publish one instant, joint_states first and the drive-chain states last.
+
+        joint_states is what a current-commanding controller waits for: its next command is
+        being computed while motor_states, /clock and the drive-chain states go out.
+        """
+        sim = self.sim
+        stamp = to_stamp(self.sim_time_s)
+        state = sim.state_array
+        signals = sim.signal_array
+
+        joint = self._joint_msg
+        joint.header.stamp = stamp
+        joint.position = state[0].tolist()
+        joint.velocity = state[1].tolist()
+        joint.effort = (signals[_ROW["motor_torque_nm"]] * self._gear_ratio).tolist()
+        self._joint_pub.publish(joint)
+
+        # Messages nobody has subscribed to are not even built (a subscriber that joins later,
+        # a use_sim_time node's clock included, gets them from its first match on);
+        # joint_states always goes out.
+        if self._motor_pub.get_subscription_count():
+            motor = self._motor_msg
+            motor.header.stamp = stamp
+            motor.position = (state[0] * self._gear_ratio).tolist()
+            motor.velocity = signals[_ROW["motor_velocity_rad_s"]].tolist()
+            motor.effort = state[2].tolist()
+            self._motor_pub.publish(motor)
+
+        if self._clock_pub is not None and self._clock_pub.get_subscription_count():
+            self._clock_pub.publish(Clock(clock=stamp))
+        if self._drive_pub.get_subscription_count():
+            self._publish_drive_chain(stamp)
+        self._published += 1
+        self._last_publish_wall = time.monotonic()
+
+    def _drive_chain_template(self) -> DiagnosticArray:
+        """The drive-chain message, built once: each publish only rewrites its values."""
+        array = DiagnosticArray()
+        for name in self.sim.axis_names:
+            values = dict.fromkeys(("motion_state", "drive_state", *_DRIVE_SIGNALS), "")
+            array.status.append(
+                status(ri.DRIVE_STATUS_PREFIX + name, DiagnosticStatus.OK, "", values)
+            )
+        return array
+
+    def _publish_drive_chain(self, stamp: Time) -> None:
+        sim = self.sim
+        modes = sim.mode_array
+        rows = sim.signal_array
+        drive = self._drive_msg
+        drive.header.stamp = stamp
+        for a, axis_status in enumerate(drive.status):
+            drive_state = sim.state_names[int(modes[1, a])]
+            axis_status.message = drive_state
+            kv = axis_status.values
+            kv[0].value = _MOTION_NAMES[int(modes[0, a])]
+            kv[1].value = drive_state
+            for k, row in enumerate(_DRIVE_SIGNAL_ROWS, start=2):
+                kv[k].value = repr(float(rows[row, a]))
+        self._drive_pub.publish(drive)
+
+    def _publish_diagnostics(self) -> None:
+        p = self.params
+        wall_s = time.monotonic() - self._wall_start
+        level = DiagnosticStatus.OK
+        message = "running" if self.plant.enabled else "disabled"
+        counters = self.plant.counters
+        if counters.rejected or self._wrong_interface:
+            level, message = DiagnosticStatus.WARN, "commands rejected"
+        command_age_s = time.monotonic() - self._last_command_wall
+        values: dict[str, object] = {
+            "timing_mode": p.timing_mode,
+            "command_interface": p.command_interface,
+            "enabled": self.plant.enabled,
+            "sim_time_s": self.sim_time_s,
+            "steps": self._steps_done,
+            "states_published": self._published,
+            "overrun_steps": self._overrun_steps,
+            "command_age_s": command_age_s,
+            "commands_wrong_interface": self._wrong_interface,
+            **counters.as_dict(),
+        }
+        if not self._lockstep and wall_s > 0.0:
+            values["realtime_factor"] = self._steps_done * p.dt_s / wall_s
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status.append(status("lca_hil/simulator", level, message, values))
+        signals = self.sim.signal_array
+        for a, name in enumerate(self.sim.axis_names):
+            drive_state = self.sim.state_names[int(self.sim.mode_array[1, a])]
+            axis_level = (
+                DiagnosticStatus.WARN if drive_state == "stop_end_stop" else DiagnosticStatus.OK
+            )
+            array.status.append(
+                status(
+                    f"lca_hil/simulator/{name}",
+                    axis_level,
+                    drive_state,
+                    {
+                        "position": float(self.sim.state_array[0, a]),
+                        "command": float(self.plant.target[a]),
+                        "voltage_v": float(signals[_ROW["voltage_v"], a]),
+                        "current_a": float(self.sim.state_array[2, a]),
+                        "fault": "at end stop" if drive_state == "stop_end_stop" else "none",
+                    },
+                )
+            )
+        self._diag_pub.publish(array)
+
+    # --- services and parameters ---------------------------------------------------------
+
+    def _on_reset(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._reset_pose()
+        response.success = True
+        response.message = (
+            f"reset to {list(self.params.initial_position)} at {self.sim_time_s:.4f} s"
+        )
+        if self._lockstep and self._started:
+            self._publish_state()
+        return response
+
+    def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        self.plant.set_enabled(bool(request.data))
+        response.success = True
+        response.message = "enabled" if request.data else "disabled: 0 V on every axis"
+        return response
+
+    def _on_set_parameters(self, changes: Sequence[Parameter]) -> SetParametersResult:
+        fixed = [c.name for c in changes if c.name in READ_ONLY]
+        if fixed:
+            return rejected(f"{', '.join(fixed)} cannot change while running; restart the node")
+        try:
+            params = validate_simulator_params(with_changes(self._values, changes))
+            if params.current_kp_v_per_a != self.params.current_kp_v_per_a or (
+                params.current_ti_s != self.params.current_ti_s
+            ):
+                self.plant.set_current_gains(params.current_kp_v_per_a, params.current_ti_s)
+        except (ConfigError, ControlParamError) as exc:
+            return rejected(str(exc))
+        self._values = with_changes(self._values, changes)
+        rate_changed = params.publish_rate_hz != self.params.publish_rate_hz
+        self.params = params
+        self.plant.max_abs_command = (
+            params.max_command_voltage_v
+            if params.command_interface == "voltage"
+            else params.max_command_current_a
+        )
+        if rate_changed and not self._lockstep:
+            self.destroy_timer(self._tick_timer)
+            self._tick_timer = self.create_timer(1.0 / params.publish_rate_hz, self._realtime_tick)
+        return accepted()
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Entry point of `lca-simulator` / `ros2 run lca_hil simulator`."""
+    return run_node("lca-simulator", SimulatorNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

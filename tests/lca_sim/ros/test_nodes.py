@@ -1,0 +1,306 @@
+"""Simulator and controller nodes in-process: closed loop, determinism, timeouts, bad input.
+
+Each test has its own rclpy Context and domain id, waits for conditions with a deadline while
+spinning, and never sleeps a fixed time.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool, Trigger
+
+from lca_control.ros.controller_node import ControllerNode
+from lca_sim.ros.simulator_node import SimulatorNode
+
+_DOMAINS = itertools.count(60)
+PIVOT_START_RAD = math.radians(35.0)
+
+
+@contextmanager
+def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
+    """A fresh rclpy context on its own domain id, torn down afterwards."""
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=60 + next(_DOMAINS) % 40)
+    executor = SingleThreadedExecutor(context=ctx)
+    try:
+        yield ctx, executor
+    finally:
+        executor.shutdown()
+        rclpy.shutdown(context=ctx)
+
+
+def spin_until(
+    executor: SingleThreadedExecutor, done: Callable[[], bool], timeout_s: float = 30.0
+) -> None:
+    """Spin until `done()` or fail at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        assert time.monotonic() < deadline, "condition not reached before the deadline"
+        executor.spin_once(timeout_sec=0.05)
+
+
+def _params(**values: Any) -> list[Parameter]:
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+def _lockstep_pair(
+    ctx: Context, executor: SingleThreadedExecutor, robot: str = "default"
+) -> tuple[SimulatorNode, ControllerNode]:
+    sim = SimulatorNode(
+        context=ctx,
+        parameter_overrides=_params(
+            robot=robot,
+            timing_mode="lockstep",
+            command_interface="current",
+            initial_position=[0.0, PIVOT_START_RAD, 0.0, 0.0],
+            lockstep_subscribers=2,  # the controller and the test's recorder
+        ),
+    )
+    ctl = ControllerNode(
+        context=ctx,
+        parameter_overrides=_params(
+            reference_source="ramp", command_interface="current", use_sim_time=True
+        ),
+    )
+    executor.add_node(sim)
+    executor.add_node(ctl)
+    return sim, ctl
+
+
+class Recorder:
+    """Collects joint states on a node of the test."""
+
+    def __init__(self, ctx: Context, executor: SingleThreadedExecutor) -> None:
+        self.node = Node("test_recorder", context=ctx)
+        self.states: list[JointState] = []
+        self.node.create_subscription(JointState, "joint_states", self.states.append, 100)
+        executor.add_node(self.node)
+
+
+def test_closed_loop_ramp_switches_to_load_driving_near_55_deg() -> None:
+    """Fig. 15 over topics: the ramp is tracked and motor -> load driving happens at 55 deg."""
+    with ros_context() as (ctx, executor):
+        sim, ctl = _lockstep_pair(ctx, executor)
+        recorder = Recorder(ctx, executor)
+        transitions: list[tuple[float, str, float]] = []
+        last = ""
+
+        def watch() -> bool:
+            nonlocal last
+            state = sim.sim.state_names[int(sim.sim.mode_array[1, 1])]
+            if state != last:
+                transitions.append((sim.sim_time_s, state, float(sim.sim.state_array[0, 1])))
+                last = state
+            return sim.sim_time_s >= 11.0
+
+        spin_until(executor, watch, timeout_s=120.0)
+        names = [name for _, name, _ in transitions]
+        assert "motor_driving" in names
+        first_motor = names.index("motor_driving")
+        switch = next(
+            t for t in transitions[first_motor:] if t[1] != "motor_driving"
+        )  # the first state after motor driving
+        assert switch[1].startswith(("motor_and_load_driving", "load_driving"))
+        assert math.degrees(switch[2]) == pytest.approx(55.0, abs=1.0)
+        # Tracking: joint velocity against the ramp, once the pivot has broken away.
+        ramp = ctl.core.params.profile
+        assert ramp is not None
+        errors = []
+        for msg in recorder.states:
+            t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            if 2.0 < t < 10.9:
+                errors.append(abs(msg.velocity[1] - ramp.velocity(t)))
+        assert len(errors) > 1000
+        assert math.degrees(max(errors)) < 0.3  # deg/s
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def test_lockstep_clock_advances_one_control_period_per_state() -> None:
+    """/clock in lockstep: one tick per published instant, 4 ms of simulated time apart."""
+    with ros_context() as (ctx, executor):
+        sim, ctl = _lockstep_pair(ctx, executor)  # the controller runs on sim time
+        recorder = Recorder(ctx, executor)
+        clocks: list[int] = []
+
+        def on_clock(msg: Clock) -> None:
+            clocks.append(_stamp_ns(msg.clock))
+
+        recorder.node.create_subscription(Clock, "/clock", on_clock, 100)
+        spin_until(executor, lambda: sim.sim_time_s >= 1.0, timeout_s=60.0)
+        spin_until(executor, lambda: len(set(clocks)) >= 200)
+        ticks = np.array(sorted(set(clocks)))
+        np.testing.assert_array_equal(np.diff(ticks), 4_000_000)  # ns: exactly one period
+        joint_stamps = {_stamp_ns(m.header.stamp) for m in recorder.states}
+        assert set(ticks.tolist()) <= joint_stamps  # every tick is an instant published
+        assert ctl.get_clock().now().nanoseconds >= ticks[-1] - 8_000_000  # it follows /clock
+
+
+def _lockstep_run(seconds: float) -> np.ndarray:
+    with ros_context() as (ctx, executor):
+        sim, _ = _lockstep_pair(ctx, executor)
+        recorder = Recorder(ctx, executor)
+        spin_until(executor, lambda: sim.sim_time_s >= seconds, timeout_s=120.0)
+        spin_until(executor, lambda: len(recorder.states) >= round(seconds / 0.004))
+        rows = {
+            (m.header.stamp.sec, m.header.stamp.nanosec): (*m.position, *m.velocity)
+            for m in recorder.states
+        }
+        return np.array([rows[k] for k in sorted(rows)])
+
+
+def test_lockstep_is_deterministic() -> None:
+    """The same lockstep run twice records identical joint states, bit for bit."""
+    first = _lockstep_run(2.0)
+    second = _lockstep_run(2.0)
+    assert first.shape[0] >= 500
+    n = min(len(first), len(second))
+    np.testing.assert_array_equal(first[:n], second[:n])
+    assert np.ptp(first[:, 1]) > 0.0  # the pivot really moved
+
+
+def _realtime_sim(ctx: Context, executor: SingleThreadedExecutor, robot: str) -> SimulatorNode:
+    sim = SimulatorNode(
+        context=ctx,
+        parameter_overrides=_params(
+            robot=robot,
+            command_interface="current",
+            command_timeout_s=0.2,
+            initial_position=[0.0, 0.0, 0.0, 0.0],
+        ),
+    )
+    executor.add_node(sim)
+    return sim
+
+
+@pytest.mark.parametrize(("robot", "holds"), [("default", True), ("reversible", False)])
+def test_command_silence_drops_to_zero_and_the_worm_holds(robot: str, holds: bool) -> None:
+    """Command silence: 0 V; the irreversible pivot holds, the reversible one sinks."""
+    with ros_context() as (ctx, executor):
+        sim = _realtime_sim(ctx, executor, robot)
+        driver = Node("driver", context=ctx)
+        pub = driver.create_publisher(Float64MultiArray, "current_commands", 10)
+        executor.add_node(driver)
+        spin_until(executor, lambda: pub.get_subscription_count() > 0)
+        pub.publish(Float64MultiArray(data=[0.0, 6.0, 0.0, 0.0]))
+        spin_until(executor, lambda: sim.plant.target[1] == 6.0)
+        spin_until(executor, lambda: sim.plant.counters.timeouts == 1)
+        assert sim.plant.target[1] == 0.0
+        spin_until(executor, lambda: abs(sim.sim.state_array[2, 1]) < 1e-3)  # current gone
+        q0 = float(sim.sim.state_array[0, 1])
+        t0 = sim.sim_time_s
+        spin_until(executor, lambda: sim.sim_time_s > t0 + 1.0)
+        moved = abs(float(sim.sim.state_array[0, 1]) - q0)
+        if holds:
+            assert moved == 0.0
+            assert sim.sim.state_names[int(sim.sim.mode_array[1, 1])] == "stop_hold"
+        else:
+            assert moved > math.radians(0.5)
+
+
+@pytest.mark.parametrize(
+    ("data", "counter"),
+    [
+        ([0.0, math.nan, 0.0, 0.0], "rejected_nonfinite"),
+        ([0.0, math.inf, 0.0, 0.0], "rejected_nonfinite"),
+        ([1.0, 2.0], "rejected_length"),
+        ([0.0, 5e4, 0.0, 0.0], "rejected_absurd"),
+    ],
+)
+def test_bad_commands_are_counted_and_change_nothing(data: list[float], counter: str) -> None:
+    """NaN, wrong length, absurd: refused, counted, the last good command stays in force."""
+    with ros_context() as (ctx, executor):
+        sim = _realtime_sim(ctx, executor, "default")
+        driver = Node("driver", context=ctx)
+        pub = driver.create_publisher(Float64MultiArray, "current_commands", 10)
+        executor.add_node(driver)
+        spin_until(executor, lambda: pub.get_subscription_count() > 0)
+        pub.publish(Float64MultiArray(data=[0.0, 2.0, 0.0, 0.0]))
+        spin_until(executor, lambda: sim.plant.counters.accepted == 1)
+        pub.publish(Float64MultiArray(data=data))
+        spin_until(executor, lambda: sim.plant.counters.rejected == 1)
+        assert getattr(sim.plant.counters, counter) == 1
+        assert list(sim.plant.target) == [0.0, 2.0, 0.0, 0.0]
+        assert np.all(np.isfinite(sim.sim.state_array))
+
+
+def test_voltage_beyond_the_amplifier_is_saturated() -> None:
+    """A command above the amplifier limit (but not absurd) is clamped and counted."""
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(context=ctx, parameter_overrides=_params(command_interface="voltage"))
+        executor.add_node(sim)
+        assert sim.plant.command([0.0, 0.0, 0.0, 60.0]) is None
+        assert sim.plant.target[3] == 48.0
+        assert sim.plant.counters.saturated == 1
+
+
+def test_parameters_are_validated_live() -> None:
+    """Bad values and read-only parameters are refused with a reason; good ones apply."""
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(context=ctx)
+        executor.add_node(sim)
+        bad = sim.set_parameters([Parameter("command_timeout_s", value=-1.0)])[0]
+        assert not bad.successful and "command_timeout_s" in bad.reason
+        for name, value in (("dt_s", 2e-4), ("rigid_body_period_s", 2e-3)):
+            fixed = sim.set_parameters([Parameter(name, value=value)])[0]
+            assert not fixed.successful and "restart" in fixed.reason and name in fixed.reason
+        assert sim.sim.rigid_body_update_steps == 10  # the 1 ms default, unchanged
+        good = sim.set_parameters([Parameter("current_kp_v_per_a", value=20.0)])[0]
+        assert good.successful
+        assert sim.params.current_kp_v_per_a == 20.0
+        ctl = ControllerNode(context=ctx)
+        executor.add_node(ctl)
+        bad = ctl.set_parameters([Parameter("velocity_ti_s", value=0.0)])[0]
+        assert not bad.successful and "ti_s" in bad.reason
+        good = ctl.set_parameters([Parameter("velocity_kp_a_per_rad_s", value=100.0)])[0]
+        assert good.successful
+        assert ctl.core.cascades[1].params.velocity.kp == 100.0
+
+
+def test_bad_start_parameter_is_a_config_error() -> None:
+    """A bad parameter at start raises the one-line ConfigError the entry point prints."""
+    from lca_sim.errors import ConfigError
+
+    with ros_context() as (ctx, _), pytest.raises(ConfigError, match="timing_mode"):
+        SimulatorNode(context=ctx, parameter_overrides=_params(timing_mode="sideways"))
+
+
+def test_reset_and_enable_services() -> None:
+    """~/reset returns to the initial pose; ~/enable false puts 0 V on every axis."""
+    with ros_context() as (ctx, executor):
+        sim = _realtime_sim(ctx, executor, "default")
+        client = Node("client", context=ctx)
+        executor.add_node(client)
+        reset = client.create_client(Trigger, "/simulator/reset")
+        enable = client.create_client(SetBool, "/simulator/enable")
+        spin_until(executor, lambda: reset.service_is_ready() and enable.service_is_ready())
+        sim.plant.command([0.0, 8.0, 0.0, 0.0])
+        spin_until(executor, lambda: sim.sim.state_array[0, 1] > 0.001)
+        future = reset.call_async(Trigger.Request())
+        spin_until(executor, future.done)
+        assert future.result().success
+        assert sim.sim.state_array[0, 1] == 0.0
+        future = enable.call_async(SetBool.Request(data=False))
+        spin_until(executor, future.done)
+        sim.plant.command([0.0, 8.0, 0.0, 0.0])
+        t0 = sim.sim_time_s
+        spin_until(executor, lambda: sim.sim_time_s > t0 + 0.2)
+        assert np.all(sim.sim.signal_array[2] == 0.0)  # voltage row: 0 V everywhere
