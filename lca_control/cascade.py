@@ -22,6 +22,10 @@ PAPER_CURRENT_TI_S = 1e-3
 PAPER_VELOCITY_KP_A_PER_RAD_S = 316.23
 PAPER_VELOCITY_TI_S = 10e-3
 
+# The controller's period: the velocity loop's sample time, and in lockstep the simulated time
+# the plant advances per command. The one place this number is written.
+CONTROL_PERIOD_S = 0.004
+
 
 @dataclass(frozen=True, slots=True)
 class CascadeParams:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from lca_control.cascade import (
+    CONTROL_PERIOD_S,
     PAPER_CURRENT_KP_V_PER_A,
     PAPER_CURRENT_TI_S,
     PAPER_VELOCITY_KP_A_PER_RAD_S,
@@ -20,42 +21,61 @@ from lca_control.cascade import (
     AxisCascade,
     CascadeParams,
 )
-from lca_control.pi import ControlParamError, PIParams
+from lca_control.parameters import (
+    ParameterError,
+    ParameterTable,
+    ParamKind,
+    ParamSpec,
+    non_negative,
+    positive,
+)
+from lca_control.pi import PIParams
 from lca_control.profiles import Profile, RampProfile, TrapezoidProfile
 
 REFERENCE_SOURCES = ("topic", "ramp", "trapezoid", "hold")
+COMMAND_INTERFACES = ("voltage", "current")
 
-# name -> (default, description). Units in the names; joint-side velocities in rad/s (m/s).
-CONTROLLER_PARAMETERS: dict[str, tuple[Any, str]] = {
-    "joints": (["l_arm", "pivot", "c_arc", "lift"], "joint order of commands and references"),
-    "command_interface": (
-        "voltage",
-        "voltage (both loops here) or current (current loop in the drive)",
-    ),
-    "reference_source": ("topic", "topic (velocity_reference), ramp, trapezoid or hold"),
-    "profile_joint": ("pivot", "the joint a built-in profile moves; the others hold"),
-    "ramp_start_s": (1.0, "ramp: start time after the first state, s"),
-    "ramp_duration_s": (10.0, "ramp: time to reach the end velocity, s"),
-    "ramp_end_velocity": (math.radians(5.0), "ramp: final velocity, rad/s (m/s)"),
-    "ramp_hold_s": (0.0, "ramp: time the end velocity is held, s"),
-    "trapezoid_start_s": (1.0, "trapezoid: start time, s"),
-    "trapezoid_accel_s": (1.0, "trapezoid: acceleration time, s"),
-    "trapezoid_cruise_s": (2.0, "trapezoid: cruise time, s"),
-    "trapezoid_decel_s": (1.0, "trapezoid: deceleration time, s"),
-    "trapezoid_velocity": (math.radians(5.0), "trapezoid: cruise velocity, rad/s (m/s)"),
-    "velocity_kp_a_per_rad_s": (PAPER_VELOCITY_KP_A_PER_RAD_S, "velocity PI gain, A per rad/s"),
-    "velocity_ti_s": (PAPER_VELOCITY_TI_S, "velocity PI integral time, s"),
-    "current_kp_v_per_a": (PAPER_CURRENT_KP_V_PER_A, "current PI gain, V/A"),
-    "current_ti_s": (PAPER_CURRENT_TI_S, "current PI integral time, s"),
-    "current_limit_a": (20.0, "current setpoint limit, A"),
-    "voltage_limit_v": (300.0, "voltage command limit, V"),
-    "position_kp_per_s": (0.0, "outer position loop gain, 1/s (0: velocity control only)"),
-    "velocity_limit": (0.2, "position loop velocity cap, rad/s (m/s)"),
-    "reference_timeout_s": (0.5, "topic reference older than this counts as zero, s"),
-    "nominal_period_s": (0.004, "dt used for the very first state, s"),
-    "enabled": (True, "compute commands; disabled sends zeros"),
-}
-READ_ONLY = frozenset({"joints", "command_interface"})
+D = ParamKind.DOUBLE
+
+# Units in the names; joint-side velocities in rad/s (m/s). Every value is checked whether or
+# not the running reference source uses it, so switching profiles live cannot fail later.
+CONTROLLER_PARAMETERS = ParameterTable(
+    (
+        ParamSpec("joints", ParamKind.STRING_ARRAY, ["l_arm", "pivot", "c_arc", "lift"],
+                  "joint order of commands and references", live=False),
+        ParamSpec("command_interface", ParamKind.STRING, "voltage",
+                  "voltage (both loops here) or current (current loop in the drive)",
+                  choices=COMMAND_INTERFACES, live=False),
+        ParamSpec("reference_source", ParamKind.STRING, "topic",
+                  "topic (velocity_reference), ramp, trapezoid or hold",
+                  choices=REFERENCE_SOURCES),
+        ParamSpec("profile_joint", ParamKind.STRING, "pivot",
+                  "the joint a built-in profile moves; the others hold"),
+        non_negative("ramp_start_s", 1.0, "ramp: start time after the first state, s"),
+        positive("ramp_duration_s", 10.0, "ramp: time to reach the end velocity, s"),
+        ParamSpec("ramp_end_velocity", D, math.radians(5.0), "ramp: final velocity, rad/s (m/s)"),
+        non_negative("ramp_hold_s", 0.0, "ramp: time the end velocity is held, s"),
+        non_negative("trapezoid_start_s", 1.0, "trapezoid: start time, s"),
+        positive("trapezoid_accel_s", 1.0, "trapezoid: acceleration time, s"),
+        non_negative("trapezoid_cruise_s", 2.0, "trapezoid: cruise time, s"),
+        positive("trapezoid_decel_s", 1.0, "trapezoid: deceleration time, s"),
+        ParamSpec("trapezoid_velocity", D, math.radians(5.0),
+                  "trapezoid: cruise velocity, rad/s (m/s)"),
+        non_negative("velocity_kp_a_per_rad_s", PAPER_VELOCITY_KP_A_PER_RAD_S,
+                     "velocity PI gain, A per rad/s"),
+        positive("velocity_ti_s", PAPER_VELOCITY_TI_S, "velocity PI integral time, s"),
+        non_negative("current_kp_v_per_a", PAPER_CURRENT_KP_V_PER_A, "current PI gain, V/A"),
+        positive("current_ti_s", PAPER_CURRENT_TI_S, "current PI integral time, s"),
+        positive("current_limit_a", 20.0, "current setpoint limit, A"),
+        positive("voltage_limit_v", 300.0, "voltage command limit, V"),
+        non_negative("position_kp_per_s", 0.0,
+                     "outer position loop gain, 1/s (0: velocity control only)"),
+        positive("velocity_limit", 0.2, "position loop velocity cap, rad/s (m/s)"),
+        positive("reference_timeout_s", 0.5, "topic reference older than this counts as zero, s"),
+        positive("nominal_period_s", CONTROL_PERIOD_S, "dt used for the very first state, s"),
+        ParamSpec("enabled", ParamKind.BOOL, True, "compute commands; disabled sends zeros"),
+    )
+)  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,78 +93,44 @@ class ControllerParams:
     enabled: bool
 
 
-def _number(values: Mapping[str, Any], name: str) -> float:
-    value = values[name]
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ControlParamError(f"{name}: expected a finite number, got {value!r}")
-    return float(value)
-
-
 def validate_controller_params(values: Mapping[str, Any]) -> ControllerParams:
-    """Check the parameters and build the typed params.
+    """Check every parameter (`CONTROLLER_PARAMETERS`) and build the typed params.
 
     Raises:
-        ControlParamError: naming the parameter and what was expected.
+        ParameterError: naming the parameter and what was expected.
     """
-    joints = tuple(str(j) for j in values["joints"])
+    v = CONTROLLER_PARAMETERS.check_all(values)
+    joints: tuple[str, ...] = v["joints"]
     if not joints or len(set(joints)) != len(joints):
-        raise ControlParamError(f"joints: expected distinct joint names, got {list(joints)}")
-    interface = str(values["command_interface"])
-    if interface not in ("voltage", "current"):
-        raise ControlParamError(
-            f"command_interface: expected voltage or current, got {interface!r}"
-        )
-    source = str(values["reference_source"])
-    if source not in REFERENCE_SOURCES:
-        raise ControlParamError(f"reference_source: expected one of {REFERENCE_SOURCES}")
-    profile_joint = str(values["profile_joint"])
+        raise ParameterError("joints", "distinct joint names", list(joints))
+    source = v["reference_source"]
+    profile_joint = v["profile_joint"]
     if source in ("ramp", "trapezoid") and profile_joint not in joints:
-        raise ControlParamError(
-            f"profile_joint: expected one of {list(joints)}, got {profile_joint!r}"
-        )
-    profile: Profile | None = None
-    if source == "ramp":
-        profile = RampProfile(
-            _number(values, "ramp_start_s"),
-            _number(values, "ramp_duration_s"),
-            _number(values, "ramp_end_velocity"),
-            _number(values, "ramp_hold_s"),
-        )
-    elif source == "trapezoid":
-        profile = TrapezoidProfile(
-            _number(values, "trapezoid_start_s"),
-            _number(values, "trapezoid_accel_s"),
-            _number(values, "trapezoid_cruise_s"),
-            _number(values, "trapezoid_decel_s"),
-            _number(values, "trapezoid_velocity"),
-        )
-    current_limit = _number(values, "current_limit_a")
-    voltage_limit = _number(values, "voltage_limit_v")
-    if current_limit <= 0.0 or voltage_limit <= 0.0:
-        raise ControlParamError("current_limit_a and voltage_limit_v must be > 0")
+        raise ParameterError("profile_joint", f"one of {list(joints)}", profile_joint)
+    ramp = RampProfile(
+        v["ramp_start_s"], v["ramp_duration_s"], v["ramp_end_velocity"], v["ramp_hold_s"]
+    )
+    trapezoid = TrapezoidProfile(
+        v["trapezoid_start_s"],
+        v["trapezoid_accel_s"],
+        v["trapezoid_cruise_s"],
+        v["trapezoid_decel_s"],
+        v["trapezoid_velocity"],
+    )
+    profiles: dict[str, Profile] = {"ramp": ramp, "trapezoid": trapezoid}
+    profile = profiles.get(source)
+    current_limit, voltage_limit = v["current_limit_a"], v["voltage_limit_v"]
     cascade = CascadeParams(
         velocity=PIParams(
-            _number(values, "velocity_kp_a_per_rad_s"),
-            _number(values, "velocity_ti_s"),
-            -current_limit,
-            current_limit,
+            v["velocity_kp_a_per_rad_s"], v["velocity_ti_s"], -current_limit, current_limit
         ),
-        current=PIParams(
-            _number(values, "current_kp_v_per_a"),
-            _number(values, "current_ti_s"),
-            -voltage_limit,
-            voltage_limit,
-        ),
-        position_kp_per_s=_number(values, "position_kp_per_s"),
-        velocity_limit=_number(values, "velocity_limit"),
+        current=PIParams(v["current_kp_v_per_a"], v["current_ti_s"], -voltage_limit, voltage_limit),
+        position_kp_per_s=v["position_kp_per_s"],
+        velocity_limit=v["velocity_limit"],
     )
-    timeout = _number(values, "reference_timeout_s")
-    period = _number(values, "nominal_period_s")
-    if timeout <= 0.0 or period <= 0.0:
-        raise ControlParamError("reference_timeout_s and nominal_period_s must be > 0")
     return ControllerParams(
-        joints, interface, source, profile_joint, profile, cascade, timeout, period,
-        bool(values["enabled"]),
+        joints, v["command_interface"], source, profile_joint, profile, cascade,
+        v["reference_timeout_s"], v["nominal_period_s"], v["enabled"],
     )  # fmt: skip
 
 

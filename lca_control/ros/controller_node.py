@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -26,21 +25,11 @@ from std_srvs.srv import SetBool
 from lca_control import contract as ri
 from lca_control.controller import (
     CONTROLLER_PARAMETERS,
-    READ_ONLY,
+    ControllerParams,
     JointController,
     validate_controller_params,
 )
-from lca_control.pi import ControlParamError
-from lca_sim.errors import ConfigError
-from lca_sim.ros.node_util import (
-    accepted,
-    declare_parameters,
-    from_stamp,
-    rejected,
-    run_node,
-    status,
-    with_changes,
-)
+from lca_sim.ros.node_util import LiveParameters, declare_table, from_stamp, run_node, status
 
 
 class ControllerNode(Node):
@@ -48,11 +37,14 @@ class ControllerNode(Node):
 
     def __init__(self, node_name: str = "controller", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
-        self._values = declare_parameters(self, CONTROLLER_PARAMETERS)
-        try:
-            params = validate_controller_params(self._values)
-        except ControlParamError as exc:
-            raise ConfigError("parameters", "", str(exc)) from exc
+        self._live = LiveParameters(
+            self,
+            CONTROLLER_PARAMETERS,
+            declare_table(self, CONTROLLER_PARAMETERS),
+            validate_controller_params,
+            self._apply_params,
+        )
+        params = self._live.params
         self.core = JointController(params)
         self._motor: JointState | None = None
         self._joint: JointState | None = None
@@ -77,7 +69,6 @@ class ControllerNode(Node):
             Float64MultiArray, ri.VELOCITY_REFERENCE, self._on_reference, command_qos
         )
         self.create_service(SetBool, "~/enable", self._on_enable)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"{params.reference_source} reference, {params.command_interface} commands on "
@@ -146,26 +137,23 @@ class ControllerNode(Node):
     # --- services, parameters, diagnostics -----------------------------------------------
 
     def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        self._values["enabled"] = bool(request.data)
-        params = validate_controller_params(self._values)
-        self.core.set_params(params)
-        self.core.reset()
-        response.success = True
-        response.message = "enabled" if request.data else "disabled: zero commands"
+        """The `enabled` parameter by service: one path for both, so they never disagree."""
+        result = self.set_parameters([Parameter("enabled", value=bool(request.data))])[0]
+        response.success = result.successful
+        response.message = (
+            result.reason
+            if not result.successful
+            else ("enabled" if request.data else "disabled: zero commands")
+        )
         return response
 
-    def _on_set_parameters(self, changes: Sequence[Parameter]) -> SetParametersResult:
-        fixed = [c.name for c in changes if c.name in READ_ONLY]
-        if fixed:
-            return rejected(f"{', '.join(fixed)} cannot change while running; restart the node")
-        proposed = with_changes(self._values, changes)
-        try:
-            params = validate_controller_params(proposed)
-        except ControlParamError as exc:
-            return rejected(str(exc))
-        self._values = proposed
-        self.core.set_params(params)
-        return accepted()
+    def _apply_params(
+        self, old: ControllerParams, new: ControllerParams, _changed: frozenset[str]
+    ) -> None:
+        """A live set: new gains, limits and references at the next state, bumpless."""
+        self.core.set_params(new)
+        if new.enabled and not old.enabled:
+            self.core.reset()  # re-enabling starts the integrators from zero
 
     def _publish_diagnostics(self) -> None:
         core = self.core

@@ -7,7 +7,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import rclpy
 from builtin_interfaces.msg import Time
@@ -20,11 +20,83 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok as rclpy_ok
 
-from lca_sim.errors import USER_ERRORS
+from lca_control.parameters import ParameterTable
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS
 from lca_sim.runtime import settle_heap
 
-EXIT_OK = 0
-EXIT_BAD_CONFIG = 2
+
+def declare_table(node: Node, table: ParameterTable) -> dict[str, Any]:
+    """Declare every parameter of `table`; return the values the node starts with.
+
+    Each descriptor carries the description and the documented range, with "read-only" for
+    a parameter that needs a restart, so `ros2 param describe` shows them. Refusing a live set
+    of a read-only parameter is left to `LiveParameters`, which says to restart the node
+    (rclpy's own read-only flag would refuse it before any callback, without saying so).
+    Typing is left to the table's own check (`dynamic_typing`), which takes 500 for a double
+    as well as 500.0 and names the parameter and the expected type when it refuses a value.
+    """
+    values: dict[str, Any] = {}
+    for spec in table:
+        constraints = spec.range_text()
+        if not spec.live:
+            constraints = f"{constraints}; read-only: restart the node to change it".lstrip("; ")
+        descriptor = ParameterDescriptor(
+            description=spec.description,
+            additional_constraints=constraints,
+            dynamic_typing=True,
+        )
+        values[spec.name] = node.declare_parameter(spec.name, spec.default, descriptor).value
+    return values
+
+
+Validated = TypeVar("Validated")
+
+
+class LiveParameters(Generic[Validated]):
+    """A node's on-set-parameters callback: every live set takes effect or is rejected.
+
+    A set is checked as a whole: the proposed values go through the node's validator (the
+    same one start-up used), then `apply(old, new, changed_names)` makes them take effect in
+    the running node. A read-only parameter, a value the validator refuses, or an `apply` that
+    raises a user error rejects the set with the reason, and the node keeps its old values.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        table: ParameterTable,
+        values: Mapping[str, Any],
+        validate: Callable[[Mapping[str, Any]], Validated],
+        apply: Callable[[Validated, Validated, frozenset[str]], None],
+    ) -> None:
+        self._table = table
+        self._values = dict(values)
+        self._validate = validate
+        self._apply = apply
+        self.params: Validated = validate(self._values)
+        node.add_on_set_parameters_callback(self._on_set)
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """The raw values in force."""
+        return dict(self._values)
+
+    def _on_set(self, changes: Sequence[Parameter]) -> SetParametersResult:
+        names = frozenset(c.name for c in changes)
+        fixed = sorted(n for n in names if n in self._table.read_only)
+        if fixed:
+            return rejected(f"{', '.join(fixed)}: read-only while running; restart the node")
+        unknown = sorted(n for n in names if n not in self._table)
+        if unknown:
+            return rejected(f"{', '.join(unknown)}: not a parameter of this node")
+        proposed = with_changes(self._values, changes)
+        try:
+            new = self._validate(proposed)
+            self._apply(self.params, new, names)
+        except USER_ERRORS as exc:
+            return rejected(str(exc))
+        self._values, self.params = proposed, new
+        return accepted()
 
 
 def declare_parameters(node: Node, table: Mapping[str, tuple[Any, str]]) -> dict[str, Any]:
@@ -145,7 +217,7 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
             node = build()
         except USER_ERRORS as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
-            return EXIT_BAD_CONFIG
+            return EXIT_BAD_INPUT
         executor = make_executor()
         executor.add_node(node)
         settle_heap()  # start-up objects out of the collector's sight: no 100 ms stalls later
