@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from lca_control import contract as ri
+from lca_control.parameters import ParameterError
 from lca_sim.canbus.master import (
     GIL_SWITCH_INTERVAL_S,
     BridgeError,
@@ -56,7 +58,7 @@ from lca_sim.ros.can_bridge_params import (
     CanBridgeNodeParams,
     validate_can_bridge_params,
 )
-from lca_sim.ros.node_util import declare_parameters, run_node, status, to_stamp
+from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status, to_stamp
 from lca_sim.runtime import settle_heap
 
 MOTION_NAMES = {-1: "reverse", 0: "stopped", 1: "direct"}
@@ -111,8 +113,13 @@ class CanBridgeNode(Node):
 
     def __init__(self, node_name: str = "can_bridge", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
-        self._values = declare_parameters(self, CAN_BRIDGE_PARAMETERS)
-        self.params: CanBridgeNodeParams = validate_can_bridge_params(self._values)
+        self._live = LiveParameters(
+            self,
+            CAN_BRIDGE_PARAMETERS,
+            declare_table(self, CAN_BRIDGE_PARAMETERS),
+            validate_can_bridge_params,
+            self._apply_params,
+        )
         p = self.params
         # The cycle thread, the notifier threads (and with `virtual` the rack's) share the GIL
         # with the executor; Python's default 5 ms switch interval lets one of them hold it
@@ -189,7 +196,7 @@ class CanBridgeNode(Node):
             self.create_service(Trigger, f"~/{name}", handler)
         self.create_service(GetParameters, "~/sdo_read", self._srv_sdo_read)
         self.create_service(SetParameters, "~/sdo_write", self._srv_sdo_write)
-        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self._diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
         self.get_logger().info(
             f"{p.interface} bus {p.channel!r}, drives {drives}, {p.cycle_hz:g} Hz, EDS {eds}"
@@ -200,6 +207,39 @@ class CanBridgeNode(Node):
                 self.get_logger().error(f"init failed: {message} (retry with ~/init)")
             elif p.auto_enable:
                 self.get_logger().info(self.bridge.enable(True))
+
+    @property
+    def params(self) -> CanBridgeNodeParams:
+        """The parameters in force (a live set replaces them as a whole)."""
+        return self._live.params
+
+    def _apply_params(
+        self, old: CanBridgeNodeParams, new: CanBridgeNodeParams, changed: frozenset[str]
+    ) -> None:
+        """A live set of the bridge's safety timing: in force from the next cycle.
+
+        The cycle thread reads `Cia402Master.params` once per cycle, so one reference swap
+        hands it the new values whole. Read-only parameters never get here.
+        """
+        bridge = getattr(self, "bridge", None)
+        if bridge is not None:
+            try:
+                bridge.params = replace(
+                    bridge.params,
+                    command_timeout_s=new.command_timeout_s,
+                    quick_stop_after_s=new.quick_stop_after_s,
+                    stale_timeout_s=new.stale_timeout_s,
+                    max_send_failures=new.max_send_failures,
+                )
+            except ValueError as exc:
+                raise ParameterError(
+                    ", ".join(sorted(changed)), f"values the CANopen master takes ({exc})"
+                ) from exc
+        if new.diagnostics_period_s != old.diagnostics_period_s:
+            self.destroy_timer(self._diag_timer)
+            self._diag_timer = self.create_timer(
+                new.diagnostics_period_s, self._publish_diagnostics
+            )
 
     # --- set-up and tear-down ------------------------------------------------------------
 

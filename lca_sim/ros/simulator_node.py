@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -35,23 +34,20 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
 from lca_control import contract as ri
-from lca_control.pi import ControlParamError, PIParams
+from lca_control.parameters import ParameterError
+from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
-from lca_sim.errors import ConfigError
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
 from lca_sim.model.state_machine import MotionState
 from lca_sim.ros.node_util import (
-    accepted,
-    declare_parameters,
-    rejected,
+    LiveParameters,
+    declare_table,
     run_node,
     status,
     to_stamp,
-    with_changes,
 )
 from lca_sim.ros.simulator_params import (
-    READ_ONLY,
     SIMULATOR_PARAMETERS,
     SimulatorNodeParams,
     validate_simulator_params,
@@ -78,8 +74,13 @@ class SimulatorNode(Node):
 
     def __init__(self, node_name: str = "simulator", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
-        self._values = declare_parameters(self, SIMULATOR_PARAMETERS)
-        self.params: SimulatorNodeParams = validate_simulator_params(self._values)
+        self._live = LiveParameters(
+            self,
+            SIMULATOR_PARAMETERS,
+            declare_table(self, SIMULATOR_PARAMETERS),
+            validate_simulator_params,
+            self._apply_params,
+        )
         p = self.params
         robot = load_robot(p.robot)
         self.sim = Simulator(robot, dt_s=p.dt_s, rigid_body_update_steps=p.rigid_body_update_steps)
@@ -127,7 +128,6 @@ class SimulatorNode(Node):
         self.create_subscription(Float64MultiArray, other, self._on_wrong_interface, command_qos)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/enable", self._on_enable)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
 
         if self._lockstep:
             self._kick_timer = self.create_timer(0.05, self._lockstep_kick)
@@ -138,6 +138,11 @@ class SimulatorNode(Node):
             f"robot {robot.name}, {p.timing_mode}, {p.command_interface} commands on "
             f"{active} for {list(p.joints)}, dt {p.dt_s:g} s"
         )
+
+    @property
+    def params(self) -> SimulatorNodeParams:
+        """The parameters in force (a live set replaces them as a whole)."""
+        return self._live.params
 
     # --- time ----------------------------------------------------------------------------
 
@@ -151,7 +156,11 @@ class SimulatorNode(Node):
         try:
             self.sim.reset(position=position)
         except ValueError as exc:
-            raise ConfigError("parameters", "initial_position", str(exc)) from exc
+            raise ParameterError(
+                "initial_position",
+                f"a pose within the end stops ({exc})",
+                self.params.initial_position,
+            ) from exc
         self.plant.hold_zero()
 
     # --- commands ------------------------------------------------------------------------
@@ -339,35 +348,51 @@ class SimulatorNode(Node):
         return response
 
     def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        self.plant.set_enabled(bool(request.data))
-        response.success = True
-        response.message = "enabled" if request.data else "disabled: 0 V on every axis"
+        """The `enabled` parameter by service: one path for both, so they never disagree."""
+        result = self.set_parameters([Parameter("enabled", value=bool(request.data))])[0]
+        response.success = result.successful
+        response.message = (
+            result.reason
+            if not result.successful
+            else ("enabled" if request.data else "disabled: 0 V on every axis")
+        )
         return response
 
-    def _on_set_parameters(self, changes: Sequence[Parameter]) -> SetParametersResult:
-        fixed = [c.name for c in changes if c.name in READ_ONLY]
-        if fixed:
-            return rejected(f"{', '.join(fixed)} cannot change while running; restart the node")
-        try:
-            params = validate_simulator_params(with_changes(self._values, changes))
-            if params.current_kp_v_per_a != self.params.current_kp_v_per_a or (
-                params.current_ti_s != self.params.current_ti_s
-            ):
-                self.plant.set_current_gains(params.current_kp_v_per_a, params.current_ti_s)
-        except (ConfigError, ControlParamError) as exc:
-            return rejected(str(exc))
-        self._values = with_changes(self._values, changes)
-        rate_changed = params.publish_rate_hz != self.params.publish_rate_hz
-        self.params = params
+    def _apply_params(
+        self, old: SimulatorNodeParams, new: SimulatorNodeParams, _changed: frozenset[str]
+    ) -> None:
+        """A live set takes effect from the next model step (read-only ones never get here).
+
+        Raises:
+            ParameterError: a value the running model refuses (an initial position outside
+                its end stops); nothing has changed then.
+        """
+        for a, ((low, high), q) in enumerate(
+            zip(self.sim.position_limits, new.initial_position, strict=True)
+        ):
+            if not low <= q <= high:
+                raise ParameterError(
+                    "initial_position",
+                    f"{self.sim.axis_names[a]} within its end stops [{low:g}, {high:g}]",
+                    list(new.initial_position),
+                )
+        if (new.current_kp_v_per_a, new.current_ti_s) != (old.current_kp_v_per_a, old.current_ti_s):
+            self.plant.set_current_gains(new.current_kp_v_per_a, new.current_ti_s)
         self.plant.max_abs_command = (
-            params.max_command_voltage_v
-            if params.command_interface == "voltage"
-            else params.max_command_current_a
+            new.max_command_voltage_v
+            if new.command_interface == "voltage"
+            else new.max_command_current_a
         )
-        if rate_changed and not self._lockstep:
+        if new.enabled != old.enabled:
+            self.plant.set_enabled(new.enabled)
+        if new.publish_rate_hz != old.publish_rate_hz and not self._lockstep:
             self.destroy_timer(self._tick_timer)
-            self._tick_timer = self.create_timer(1.0 / params.publish_rate_hz, self._realtime_tick)
-        return accepted()
+            self._tick_timer = self.create_timer(1.0 / new.publish_rate_hz, self._realtime_tick)
+        if new.diagnostics_period_s != old.diagnostics_period_s:
+            self.destroy_timer(self._diag_timer)
+            self._diag_timer = self.create_timer(
+                new.diagnostics_period_s, self._publish_diagnostics
+            )
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -1,53 +1,73 @@
 """Typed, validated parameters of the simulator node (pure: no ROS import).
 
-The node declares each parameter with these defaults, reads them into a dict, and builds a
-`SimulatorNodeParams` here; a live change is checked by building the params again with the new
-value, so start-up and `ros2 param set` follow exactly the same rules.
+The node declares every parameter from `SIMULATOR_PARAMETERS` (`lca_sim.ros.node_util.
+declare_table`) and builds a `SimulatorNodeParams` here; a live change is checked by building
+the params again with the new value, so start-up and `ros2 param set` follow exactly the same
+rules, and a read-only parameter is refused while the node runs.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from lca_sim.errors import ConfigError
+from lca_control.cascade import CONTROL_PERIOD_S
+from lca_control.parameters import (
+    ParameterError,
+    ParameterTable,
+    ParamKind,
+    ParamSpec,
+    positive,
+)
 from lca_sim.model.params import AXIS_NAMES
 
 TIMING_MODES = ("realtime", "lockstep")
 COMMAND_INTERFACES = ("voltage", "current")
 
-# name -> (default, description with unit). Order is the declaration order.
-SIMULATOR_PARAMETERS: dict[str, tuple[Any, str]] = {
-    "robot": ("default", "robot YAML path or shipped name (default, reversible); read at start"),
-    "joints": (list(AXIS_NAMES), "joint order of the command arrays (ros2_control convention)"),
-    "timing_mode": ("realtime", "realtime (wall-clock paced) or lockstep (one period per command)"),
-    "command_interface": ("voltage", "voltage (V, both loops in the controller) or current (A)"),
-    "dt_s": (1e-4, "model integration step, s; read at start"),
-    "rigid_body_period_s": (
-        1e-3,
-        "Pinocchio's A(q), C qdot + Q evaluated every this long, s: a whole multiple of dt_s, "
-        "at most 0.01 (dt_s: at every step); read at start",
-    ),
-    "publish_rate_hz": (250.0, "realtime: state publish rate, Hz"),
-    "control_period_s": (0.004, "lockstep: simulated time advanced per command, s"),
-    "command_timeout_s": (0.1, "realtime: command silence after which the voltage drops to 0, s"),
-    "max_command_voltage_v": (1000.0, "commands beyond this |V| are rejected as absurd"),
-    "max_command_current_a": (100.0, "commands beyond this |A| are rejected as absurd"),
-    "current_kp_v_per_a": (31.62, "in-drive current PI gain (current interface), V/A"),
-    "current_ti_s": (1e-3, "in-drive current PI integral time, s"),
-    "initial_position": ([0.0, 0.0, 0.0, 0.0], "pose at start and on ~/reset, rad (m for lift)"),
-    "enabled": (True, "amplifiers on at start; ~/enable switches them"),
-    "lockstep_subscribers": (1, "lockstep: joint_states subscribers to wait for before t = 0"),
-    "lockstep_resend_s": (1.0, "lockstep: re-publish the last state after this silence, s"),
-    "diagnostics_period_s": (1.0, "period of /diagnostics, s"),
-}
+S, D_ARRAY = ParamKind.STRING, ParamKind.DOUBLE_ARRAY
 
-# Parameters that define the model or the wiring: changing them needs a restart.
-READ_ONLY = frozenset(
-    {"robot", "joints", "timing_mode", "command_interface", "dt_s", "rigid_body_period_s"}
-)
+# Declaration order. Read-only: the model and the wiring (a restart builds them anew).
+SIMULATOR_PARAMETERS = ParameterTable(
+    (
+        ParamSpec("robot", S, "default",
+                  "robot YAML path or shipped name (default, reversible)", live=False),
+        ParamSpec("joints", ParamKind.STRING_ARRAY, list(AXIS_NAMES),
+                  "joint order of the command arrays (ros2_control convention)",
+                  choices=AXIS_NAMES, live=False),
+        ParamSpec("timing_mode", S, "realtime",
+                  "realtime (wall-clock paced) or lockstep (one period per command)",
+                  choices=TIMING_MODES, live=False),
+        ParamSpec("command_interface", S, "voltage",
+                  "voltage (V, both loops in the controller) or current (A)",
+                  choices=COMMAND_INTERFACES, live=False),
+        positive("dt_s", 1e-4, "model integration step, s", high=0.01, live=False),
+        positive("rigid_body_period_s", 1e-3,
+                 "Pinocchio's A(q), C qdot + Q evaluated every this long, s: a whole multiple "
+                 "of dt_s (dt_s: at every step)", high=0.01, live=False),
+        positive("publish_rate_hz", 250.0, "realtime: state publish rate, Hz", high=10_000.0),
+        positive("control_period_s", CONTROL_PERIOD_S,
+                 "lockstep: simulated time advanced per command, s (a whole multiple of dt_s)",
+                 high=1.0),
+        positive("command_timeout_s", 0.1,
+                 "realtime: command silence after which the voltage drops to 0, s", high=60.0),
+        positive("max_command_voltage_v", 1000.0, "commands beyond this |V| are refused"),
+        positive("max_command_current_a", 100.0, "commands beyond this |A| are refused"),
+        positive("current_kp_v_per_a", 31.62, "in-drive current PI gain (current interface), V/A"),
+        positive("current_ti_s", 1e-3, "in-drive current PI integral time, s", high=10.0),
+        ParamSpec("initial_position", D_ARRAY, [0.0, 0.0, 0.0, 0.0],
+                  "pose at start and on ~/reset, rad (m for the lift), one per axis"),
+        ParamSpec("enabled", ParamKind.BOOL, True,
+                  "amplifiers on; false puts 0 V on every axis from the next step"),
+        ParamSpec("lockstep_subscribers", ParamKind.INTEGER, 1,
+                  "lockstep: joint_states subscribers to wait for before t = 0", 0, 1000,
+                  live=False),
+        positive("lockstep_resend_s", 1.0,
+                 "lockstep: re-publish the last state after this silence, s", high=60.0),
+        positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
+    )
+)  # fmt: skip
+READ_ONLY = SIMULATOR_PARAMETERS.read_only
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,81 +104,31 @@ class SimulatorNodeParams:
         return round(self.rigid_body_period_s / self.dt_s)
 
 
-def _positive(values: Mapping[str, Any], name: str, maximum: float = math.inf) -> float:
-    value = values[name]
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ConfigError("parameters", name, f"expected a number, got {value!r}")
-    number = float(value)
-    if not (math.isfinite(number) and 0.0 < number <= maximum):
-        raise ConfigError(
-            "parameters", name, f"expected a number in (0, {maximum:g}], got {value!r}"
-        )
-    return number
-
-
-def _whole_multiple(values: Mapping[str, Any], name: str, dt_s: float, maximum: float) -> float:
-    period_s = _positive(values, name, maximum)
+def _whole_multiple(name: str, period_s: float, dt_s: float) -> float:
     ratio = period_s / dt_s
     if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6 * ratio:
-        raise ConfigError("parameters", name, f"expected a whole multiple of dt_s = {dt_s:g}")
+        raise ParameterError(name, f"a whole multiple of dt_s = {dt_s:g}", period_s)
     return period_s
 
 
 def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
-    """Check every parameter and build the typed params.
+    """Check every parameter (`SIMULATOR_PARAMETERS`) and build the typed params.
 
     Raises:
-        ConfigError: with source "parameters", the parameter name and what was expected.
+        ParameterError: the parameter name, what was expected and the value.
     """
-    joints = tuple(values["joints"])
-    unknown = [j for j in joints if j not in AXIS_NAMES]
-    if not joints or unknown or len(set(joints)) != len(joints):
-        raise ConfigError(
-            "parameters",
-            "joints",
-            f"expected distinct names among {', '.join(AXIS_NAMES)}, got {list(joints)}",
+    v = SIMULATOR_PARAMETERS.check_all(values)
+    joints: tuple[str, ...] = v["joints"]
+    if not joints or len(set(joints)) != len(joints):
+        raise ParameterError("joints", f"distinct names among {', '.join(AXIS_NAMES)}", joints)
+    dt_s = v["dt_s"]
+    if 1.0 / v["publish_rate_hz"] < dt_s:
+        raise ParameterError("publish_rate_hz", "a period of at least dt_s", v["publish_rate_hz"])
+    initial: tuple[float, ...] = v["initial_position"]
+    if len(initial) != len(AXIS_NAMES):
+        raise ParameterError(
+            "initial_position", f"{len(AXIS_NAMES)} positions ({', '.join(AXIS_NAMES)})", initial
         )
-    timing_mode = str(values["timing_mode"])
-    if timing_mode not in TIMING_MODES:
-        raise ConfigError("parameters", "timing_mode", f"expected one of {TIMING_MODES}")
-    interface = str(values["command_interface"])
-    if interface not in COMMAND_INTERFACES:
-        raise ConfigError(
-            "parameters", "command_interface", f"expected one of {COMMAND_INTERFACES}"
-        )
-    dt_s = _positive(values, "dt_s", 0.01)
-    control_period_s = _whole_multiple(values, "control_period_s", dt_s, 1.0)
-    rigid_body_period_s = _whole_multiple(values, "rigid_body_period_s", dt_s, 0.01)
-    publish_rate_hz = _positive(values, "publish_rate_hz", 10_000.0)
-    if 1.0 / publish_rate_hz < dt_s:
-        raise ConfigError("parameters", "publish_rate_hz", "expected a period of at least dt_s")
-    initial = tuple(float(x) for x in values["initial_position"])
-    if len(initial) != len(AXIS_NAMES) or not all(math.isfinite(x) for x in initial):
-        raise ConfigError(
-            "parameters",
-            "initial_position",
-            f"expected {len(AXIS_NAMES)} finite positions ({', '.join(AXIS_NAMES)})",
-        )
-    subscribers = values["lockstep_subscribers"]
-    if isinstance(subscribers, bool) or not isinstance(subscribers, int) or subscribers < 0:
-        raise ConfigError("parameters", "lockstep_subscribers", "expected an integer >= 0")
-    return SimulatorNodeParams(
-        robot=str(values["robot"]),
-        joints=joints,
-        timing_mode=timing_mode,
-        command_interface=interface,
-        dt_s=dt_s,
-        rigid_body_period_s=rigid_body_period_s,
-        publish_rate_hz=publish_rate_hz,
-        control_period_s=control_period_s,
-        command_timeout_s=_positive(values, "command_timeout_s", 60.0),
-        max_command_voltage_v=_positive(values, "max_command_voltage_v"),
-        max_command_current_a=_positive(values, "max_command_current_a"),
-        current_kp_v_per_a=_positive(values, "current_kp_v_per_a"),
-        current_ti_s=_positive(values, "current_ti_s", 10.0),
-        initial_position=initial,
-        enabled=bool(values["enabled"]),
-        lockstep_subscribers=subscribers,
-        lockstep_resend_s=_positive(values, "lockstep_resend_s", 60.0),
-        diagnostics_period_s=_positive(values, "diagnostics_period_s", 60.0),
-    )
+    for name in ("control_period_s", "rigid_body_period_s"):
+        _whole_multiple(name, v[name], dt_s)
+    return SimulatorNodeParams(**v)

@@ -275,11 +275,11 @@ def test_parameters_are_validated_live() -> None:
         assert ctl.core.cascades[1].params.velocity.kp == 100.0
 
 
-def test_bad_start_parameter_is_a_config_error() -> None:
-    """A bad parameter at start raises the one-line ConfigError the entry point prints."""
-    from lca_sim.errors import ConfigError
+def test_bad_start_parameter_is_a_parameter_error() -> None:
+    """A bad parameter at start raises the one-line ParameterError the entry point prints."""
+    from lca_control.parameters import ParameterError
 
-    with ros_context() as (ctx, _), pytest.raises(ConfigError, match="timing_mode"):
+    with ros_context() as (ctx, _), pytest.raises(ParameterError, match=r"^timing_mode: expected"):
         SimulatorNode(context=ctx, parameter_overrides=_params(timing_mode="sideways"))
 
 

@@ -1,0 +1,280 @@
+"""Every node walks its whole parameter table live: each set takes effect, or is rejected.
+
+For each parameter of a node's table the test sets a valid new value while the node runs:
+a read-only one must be refused with a reason that says to restart, and the value in force
+must not move; a live one must be accepted and its effect must be visible in the running node
+(a probe per parameter; a live parameter without a probe fails the test). Each live parameter
+is also set to a value outside its documented range, which must be refused with its name.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64MultiArray
+
+from lca_control.parameters import ParamKind, ParamSpec
+from lca_control.ros.controller_node import ControllerNode
+from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.ros.simulator_node import SimulatorNode
+
+_DOMAINS = itertools.count()
+Probe = tuple[Any, Callable[[Any], bool]]  # the new value, and how its effect shows
+
+
+@contextmanager
+def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
+    """A fresh rclpy context on a domain of its own."""
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=150 + next(_DOMAINS) % 20)
+    executor = SingleThreadedExecutor(context=ctx)
+    try:
+        yield ctx, executor
+    finally:
+        executor.shutdown()
+        rclpy.shutdown(context=ctx)
+
+
+def _other_value(spec: ParamSpec) -> Any:
+    """A value the spec accepts that differs from its default."""
+    default = spec.default
+    if spec.kind is ParamKind.BOOL:
+        return not default
+    if spec.kind is ParamKind.STRING:
+        return next((c for c in spec.choices if c != default), default + "_other")
+    if spec.kind in (ParamKind.STRING_ARRAY, ParamKind.INTEGER_ARRAY, ParamKind.DOUBLE_ARRAY):
+        return list(reversed(default)) if len(set(default)) > 1 else [*default, *default]
+    if spec.kind is ParamKind.INTEGER:
+        return default + 1 if spec.high is None or default + 1 <= spec.high else default - 1
+    return default / 2.0
+
+
+def _out_of_range(spec: ParamSpec) -> Any:
+    """A value the spec refuses, or None for a free string (any name is in its range)."""
+    if spec.kind is ParamKind.BOOL:
+        return "yes"
+    if spec.kind is ParamKind.STRING:
+        return "sideways" if spec.choices else None
+    if spec.kind is ParamKind.DOUBLE_ARRAY:
+        return [math.nan]
+    if spec.low is not None:
+        return spec.low - 1.0 if spec.kind is ParamKind.DOUBLE else int(spec.low) - 1
+    return math.nan  # an unbounded double must still be finite
+
+
+def _walk(node: Node, table: Any, probes: dict[str, Probe], current: Callable[[str], Any]) -> None:
+    assert set(probes) == {s.name for s in table if s.live}, "a live parameter has no probe"
+    for spec in table:
+        before = current(spec.name)
+        if not spec.live:
+            result = node.set_parameters([Parameter(spec.name, value=_other_value(spec))])[0]
+            assert not result.successful, f"{spec.name} is read-only but was accepted"
+            assert spec.name in result.reason and "restart" in result.reason
+            assert current(spec.name) == before
+            continue
+        refused = _out_of_range(spec)
+        if refused is not None:
+            bad = node.set_parameters([Parameter(spec.name, value=refused)])[0]
+            assert not bad.successful and spec.name in bad.reason, (spec.name, bad.reason)
+            assert current(spec.name) == before
+        value, took_effect = probes[spec.name]
+        good = node.set_parameters([Parameter(spec.name, value=value)])[0]
+        assert good.successful, (spec.name, good.reason)
+        assert took_effect(node), f"{spec.name} := {value!r} was accepted but had no effect"
+
+
+def _lockstep_advance_s(sim: SimulatorNode) -> float:
+    """Simulated time one lockstep command advances, measured on the running node."""
+    t0 = sim.sim_time_s
+    sim._on_command(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+    return sim.sim_time_s - t0
+
+
+def _timer_period_s(timer: Any) -> float:
+    return float(timer.timer_period_ns) * 1e-9
+
+
+def _disabled_applies_zero_volts(sim: SimulatorNode) -> bool:
+    """Disabled: the next steps put 0 V on every axis whatever the command."""
+    sim.plant.command([0.0, 8.0, 0.0, 0.0])
+    sim.plant.advance(10)
+    return not sim.plant.enabled and bool(np.all(sim.sim.signal_array[2] == 0.0))
+
+
+def test_simulator_applies_or_rejects_every_parameter() -> None:
+    """The simulator's whole table, on a lockstep node whose loop is driven by the test."""
+    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("timing_mode", value="lockstep"),
+                Parameter("lockstep_subscribers", value=0),
+            ],
+        )
+        executor.add_node(sim)
+        sim._started = True  # lockstep without a controller: the test sends the commands
+        probes: dict[str, Probe] = {
+            # realtime only; in lockstep the rate is stored for a later realtime restart
+            "publish_rate_hz": (100.0, lambda n: n.params.publish_rate_hz == 100.0),
+            "control_period_s": (0.008, lambda n: math.isclose(_lockstep_advance_s(n), 0.008)),
+            "command_timeout_s": (0.05, lambda n: n.params.command_timeout_s == 0.05),
+            "max_command_voltage_v": (
+                50.0,
+                lambda n: n.plant.command([0.0, 60.0, 0.0, 0.0]) is not None,  # refused now
+            ),
+            "max_command_current_a": (5.0, lambda n: n.params.max_command_current_a == 5.0),
+            "current_kp_v_per_a": (20.0, lambda n: n.plant.current_pi.kp == 20.0),
+            "current_ti_s": (2e-3, lambda n: n.plant.current_pi.ti_s == 2e-3),
+            "initial_position": (
+                [0.0, 0.5, 0.0, 0.0],
+                lambda n: (n._reset_pose(), n.sim.state_array[0, 1])[1] == 0.5,
+            ),
+            "enabled": (False, _disabled_applies_zero_volts),
+            "lockstep_resend_s": (2.0, lambda n: n.params.lockstep_resend_s == 2.0),
+            "diagnostics_period_s": (0.5, lambda n: _timer_period_s(n._diag_timer) == 0.5),
+        }
+        _walk(sim, SIMULATOR_PARAMETERS, probes, lambda name: sim.get_parameter(name).value)
+
+
+def test_realtime_simulator_retimes_its_publisher_live() -> None:
+    """publish_rate_hz in realtime mode: the tick timer runs at the new period at once."""
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(context=ctx)
+        executor.add_node(sim)
+        assert sim.set_parameters([Parameter("publish_rate_hz", value=100.0)])[0].successful
+        assert _timer_period_s(sim._tick_timer) == 0.01
+
+
+def test_an_initial_position_outside_the_end_stops_is_refused_live() -> None:
+    """A pose ~/reset could not take is rejected when it is set, not when reset fails."""
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(context=ctx)
+        executor.add_node(sim)
+        result = sim.set_parameters([Parameter("initial_position", value=[0.0, 9.0, 0.0, 0.0])])
+        assert not result[0].successful and "end stops" in result[0].reason
+        assert sim.params.initial_position == (0.0, 0.0, 0.0, 0.0)
+
+
+def test_controller_applies_or_rejects_every_parameter() -> None:
+    """The controller's whole table; effects read off the running cascades."""
+    from lca_control.controller import CONTROLLER_PARAMETERS
+
+    with ros_context() as (ctx, executor):
+        ctl = ControllerNode(context=ctx)
+        executor.add_node(ctl)
+
+        def core(name: str, value: Any) -> Probe:
+            return value, lambda n: getattr(n.core.params, name) == value
+
+        def cascade(path: str, value: float) -> Probe:
+            loop, field = path.split(".")
+            return value, lambda n: all(
+                getattr(getattr(c.params, loop), field) == value for c in n.core.cascades
+            )
+
+        def profile(field: str, value: float) -> Probe:
+            # an idle profile's value is checked and kept; it shows once the profile runs
+            source = "ramp" if field.startswith("ramp") else "trapezoid"
+            return (
+                value,
+                lambda n: (
+                    n.set_parameters([Parameter("reference_source", value=source)])[0].successful
+                    and n._live.values[field] == value
+                    and n.core.params.profile is not None
+                ),
+            )
+
+        probes: dict[str, Probe] = {
+            "reference_source": core("reference_source", "hold"),
+            "profile_joint": core("profile_joint", "lift"),
+            **{
+                name: profile(name, value)
+                for name, value in (
+                    ("ramp_start_s", 2.0),
+                    ("ramp_duration_s", 5.0),
+                    ("ramp_end_velocity", 0.05),
+                    ("ramp_hold_s", 1.0),
+                    ("trapezoid_start_s", 2.0),
+                    ("trapezoid_accel_s", 0.5),
+                    ("trapezoid_cruise_s", 1.0),
+                    ("trapezoid_decel_s", 0.5),
+                    ("trapezoid_velocity", 0.05),
+                )
+            },
+            "velocity_kp_a_per_rad_s": cascade("velocity.kp", 100.0),
+            "velocity_ti_s": cascade("velocity.ti_s", 0.02),
+            "current_kp_v_per_a": cascade("current.kp", 20.0),
+            "current_ti_s": cascade("current.ti_s", 2e-3),
+            "current_limit_a": cascade("velocity.output_max", 5.0),
+            "voltage_limit_v": cascade("current.output_max", 100.0),
+            "position_kp_per_s": (
+                2.0,
+                lambda n: all(c.params.position_kp_per_s == 2.0 for c in n.core.cascades),
+            ),
+            "velocity_limit": (0.1, lambda n: n.core.params.cascade.velocity_limit == 0.1),
+            "reference_timeout_s": core("reference_timeout_s", 0.25),
+            "nominal_period_s": core("nominal_period_s", 0.002),
+            "enabled": (
+                False,
+                lambda n: n.core.update(1.0, [0.0] * 4, [0.5] * 4, [1.0] * 4) == [0.0] * 4,
+            ),
+        }
+        _walk(ctl, CONTROLLER_PARAMETERS, probes, lambda name: ctl.get_parameter(name).value)
+
+
+def test_can_bridge_applies_or_rejects_every_parameter() -> None:
+    """The bridge's whole table, with its virtual rack; safety timing reaches the master."""
+    from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
+
+    with ros_context() as (ctx, executor):
+        bridge = CanBridgeNode(
+            context=ctx,
+            parameter_overrides=[Parameter("channel", value="test_live_parameters")],
+        )
+        executor.add_node(bridge)
+        try:
+
+            def master(name: str, value: Any) -> Probe:
+                return value, lambda n: getattr(n.bridge.params, name) == value
+
+            probes: dict[str, Probe] = {
+                "command_timeout_s": master("command_timeout_s", 0.2),
+                "quick_stop_after_s": master("quick_stop_after_s", 1.0),
+                "stale_timeout_s": master("stale_timeout_s", 0.3),
+                "max_send_failures": master("max_send_failures", 20),
+                "diagnostics_period_s": (
+                    0.5,
+                    lambda n: _timer_period_s(n._diag_timer) == 0.5,
+                ),
+            }
+            _walk(
+                bridge, CAN_BRIDGE_PARAMETERS, probes, lambda name: bridge.get_parameter(name).value
+            )
+        finally:
+            bridge.destroy_node()
+
+
+@pytest.mark.parametrize("value", [True, False])
+def test_enable_service_and_parameter_agree(value: bool) -> None:
+    """~/enable is the enabled parameter by another door: both read the same afterwards."""
+    from std_srvs.srv import SetBool
+
+    with ros_context() as (ctx, _):
+        sim = SimulatorNode(context=ctx)
+        response = sim._on_enable(SetBool.Request(data=value), SetBool.Response())
+        assert response.success
+        assert sim.get_parameter("enabled").value is value
+        assert sim.plant.enabled is value
