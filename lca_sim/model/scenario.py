@@ -109,13 +109,7 @@ def parse_scenario(data: object, source: str, axis_names: tuple[str, ...]) -> Sc
             if initial.has(key):
                 values = initial.sub(key)
                 for name in values.key_names():
-                    if name not in axis_names:
-                        raise ConfigError(
-                            source,
-                            values.key_path(name),
-                            f"expected an axis name ({', '.join(axis_names)})",
-                        )
-                    target[axis_names.index(name)] = values.number(name)
+                    target[_axis_index(values, name, axis_names)] = values.number(name)
                 values.finish()
         initial.finish()
 
@@ -123,16 +117,19 @@ def parse_scenario(data: object, source: str, axis_names: tuple[str, ...]) -> Sc
     if top.has("inputs"):
         inputs = top.sub("inputs")
         for name in inputs.key_names():
-            if name not in axis_names:
-                raise ConfigError(
-                    source,
-                    inputs.key_path(name),
-                    f"expected an axis name ({', '.join(axis_names)})",
-                )
-            tables[axis_names.index(name)] = _parse_table(inputs.sub(name))
+            tables[_axis_index(inputs, name, axis_names)] = _parse_table(inputs.sub(name))
         inputs.finish()
     top.finish()
     return Scenario(source, duration, dt, record, tuple(position), tuple(velocity), tuple(tables))
+
+
+def _axis_index(reader: MappingReader, name: str, axis_names: tuple[str, ...]) -> int:
+    """The index of an axis named as a key, or the ConfigError naming the key."""
+    if name not in axis_names:
+        raise ConfigError(
+            reader.source, reader.key_path(name), f"expected an axis name ({', '.join(axis_names)})"
+        )
+    return axis_names.index(name)
 
 
 def _parse_table(reader: MappingReader) -> VoltageTable:
@@ -208,12 +205,8 @@ class ScenarioResult:
         return [t for t in self.transitions if t.axis == axis]
 
 
-def run_scenario(sim: Simulator, scenario: Scenario) -> ScenarioResult:
-    """Run a scenario from its initial state and record it.
-
-    The simulator's `dt_s` must equal the scenario's. Drive-state transitions are found at every
-    step, not only at the recorded rows.
-    """
+def _check_fits(sim: Simulator, scenario: Scenario) -> None:
+    """The scenario's step is the simulator's and its pose is within the end stops."""
     if abs(sim.dt_s - scenario.dt_s) > 1e-15:
         raise ConfigError(scenario.source, "dt_s", f"expected the simulator's step {sim.dt_s:g}")
     for name, q, (q_min, q_max) in zip(
@@ -226,6 +219,29 @@ def run_scenario(sim: Simulator, scenario: Scenario) -> ScenarioResult:
                 f"expected a position within the joint's end stops [{q_min:g}, {q_max:g}], "
                 f"got {q:g}",
             )
+
+
+def _transitions(
+    sim: Simulator, drive_log: IntArray, position_log: FloatArray, dt_s: float
+) -> tuple[Transition, ...]:
+    """Every drive-state change of every axis, at the step it happened (and each start)."""
+    changed = np.nonzero(np.any(drive_log[1:] != drive_log[:-1], axis=1))[0] + 1
+    transitions = []
+    for k in [0, *changed.tolist()]:
+        for a, name in enumerate(sim.axis_names):
+            if k == 0 or drive_log[k, a] != drive_log[k - 1, a]:
+                state = sim.state_names[int(drive_log[k, a])]
+                transitions.append(Transition(k * dt_s, name, state, float(position_log[k, a])))
+    return tuple(transitions)
+
+
+def run_scenario(sim: Simulator, scenario: Scenario) -> ScenarioResult:
+    """Run a scenario from its initial state and record it.
+
+    The simulator's `dt_s` must equal the scenario's. Drive-state transitions are found at every
+    step, not only at the recorded rows.
+    """
+    _check_fits(sim, scenario)
     n_steps = scenario.n_steps
     every = scenario.record_every
     n_axes = sim.n_axes
@@ -269,14 +285,7 @@ def run_scenario(sim: Simulator, scenario: Scenario) -> ScenarioResult:
             record(row, k)
             row += 1
 
-    changed = np.nonzero(np.any(drive_log[1:] != drive_log[:-1], axis=1))[0] + 1
-    transitions = []
-    for k in [0, *changed.tolist()]:
-        for a, name in enumerate(sim.axis_names):
-            if k == 0 or drive_log[k, a] != drive_log[k - 1, a]:
-                state = sim.state_names[int(drive_log[k, a])]
-                t_s = k * scenario.dt_s
-                transitions.append(Transition(t_s, name, state, float(position_log[k, a])))
+    transitions = _transitions(sim, drive_log, position_log, scenario.dt_s)
     return ScenarioResult(
         axis_names=sim.axis_names,
         state_names=sim.state_names,
@@ -286,5 +295,5 @@ def run_scenario(sim: Simulator, scenario: Scenario) -> ScenarioResult:
         signals=signals,
         motion=modes[:, 0, :].copy(),
         drive=modes[:, 1, :].copy(),
-        transitions=tuple(transitions),
+        transitions=transitions,
     )
