@@ -155,6 +155,11 @@ class AxisState:
     motion_state: int = 0
     eta_m: float = math.nan
     eta_l: float = math.nan
+    # Drive-chain extras a real CiA 402 drive does not report: NaN means "this backend cannot
+    # know" (only the virtual rack maps them, on manufacturer-specific objects).
+    load_torque_nm: float = math.nan
+    friction_torque_nm: float = math.nan
+    voltage_v: float = math.nan
 
     @property
     def power_state(self) -> PowerState | None:
