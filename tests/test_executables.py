@@ -14,7 +14,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -29,7 +28,7 @@ from rclpy.node import Node, NodeNameNonExistentError
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
-from support import ROOT
+from support import ROOT, wait_until
 
 from lca_control import contract as ri
 from lca_sim.config.loader import shipped_names
@@ -130,13 +129,18 @@ class Observer:
 
     def spin_until(self, done: Callable[[], bool], run: Running, what: str) -> None:
         """Spin until `done()`; fail at the deadline or if the subprocess exits first."""
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while not done():
+
+        def still_running() -> None:
             if run.proc.poll() is not None:
                 pytest.fail(f"exited ({run.proc.returncode}) before {what}:\n{run.output()}")
-            if time.monotonic() > deadline:
-                pytest.fail(f"not within {START_TIMEOUT_S:g} s: {what}:\n{run.output()}")
-            self.executor.spin_once(timeout_sec=0.05)
+
+        wait_until(
+            done,
+            what,
+            START_TIMEOUT_S,
+            step=lambda: self.executor.spin_once(timeout_sec=0.05),
+            check=still_running,
+        )
 
 
 @contextmanager

@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -24,6 +23,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
+from support import spin_until
 
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.simulator_node import SimulatorNode
@@ -43,16 +43,6 @@ def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
     finally:
         executor.shutdown()
         rclpy.shutdown(context=ctx)
-
-
-def spin_until(
-    executor: SingleThreadedExecutor, done: Callable[[], bool], timeout_s: float = 30.0
-) -> None:
-    """Spin until `done()` or fail at the deadline."""
-    deadline = time.monotonic() + timeout_s
-    while not done():
-        assert time.monotonic() < deadline, "condition not reached before the deadline"
-        executor.spin_once(timeout_sec=0.05)
 
 
 def _params(**values: Any) -> list[Parameter]:

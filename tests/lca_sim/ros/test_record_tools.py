@@ -14,7 +14,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 import rclpy
+import support
 import yaml
 from diagnostic_msgs.msg import (
     DiagnosticArray,
@@ -94,12 +94,8 @@ def spin_until(
     what: str,
     timeout_s: float = MATCH_TIMEOUT_S,
 ) -> None:
-    """Spin `executor` until `condition()` holds; fail with `what` after `timeout_s`."""
-    deadline_s = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline_s:
-            pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
-        executor.spin_once(timeout_sec=0.01)
+    """`support.spin_until` with this module's matching deadline."""
+    support.spin_until(executor, condition, what, timeout_s)
 
 
 def tool_env(domain_id: int) -> dict[str, str]:
