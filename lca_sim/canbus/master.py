@@ -33,8 +33,11 @@ import can
 import canopen
 from canopen.sdo.base import SdoArray, SdoRecord
 
+from lca_sim.cia402 import codec
 from lca_sim.cia402 import master as cm
-from lca_sim.cia402.device import CW_HALT, PowerState
+from lca_sim.cia402 import objects as od
+from lca_sim.cia402.codec import CodecError, DriveUnits
+from lca_sim.cia402.device import CW_HALT, MODE_CST, PowerState
 from lca_sim.cia402.master import TorqueScale, Want
 from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
 
@@ -48,32 +51,15 @@ HEARTBEAT_BASE = 0x700
 NMT_OPERATIONAL_CODE = 0x05
 CAN_ERR_BUSOFF = 0x00000040  # SocketCAN error class bit in an error frame's identifier
 CAN_ERR_CRTL = 0x00000004
-TWO_PI = 2.0 * math.pi
 
-# Objects of the drive profile the bridge touches.
-OD_CONTROLWORD = 0x6040
-OD_STATUSWORD = 0x6041
-OD_MODES = 0x6060
-OD_TARGET_TORQUE = 0x6071
-OD_MAX_TORQUE = 0x6072
-OD_RATED_CURRENT = 0x6075
-OD_RATED_TORQUE = 0x6076
-OD_CURRENT_ACTUAL = 0x6078
-OD_POSITION_ACTUAL = 0x6064
-OD_VELOCITY_ACTUAL = 0x606C
-OD_ENCODER_RESOLUTION = 0x608F
-OD_CYCLE_PERIOD = 0x1006
-OD_HEARTBEAT_CONSUMER = 0x1016
-OD_HEARTBEAT_PRODUCER = 0x1017
-OD_RPDO1_COMM = 0x1400
-OD_DRIVE_STATE = 0x2010
-OD_MOTION_STATE = 0x2011
-OD_ETA_M = 0x2012
-OD_ETA_L = 0x2013
+# TPDO objects a drive must map: what joint_states needs (CiA 402-2 0x6041, 0x6064, 0x606C,
+# 0x6078). Everything else a TPDO maps is decoded if the object table knows it.
+REQUIRED_TPDO_OBJECTS = frozenset(
+    {od.STATUSWORD, od.POSITION_ACTUAL, od.VELOCITY_ACTUAL, od.CURRENT_ACTUAL}
+)
 
-
-# CANopen basic data types (CiA 301) -> little-endian struct codes.
-_STRUCT_OF_TYPE = {0x2: "<b", 0x3: "<h", 0x4: "<i", 0x5: "<B", 0x6: "<H", 0x7: "<I"}
+# Sets decoded raw values into an AxisState: built once per mapped object (see _tpdo_callback).
+_Setter = Callable[["AxisState", int], None]
 
 
 class BridgeError(RuntimeError):
@@ -207,8 +193,7 @@ class _Axis:
     k_t: float
     gear: float
     scale: TorqueScale | None = None
-    rated_current_a: float = 1.0
-    inc_per_rad: float = 65536.0 / TWO_PI
+    units: DriveUnits | None = None  # 0x6075, 0x6076, 0x608F as read by init()
     state: AxisState = field(default_factory=AxisState)
     controlword: int = 0
     command_a: float = 0.0
@@ -216,6 +201,7 @@ class _Axis:
     fresh: int = 0  # bit 0: TPDO with the statusword, bit 1: with the velocity, this cycle
     emcy_code: int = 0
     has_drive_state: bool = False
+    decoded: frozenset[str] = frozenset()  # the AxisState fields its TPDOs fill
     rpdo: Any = None  # canopen PdoMap of RPDO1
     cw_var: Any = None
     torque_var: Any = None
@@ -308,26 +294,31 @@ class Cia402Master:
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
             try:
                 node.nmt.state = "PRE-OPERATIONAL"
-                node.sdo[OD_MODES].raw = cm.MODE_CST
-                node.sdo[OD_CYCLE_PERIOD].raw = round(1e6 / p.cycle_hz)
-                node.sdo[OD_HEARTBEAT_PRODUCER].raw = p.heartbeat_producer_ms
-                node.sdo[OD_HEARTBEAT_CONSUMER][1].raw = (
+                node.sdo[od.MODES_OF_OPERATION].raw = MODE_CST
+                node.sdo[od.CYCLE_PERIOD].raw = codec.CYCLE_PERIOD.encode(1.0 / p.cycle_hz)
+                node.sdo[od.HEARTBEAT_PRODUCER].raw = p.heartbeat_producer_ms
+                node.sdo[od.HEARTBEAT_CONSUMER][1].raw = (
                     p.master_node_id << 16
                 ) | p.heartbeat_consumer_ms
-                node.sdo[OD_RPDO1_COMM][5].raw = p.rpdo_deadline_ms
-                rated_torque_nm = node.sdo[OD_RATED_TORQUE].raw / 1000.0
-                axis.rated_current_a = node.sdo[OD_RATED_CURRENT].raw / 1000.0
-                max_permille = int(node.sdo[OD_MAX_TORQUE].raw)
-                increments = node.sdo[OD_ENCODER_RESOLUTION][1].raw
-                revolutions = node.sdo[OD_ENCODER_RESOLUTION][2].raw
+                node.sdo[od.RPDO_COMMUNICATION][5].raw = p.rpdo_deadline_ms
+                rated_torque_mnm = node.sdo[od.MOTOR_RATED_TORQUE].raw
+                rated_current_ma = node.sdo[od.MOTOR_RATED_CURRENT].raw
+                max_permille = int(node.sdo[od.MAX_TORQUE].raw)
+                increments = node.sdo[od.POSITION_ENCODER_RESOLUTION][1].raw
+                revolutions = node.sdo[od.POSITION_ENCODER_RESOLUTION][2].raw
                 node.tpdo.read()  # type: ignore[no-untyped-call]
                 node.rpdo.read()  # type: ignore[no-untyped-call]
             except (canopen.SdoCommunicationError, canopen.SdoAbortedError, KeyError) as exc:
                 raise BridgeError(
                     f"drive {axis.joint} (node {node.id}): configuration failed: {exc}"
                 ) from exc
-            axis.scale = TorqueScale(axis.k_t, rated_torque_nm, max_permille)
-            axis.inc_per_rad = increments / (revolutions * TWO_PI)
+            try:
+                axis.units = DriveUnits.from_raw(
+                    rated_torque_mnm, rated_current_ma, increments, revolutions
+                )
+                axis.scale = TorqueScale(axis.k_t, axis.units.rated_torque_nm, max_permille)
+            except (CodecError, ValueError) as exc:
+                raise BridgeError(f"drive {axis.joint} (node {node.id}): {exc}") from exc
             self._bind_pdos(axis)
             node.emcy.add_callback(self._emcy_callback(axis))
         for axis in self._axes:
@@ -338,50 +329,70 @@ class Cia402Master:
     def _bind_pdos(self, axis: _Axis) -> None:
         rpdo = axis.node.rpdo[1]
         try:
-            axis.cw_var = rpdo[OD_CONTROLWORD]
-            axis.torque_var = rpdo[OD_TARGET_TORQUE]
+            axis.cw_var = rpdo[od.CONTROLWORD]
+            axis.torque_var = rpdo[od.TARGET_TORQUE]
         except KeyError as exc:
             raise BridgeError(
                 f"drive {axis.joint}: RPDO1 must map the controlword and target torque: {exc}"
             ) from exc
         axis.rpdo = rpdo
         mapped: set[int] = set()
+        decoded: set[str] = set()
         for number in axis.node.tpdo:
             tpdo = axis.node.tpdo[number]
             if not tpdo.enabled:
                 continue
             mapped |= {var.index for var in tpdo}
+            callback, fields = self._tpdo_callback(axis, tpdo)
+            decoded |= fields
             # canopen's PdoMap subscribed itself when read; decode the raw frames instead.
             self.network.unsubscribe(tpdo.cob_id, tpdo.on_message)
-            self.network.subscribe(tpdo.cob_id, self._tpdo_callback(axis, tpdo))
-        needed = {OD_STATUSWORD, OD_POSITION_ACTUAL, OD_VELOCITY_ACTUAL, OD_CURRENT_ACTUAL}
-        if not needed <= mapped:
-            missing = ", ".join(f"0x{i:04X}" for i in sorted(needed - mapped))
+            self.network.subscribe(tpdo.cob_id, callback)
+        if not REQUIRED_TPDO_OBJECTS.issubset(mapped):
+            missing = ", ".join(f"0x{i:04X}" for i in sorted(REQUIRED_TPDO_OBJECTS - mapped))
             raise BridgeError(f"drive {axis.joint}: TPDOs do not map {missing}")
-        axis.has_drive_state = OD_DRIVE_STATE in mapped
+        axis.has_drive_state = "drive_state" in decoded
+        axis.decoded = frozenset(decoded)
 
     # --- PDO and EMCY reception (notifier thread) ----------------------------------------
 
-    def _tpdo_callback(self, axis: _Axis, tpdo: Any) -> Callable[[int, bytearray, float], None]:
+    def _tpdo_callback(
+        self, axis: _Axis, tpdo: Any
+    ) -> tuple[Callable[[int, bytearray, float], None], frozenset[str]]:
         """A raw-frame decoder for one TPDO, compiled once from its mapping (read over SDO).
 
-        Every mapped entry becomes (index, byte offset, struct); at 500 Hz x 8 TPDOs this is
-        several times cheaper than canopen's per-variable decoding, and it runs on the notifier
-        thread that every frame of the bus shares.
+        The frame is unpacked by one struct that skips the bytes of objects the bridge does not
+        use, and each value goes to a setter built here from the object table and the drive's
+        units (`lca_sim.cia402.codec`): no lookups per frame. At 500 Hz x 8 TPDOs this runs on
+        the notifier thread that every frame of the bus shares.
+
+        Returns:
+            The callback, and the `AxisState` fields it fills.
         """
-        fields = []
+        fmt, end = "<", 0
+        setters: list[_Setter] = []
+        fields: set[str] = set()
+        indices: set[int] = set()
         for var in tpdo:
-            code = _STRUCT_OF_TYPE.get(int(var.od.data_type))
-            if code is None or var.offset % 8:
+            if var.offset % 8 or var.length % 8:
                 raise BridgeError(
-                    f"drive {axis.joint}: TPDO maps 0x{var.index:04X} with a type or bit offset "
-                    "the bridge does not decode"
+                    f"drive {axis.joint}: TPDO maps 0x{var.index:04X} at a bit offset or with a "
+                    "bit length the bridge does not decode"
                 )
-            fields.append((int(var.index), var.offset // 8, struct.Struct(code)))
-        size = max(offset + st.size for _, offset, st in fields)
-        indices = {index for index, _, _ in fields}
-        sync_bit = (1 if OD_STATUSWORD in indices else 0) | (
-            2 if OD_VELOCITY_ACTUAL in indices else 0
+            offset = var.offset // 8
+            end = offset + var.length // 8
+            found = self._field_setter(axis, var.od)
+            if found is None:
+                continue  # an object the bridge has no use for: its bytes are skipped
+            setter, names = found
+            fmt += f"{offset - struct.calcsize(fmt)}x" + od.DataType(var.od.data_type).struct_format
+            setters.append(setter)
+            fields |= set(names)
+            indices.add(int(var.index))
+        unpack_from = struct.Struct(fmt).unpack_from
+        size = end  # the whole mapping: a shorter frame is not this PDO
+        sync_bit = (1 if od.STATUSWORD in indices else 0) | (
+            2 if od.VELOCITY_ACTUAL in indices else 0
         )
 
         def on_tpdo(_can_id: int, data: bytearray, _timestamp: float) -> None:
@@ -390,31 +401,88 @@ class Cia402Master:
                 self.counters.bad_pdos += 1
                 return
             s = axis.state
-            for index, offset, st in fields:
-                raw = st.unpack_from(data, offset)[0]
-                if index == OD_STATUSWORD:
-                    s.statusword = raw
-                elif index == OD_POSITION_ACTUAL:
-                    s.motor_position_rad = raw / axis.inc_per_rad
-                    s.position = s.motor_position_rad / axis.gear
-                elif index == OD_VELOCITY_ACTUAL:
-                    s.motor_velocity_rad_s = raw / axis.inc_per_rad
-                    s.velocity = s.motor_velocity_rad_s / axis.gear
-                elif index == OD_CURRENT_ACTUAL:
-                    s.current_a = raw / 1000.0 * axis.rated_current_a
-                elif index == OD_DRIVE_STATE:
-                    s.drive_state = raw
-                elif index == OD_MOTION_STATE:
-                    s.motion_state = raw
-                elif index == OD_ETA_M:
-                    s.eta_m = raw / 1000.0
-                elif index == OD_ETA_L:
-                    s.eta_l = raw / 1000.0
+            for setter, raw in zip(setters, unpack_from(data), strict=True):
+                setter(s, raw)
             axis.last_tpdo_t = now
             if sync_bit:
                 self._mark_fresh(axis, sync_bit, now)
 
-        return on_tpdo
+        return on_tpdo, frozenset(fields)
+
+    def _field_setter(self, axis: _Axis, obj: Any) -> tuple[_Setter, tuple[str, ...]] | None:
+        """How one mapped object goes into `AxisState` (and which fields), or None to skip it.
+
+        Objects the table does not know are skipped. A standard object whose EDS type differs
+        from CiA 402's is refused; a manufacturer-specific one that is not lca_hil's (another
+        name or type at the same index, on a real drive) is skipped.
+        """
+        known = od.BY_KEY.get((int(obj.index), int(obj.subindex)))
+        if known is None:
+            return None
+        ours = int(obj.data_type) == known.data_type
+        if known.manufacturer_specific and not (ours and obj.name == known.name):
+            return None
+        if not ours:
+            raise BridgeError(
+                f"drive {axis.joint}: its EDS types 0x{known.index:04X} as data type "
+                f"0x{int(obj.data_type):04X}, {known.reference} is {known.data_type.name}"
+            )
+        units = axis.units
+        assert units is not None  # init() reads them before it binds the PDOs
+        gear = axis.gear
+        index = known.index
+        if index == od.STATUSWORD:
+
+            def statusword(s: AxisState, raw: int) -> None:
+                s.statusword = raw
+
+            return statusword, ("statusword",)
+        if index == od.POSITION_ACTUAL:
+            decode_position = codec.position(units).decode
+
+            def position(s: AxisState, raw: int) -> None:
+                motor_rad = decode_position(raw)
+                s.motor_position_rad = motor_rad
+                s.position = motor_rad / gear
+
+            return position, ("motor_position_rad", "position")
+        if index == od.VELOCITY_ACTUAL:
+            decode_velocity = codec.velocity(units).decode
+
+            def velocity(s: AxisState, raw: int) -> None:
+                motor_rad_s = decode_velocity(raw)
+                s.motor_velocity_rad_s = motor_rad_s
+                s.velocity = motor_rad_s / gear
+
+            return velocity, ("motor_velocity_rad_s", "velocity")
+        if index == od.CURRENT_ACTUAL:
+            decode_current = codec.current(units).decode
+
+            def current(s: AxisState, raw: int) -> None:
+                s.current_a = decode_current(raw)
+
+            return current, ("current_a",)
+        if index == od.DRIVE_STATE:
+
+            def drive_state(s: AxisState, raw: int) -> None:
+                s.drive_state = raw
+
+            return drive_state, ("drive_state",)
+        if index == od.MOTION_STATE:
+
+            def motion_state(s: AxisState, raw: int) -> None:
+                s.motion_state = raw
+
+            return motion_state, ("motion_state",)
+        if known.signal:  # eta_m, eta_l, load/friction torque, voltage: AxisState fields
+            decode_signal = codec.codec_for(known, units).decode
+            name = known.signal
+
+            def signal(s: AxisState, raw: int) -> None:
+                setattr(s, name, decode_signal(raw))
+
+            return signal, (name,)
+        return None
 
     def _mark_fresh(self, axis: _Axis, bit: int, now: float) -> None:
         snapshot = None
@@ -680,6 +748,17 @@ class Cia402Master:
     def has_drive_state(self) -> bool:
         """True when every drive maps the lca_hil drive-chain objects (the virtual drive)."""
         return all(a.has_drive_state for a in self._axes)
+
+    def decoded_fields(self) -> frozenset[str]:
+        """The `AxisState` fields every drive's TPDOs fill (after `init`).
+
+        A real CiA 402 drive fills statusword, position, velocity and current; the virtual one
+        also drive_state, motion_state, eta_m, eta_l, load_torque_nm, friction_torque_nm and
+        voltage_v. A field outside this set keeps its default (NaN, or -1 / 0 for the codes).
+        """
+        if not self._axes:
+            return frozenset()
+        return frozenset.intersection(*(a.decoded for a in self._axes))
 
     def emcy_codes(self) -> dict[str, int]:
         """The latched EMCY code per joint (0: none)."""

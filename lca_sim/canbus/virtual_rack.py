@@ -82,7 +82,10 @@ from canopen import SdoAbortedError
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
 from lca_control.pi import PIParams
+from lca_sim.cia402 import codec
 from lca_sim.cia402 import device as cia402
+from lca_sim.cia402 import objects as od
+from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
 from lca_sim.cia402.device import Cia402AxisState, MappingEntry, PowerState
 from lca_sim.config.loader import config_dir, load_robot, read_yaml
 from lca_sim.errors import USER_ERRORS, ConfigError, UnknownNameError
@@ -114,27 +117,6 @@ ABORT_VALUE_TOO_HIGH = 0x06090031
 ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
 ABORT_DEVICE_STATE = 0x08000022
-
-# Rows of the simulator's signal array behind 0x2012 / 0x2013.
-_ETA_ROWS = {cia402.ETA_M: SIGNAL_NAMES.index("eta_m"), cia402.ETA_L: SIGNAL_NAMES.index("eta_l")}
-
-# Objects whose value is computed when read: from the CiA 402 state or the plant.
-_DYNAMIC_OBJECTS = frozenset(
-    {
-        cia402.STATUSWORD,
-        cia402.CONTROLWORD,
-        cia402.MODES_OF_OPERATION,
-        cia402.MODES_OF_OPERATION_DISPLAY,
-        cia402.POSITION_ACTUAL,
-        cia402.VELOCITY_ACTUAL,
-        cia402.TORQUE_ACTUAL,
-        cia402.CURRENT_ACTUAL,
-        cia402.DRIVE_STATE,
-        cia402.MOTION_STATE,
-        cia402.ETA_M,
-        cia402.ETA_L,
-    }
-)
 
 
 def eds_path() -> Path:
@@ -336,7 +318,9 @@ class _Pdo:
     slots: list[int]  # the raw mapping entries, sub 1..8
     count: int  # mapping sub 0
     objects: list[ODVariable] = field(default_factory=list)
-    codec: struct.Struct = field(default_factory=lambda: struct.Struct("<"))  # the whole frame
+    frame: struct.Struct = field(default_factory=lambda: struct.Struct("<"))  # the whole frame
+    # TPDO: the current raw value of each mapped object, read when the frame is sent.
+    getters: list[Callable[[], int]] = field(default_factory=list)
     latched: bytes | None = None  # a synchronous RPDO waiting for the next SYNC
     last_rx_s: float | None = None  # arms the RPDO deadline
     last_data: bytes | None = None  # the TPDO last sent
@@ -346,12 +330,13 @@ class _Pdo:
     @property
     def size_bytes(self) -> int:
         """Length of the PDO's frame."""
-        return self.codec.size
+        return self.frame.size
 
-    def map(self, objects: list[ODVariable]) -> None:
+    def map(self, objects: list[ODVariable], getters: list[Callable[[], int]]) -> None:
         """Map `objects`, and pack and unpack the frame in one step from now on."""
         self.objects = objects
-        self.codec = _frame_codec(objects)
+        self.frame = _frame_codec(objects)
+        self.getters = getters
 
 
 def _frame_codec(objects: Sequence[ODVariable]) -> struct.Struct:
@@ -386,8 +371,11 @@ class _Axis:
     torque_constant_nm_per_a: float
     node: canopen.LocalNode
     od: ObjectDictionary
+    units: DriveUnits  # what 0x6075, 0x6076 and 0x608F say (read-only objects)
     defaults: dict[tuple[int, int], int]
     values: dict[tuple[int, int], int] = field(default_factory=dict)
+    # Objects whose value is computed when read, from the CiA 402 state or the plant.
+    live: dict[tuple[int, int], Callable[[], int]] = field(default_factory=dict)
     drive: Cia402AxisState = field(default_factory=Cia402AxisState)
     nmt: str = NMT_PRE_OPERATIONAL
     rpdos: list[_Pdo] = field(default_factory=list)
@@ -395,10 +383,28 @@ class _Axis:
     heartbeat_last_rx_s: float | None = None
     sync_armed_s: float = -math.inf
     sync_loss_reported: bool = False
+    torque: Codec = field(init=False)  # N m <-> per mille of 0x6076 (0x6071, 0x6077)
+    current: Codec = field(init=False)  # A <-> per mille of 0x6075 (0x6078)
+
+    def __post_init__(self) -> None:
+        self.torque = codec.torque(self.units)
+        self.current = codec.current(self.units)
 
     def value(self, index: int, subindex: int = 0) -> int:
         """A stored (non-dynamic) object value."""
         return self.values[(index, subindex)]
+
+    def getter(self, index: int, subindex: int) -> Callable[[], int]:
+        """A callable returning the object's current value (live, or stored; 0 if unset)."""
+        live = self.live.get((index, subindex))
+        if live is not None:
+            return live
+        values, key = self.values, (index, subindex)
+
+        def stored() -> int:
+            return values.get(key, 0)
+
+        return stored
 
 
 class _Listener(can.Listener):
@@ -481,20 +487,23 @@ class VirtualDriveRack:
         eds = str(eds_path())
         for joint_index, axis_config in enumerate(config.axes):
             plant_index = self._sim.axis_names.index(axis_config.name)
-            od = canopen.objectdictionary.import_od(eds, axis_config.node_id)
-            node = canopen.LocalNode(axis_config.node_id, od)
+            dictionary = canopen.objectdictionary.import_od(eds, axis_config.node_id)
+            node = canopen.LocalNode(axis_config.node_id, dictionary)
             axis_params = robot.axes[plant_index]
+            k_t = axis_params.motor.torque_constant_nm_per_a
             axis = _Axis(
                 config=axis_config,
                 plant_index=plant_index,
                 joint_index=joint_index,
                 gear_ratio=axis_params.gear_ratio,
-                torque_constant_nm_per_a=axis_params.motor.torque_constant_nm_per_a,
+                torque_constant_nm_per_a=k_t,
                 node=node,
-                od=od,
+                od=dictionary,
+                units=self._units(axis_config, k_t),
                 defaults={},
             )
             axis.defaults = self._defaults(axis)
+            axis.live = self._live_objects(axis)
             # canopen leaves these two unannotated.
             node.add_read_callback(self._read_callback(axis))  # type: ignore[no-untyped-call]
             node.add_write_callback(self._write_callback(axis))  # type: ignore[no-untyped-call]
@@ -584,7 +593,7 @@ class VirtualDriveRack:
     def faults(self) -> dict[str, int]:
         """The active error code (0x603F) per axis; 0 = none."""
         with self._lock:
-            return {a.config.name: a.value(cia402.ERROR_CODE) for a in self._axes}
+            return {a.config.name: a.value(od.ERROR_CODE) for a in self._axes}
 
     @property
     def counters(self) -> RackCounters:
@@ -605,6 +614,20 @@ class VirtualDriveRack:
 
     # --- object values ---------------------------------------------------------------------
 
+    def _units(self, axis_config: AxisConfig, torque_constant_nm_per_a: float) -> DriveUnits:
+        """The axis's 0x6076 (k_t x rated current), 0x6075 and 0x608F, as a master reads them."""
+        try:
+            return DriveUnits.from_raw(
+                codec.RATED_TORQUE.encode(torque_constant_nm_per_a * axis_config.rated_current_a),
+                codec.RATED_CURRENT.encode(axis_config.rated_current_a),
+                self.config.encoder_increments_per_rev,
+                1,
+            )
+        except CodecError as exc:
+            raise ConfigError(
+                self.config.source, f"axes.{axis_config.name}.rated_current_a", str(exc)
+            ) from exc
+
     def _defaults(self, axis: _Axis) -> dict[tuple[int, int], int]:
         values: dict[tuple[int, int], int] = {}
         for index in axis.od:
@@ -616,58 +639,57 @@ class VirtualDriveRack:
                 if isinstance(var.default, int):
                     values[(var.index, var.subindex)] = var.default
         cfg = axis.config
-        values[(cia402.HEARTBEAT_PRODUCER, 0)] = self.config.heartbeat_producer_ms
-        values[(cia402.MOTOR_RATED_CURRENT, 0)] = round(cfg.rated_current_a * 1000.0)
-        values[(cia402.MOTOR_RATED_TORQUE, 0)] = cia402.rated_torque_mnm(
-            axis.torque_constant_nm_per_a, cfg.rated_current_a
-        )
-        values[(cia402.MAX_TORQUE, 0)] = cfg.max_torque_permille
-        values[(cia402.POSITION_ENCODER_RESOLUTION, 1)] = self.config.encoder_increments_per_rev
-        values[(cia402.SUPPORTED_DRIVE_MODES, 0)] = cia402.SUPPORTED_DRIVE_MODES_BITS
+        units = axis.units
+        values[(od.HEARTBEAT_PRODUCER, 0)] = self.config.heartbeat_producer_ms
+        values[(od.MOTOR_RATED_CURRENT, 0)] = codec.RATED_CURRENT.encode(units.rated_current_a)
+        values[(od.MOTOR_RATED_TORQUE, 0)] = codec.RATED_TORQUE.encode(units.rated_torque_nm)
+        values[(od.MAX_TORQUE, 0)] = cfg.max_torque_permille
+        values[(od.POSITION_ENCODER_RESOLUTION, 1)] = self.config.encoder_increments_per_rev
+        values[(od.POSITION_ENCODER_RESOLUTION, 2)] = 1
+        values[(od.SUPPORTED_DRIVE_MODES, 0)] = cia402.SUPPORTED_DRIVE_MODES_BITS
         return values
 
-    def _rated_torque_nm(self, axis: _Axis) -> float:
-        return axis.value(cia402.MOTOR_RATED_TORQUE) / 1000.0
+    def _live_objects(self, axis: _Axis) -> dict[tuple[int, int], Callable[[], int]]:
+        """A getter per computed object, its codec bound once (TPDOs call these every SYNC).
+
+        The plant's arrays are read-only views the simulator updates in place, so the getters
+        read the state of the moment.
+        """
+        state, modes, signals = self._state, self._modes, self._signals
+        a, gear = axis.plant_index, axis.gear_ratio
+        encode_position = codec.position(axis.units).encode
+        encode_velocity = codec.velocity(axis.units).encode
+        encode_current = codec.current(axis.units).encode
+        live: dict[tuple[int, int], Callable[[], int]] = {
+            (od.STATUSWORD, 0): lambda: self._statusword(axis),
+            (od.CONTROLWORD, 0): lambda: axis.drive.controlword,
+            (od.MODES_OF_OPERATION, 0): lambda: axis.drive.mode,
+            (od.MODES_OF_OPERATION_DISPLAY, 0): lambda: axis.drive.mode,
+            (od.POSITION_ACTUAL, 0): lambda: encode_position(float(state[0, a]) * gear),
+            (od.VELOCITY_ACTUAL, 0): lambda: encode_velocity(float(state[1, a]) * gear),
+            (od.TORQUE_ACTUAL, 0): lambda: self._torque_actual_permille(axis),
+            (od.CURRENT_ACTUAL, 0): lambda: encode_current(float(state[2, a])),
+            (od.DRIVE_STATE, 0): lambda: int(modes[1, a]),
+            (od.MOTION_STATE, 0): lambda: int(modes[0, a]),
+        }
+        for name, obj in od.SIGNAL_OBJECTS.items():  # eta_m, eta_l, load torque, ...
+            live[obj.key] = _signal_getter(
+                signals, SIGNAL_NAMES.index(name), a, codec.codec_for(obj, axis.units).encode
+            )
+        return live
 
     def _value(self, axis: _Axis, index: int, subindex: int) -> int | None:
         """The value of an object: live for process data, stored for the rest."""
-        if index not in _DYNAMIC_OBJECTS:
-            return axis.values.get((index, subindex))
-        state = self._state
-        a = axis.plant_index
-        increments = self.config.encoder_increments_per_rev
-        if index == cia402.STATUSWORD:
-            return self._statusword(axis)
-        if index == cia402.CONTROLWORD:
-            return axis.drive.controlword
-        if index in (cia402.MODES_OF_OPERATION, cia402.MODES_OF_OPERATION_DISPLAY):
-            return axis.drive.mode
-        if index == cia402.POSITION_ACTUAL:
-            return cia402.motor_rad_to_increments(float(state[0, a]) * axis.gear_ratio, increments)
-        if index == cia402.VELOCITY_ACTUAL:
-            return cia402.motor_rad_s_to_increments_s(
-                float(state[1, a]) * axis.gear_ratio, increments
-            )
-        if index == cia402.TORQUE_ACTUAL:
-            return self._torque_actual_permille(axis)
-        if index == cia402.CURRENT_ACTUAL:
-            return cia402.current_a_to_permille(float(state[2, a]), axis.config.rated_current_a)
-        modes = self._modes
-        if index == cia402.DRIVE_STATE:
-            return int(modes[1, a])
-        if index == cia402.MOTION_STATE:
-            return int(modes[0, a])
-        return cia402.efficiency_to_permille(float(self._signals[_ETA_ROWS[index], a]))
+        live = axis.live.get((index, subindex))
+        return live() if live is not None else axis.values.get((index, subindex))
 
     def _torque_actual_permille(self, axis: _Axis) -> int:
         current_a = float(self._state[2, axis.plant_index])
-        return cia402.torque_nm_to_permille(
-            axis.torque_constant_nm_per_a * current_a, self._rated_torque_nm(axis)
-        )
+        return axis.torque.encode(axis.torque_constant_nm_per_a * current_a)
 
     def _demand(self, axis: _Axis) -> cia402.TorqueDemand:
         return cia402.torque_demand(
-            axis.drive, axis.value(cia402.TARGET_TORQUE), axis.value(cia402.MAX_TORQUE)
+            axis.drive, axis.value(od.TARGET_TORQUE), axis.value(od.MAX_TORQUE)
         )
 
     def _statusword(self, axis: _Axis) -> int:
@@ -702,19 +724,19 @@ class VirtualDriveRack:
 
     def _write(self, axis: _Axis, index: int, subindex: int, value: int, now: float) -> None:
         """Validate and apply a write (SDO or RPDO); SdoAbortedError refuses it."""
-        if index == cia402.CONTROLWORD:
+        if index == od.CONTROLWORD:
             self._apply_controlword(axis, value, now)
             return
-        if index == cia402.MODES_OF_OPERATION:
+        if index == od.MODES_OF_OPERATION:
             if not cia402.is_supported_mode(value):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
             axis.drive = replace(axis.drive, mode=value)
             return
-        if index == cia402.MAX_TORQUE and value > axis.config.max_torque_permille:
+        if index == od.MAX_TORQUE and value > axis.config.max_torque_permille:
             raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
-        if index == cia402.ABORT_CONNECTION_OPTION and value not in cia402.ABORT_OPTIONS:
+        if index == od.ABORT_CONNECTION_OPTION and value not in cia402.ABORT_OPTIONS:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
-        if index == cia402.QUICK_STOP_OPTION and value not in cia402.QUICK_STOP_OPTIONS:
+        if index == od.QUICK_STOP_OPTION and value not in cia402.QUICK_STOP_OPTIONS:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
         located = self._pdo_of(axis, index)
         if located is not None:
@@ -723,17 +745,17 @@ class VirtualDriveRack:
                 self._write_mapping(axis, pdo, subindex, value)
             else:
                 self._write_communication(pdo, subindex, value)
-        if index == cia402.HEARTBEAT_CONSUMER:
+        if index == od.HEARTBEAT_CONSUMER:
             axis.heartbeat_last_rx_s = None
         axis.values[(index, subindex)] = value
 
     def _pdo_of(self, axis: _Axis, index: int) -> tuple[_Pdo, bool] | None:
         """The PDO whose communication or mapping object `index` is, and whether it is mapping."""
         for base, pdos, is_mapping in (
-            (cia402.RPDO_COMMUNICATION, axis.rpdos, False),
-            (cia402.RPDO_MAPPING, axis.rpdos, True),
-            (cia402.TPDO_COMMUNICATION, axis.tpdos, False),
-            (cia402.TPDO_MAPPING, axis.tpdos, True),
+            (od.RPDO_COMMUNICATION, axis.rpdos, False),
+            (od.RPDO_MAPPING, axis.rpdos, True),
+            (od.TPDO_COMMUNICATION, axis.tpdos, False),
+            (od.TPDO_MAPPING, axis.tpdos, True),
         ):
             if 0 <= index - base < len(pdos):
                 return pdos[index - base], is_mapping
@@ -742,7 +764,7 @@ class VirtualDriveRack:
     # --- CiA 402 state ---------------------------------------------------------------------
 
     def _quick_stop_option(self, axis: _Axis) -> int:
-        return axis.value(cia402.QUICK_STOP_OPTION)
+        return axis.value(od.QUICK_STOP_OPTION)
 
     def _standstill(self, axis: _Axis) -> bool:
         return bool(self._modes[0, axis.plant_index] == 0.0)
@@ -766,22 +788,22 @@ class VirtualDriveRack:
         self._set_drive(axis, state, now)
 
     def _clear_errors(self, axis: _Axis) -> None:
-        if axis.value(cia402.ERROR_REGISTER) or axis.value(cia402.ERROR_CODE):
-            axis.values[(cia402.ERROR_REGISTER, 0)] = 0
-            axis.values[(cia402.ERROR_CODE, 0)] = 0
+        if axis.value(od.ERROR_REGISTER) or axis.value(od.ERROR_CODE):
+            axis.values[(od.ERROR_REGISTER, 0)] = 0
+            axis.values[(od.ERROR_CODE, 0)] = 0
             self._emcy(axis, cia402.EMCY_ERROR_RESET)
 
     def _connection_lost(self, axis: _Axis, code: int | None, now: float) -> None:
         """A watchdog fired (or NMT stop): error code, EMCY, then the 0x6007 reaction."""
         if code is not None:
-            axis.values[(cia402.ERROR_CODE, 0)] = code
-            axis.values[(cia402.ERROR_REGISTER, 0)] = axis.value(cia402.ERROR_REGISTER) | (
+            axis.values[(od.ERROR_CODE, 0)] = code
+            axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | (
                 cia402.ERROR_REGISTER_GENERIC | cia402.ERROR_REGISTER_COMMUNICATION
             )
             self._emcy(axis, code)
         state = cia402.abort_connection(
             axis.drive,
-            axis.value(cia402.ABORT_CONNECTION_OPTION),
+            axis.value(od.ABORT_CONNECTION_OPTION),
             self._quick_stop_option(axis),
         )
         self._set_drive(axis, state, now)
@@ -812,9 +834,15 @@ class VirtualDriveRack:
             raise SdoAbortedError(ABORT_PDO_LENGTH)
         return objects
 
+    def _getters(
+        self, axis: _Axis, objects: Sequence[ODVariable], receive: bool
+    ) -> list[Callable[[], int]]:
+        """What a TPDO reads for each mapped object when it is sent (an RPDO reads nothing)."""
+        return [] if receive else [axis.getter(obj.index, obj.subindex) for obj in objects]
+
     def _load_pdo(self, axis: _Axis, number: int, receive: bool) -> _Pdo:
-        com = (cia402.RPDO_COMMUNICATION if receive else cia402.TPDO_COMMUNICATION) + number - 1
-        mapping = com + (cia402.RPDO_MAPPING - cia402.RPDO_COMMUNICATION)
+        com = (od.RPDO_COMMUNICATION if receive else od.TPDO_COMMUNICATION) + number - 1
+        mapping = com + (od.RPDO_MAPPING - od.RPDO_COMMUNICATION)
         cob = axis.value(com, 1)
         count = axis.value(mapping, 0)
         slots = [axis.values.get((mapping, k), 0) for k in range(1, cia402.PDO_MAX_ENTRIES + 1)]
@@ -829,7 +857,8 @@ class VirtualDriveRack:
             slots=slots,
             count=count,
         )
-        pdo.map(self._mapped_objects(axis, slots[:count], receive))
+        objects = self._mapped_objects(axis, slots[:count], receive)
+        pdo.map(objects, self._getters(axis, objects, receive))
         return pdo
 
     def _write_communication(self, pdo: _Pdo, subindex: int, value: int) -> None:
@@ -859,7 +888,8 @@ class VirtualDriveRack:
         if subindex == 0:
             if value > cia402.PDO_MAX_ENTRIES:
                 raise SdoAbortedError(ABORT_PDO_LENGTH)
-            pdo.map(self._mapped_objects(axis, pdo.slots[:value], pdo.receive))
+            objects = self._mapped_objects(axis, pdo.slots[:value], pdo.receive)
+            pdo.map(objects, self._getters(axis, objects, pdo.receive))
             pdo.count = value
             pdo.latched, pdo.last_data = None, None
             return
@@ -887,13 +917,13 @@ class VirtualDriveRack:
         for index in list(axis.node.data_store):
             if not communication_only or index < 0x2000:
                 del axis.node.data_store[index]
-        n_rpdo = _count_pdos(axis.od, cia402.RPDO_COMMUNICATION)
-        n_tpdo = _count_pdos(axis.od, cia402.TPDO_COMMUNICATION)
+        n_rpdo = _count_pdos(axis.od, od.RPDO_COMMUNICATION)
+        n_tpdo = _count_pdos(axis.od, od.TPDO_COMMUNICATION)
         axis.rpdos = [self._load_pdo(axis, n, receive=True) for n in range(1, n_rpdo + 1)]
         axis.tpdos = [self._load_pdo(axis, n, receive=False) for n in range(1, n_tpdo + 1)]
         self._rebuild_rpdo_table()
         if not communication_only:
-            axis.drive = Cia402AxisState(mode=axis.value(cia402.MODES_OF_OPERATION))
+            axis.drive = Cia402AxisState(mode=axis.value(od.MODES_OF_OPERATION))
             self._set_drive(axis, axis.drive, now)
         axis.heartbeat_last_rx_s = None
         axis.sync_armed_s = now
@@ -972,9 +1002,7 @@ class VirtualDriveRack:
             self._counters.bad_frames += 1
             return
         for axis in self._axes:
-            node_id, time_ms = cia402.heartbeat_consumer_entry(
-                axis.value(cia402.HEARTBEAT_CONSUMER, 1)
-            )
+            node_id, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
             if node_id == producer and time_ms:
                 axis.heartbeat_last_rx_s = now
 
@@ -998,7 +1026,7 @@ class VirtualDriveRack:
             self._apply_rpdo(axis, pdo, data, now)
 
     def _apply_rpdo(self, axis: _Axis, pdo: _Pdo, data: bytes, now: float) -> None:
-        for obj, value in zip(pdo.objects, pdo.codec.unpack(data), strict=True):
+        for obj, value in zip(pdo.objects, pdo.frame.unpack(data), strict=True):
             try:
                 self._write(axis, obj.index, obj.subindex, int(value), now)
             except SdoAbortedError:
@@ -1044,7 +1072,7 @@ class VirtualDriveRack:
         self._last_sync_done_s = done
 
     def _cycle_period_s(self) -> float:
-        return max(a.value(cia402.CYCLE_PERIOD) for a in self._axes) * 1e-6
+        return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
 
     def _advance(self, now: float) -> None:
         """Command the torque demands and run the plant one cycle (see the module docstring)."""
@@ -1064,9 +1092,9 @@ class VirtualDriveRack:
         any_enabled = False
         for axis in self._axes:
             demand = self._demand(axis)
-            currents_a[axis.joint_index] = cia402.permille_to_current_a(
-                demand.permille, axis.config.rated_current_a
-            )
+            # Rated torque is k_t x rated current: a torque in per mille of 0x6076 is the same
+            # per mille of 0x6075 (CiA 402-2 0x6071 / 0x6075), the drive's current setpoint.
+            currents_a[axis.joint_index] = axis.current.decode(demand.permille)
             any_enabled = any_enabled or axis.drive.power is PowerState.OPERATION_ENABLED
         if any_enabled:
             refused = self._plant.command(currents_a)
@@ -1082,8 +1110,7 @@ class VirtualDriveRack:
     # --- transmission ----------------------------------------------------------------------
 
     def _encode(self, axis: _Axis, pdo: _Pdo) -> bytes:
-        values = [self._value(axis, obj.index, obj.subindex) for obj in pdo.objects]
-        return pdo.codec.pack(*(0 if v is None else v for v in values))
+        return pdo.frame.pack(*[get() for get in pdo.getters])
 
     def _send(self, cob_id: int, data: bytes) -> bool:
         try:
@@ -1102,7 +1129,7 @@ class VirtualDriveRack:
     def _emcy(self, axis: _Axis, code: int) -> None:
         if axis.nmt == NMT_STOPPED:
             return  # no EMCY in STOPPED (CiA 301)
-        register = axis.value(cia402.ERROR_REGISTER)
+        register = axis.value(od.ERROR_REGISTER)
         try:
             axis.node.emcy.send(code, register)
         except (can.CanError, OSError, RuntimeError) as exc:
@@ -1173,7 +1200,7 @@ class VirtualDriveRack:
 
     def _check_watchdogs(self, now: float) -> None:
         for axis in self._axes:
-            _, time_ms = cia402.heartbeat_consumer_entry(axis.value(cia402.HEARTBEAT_CONSUMER, 1))
+            _, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
             last = axis.heartbeat_last_rx_s
             if time_ms and last is not None and now - last > time_ms * 1e-3:
                 axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
@@ -1191,7 +1218,7 @@ class VirtualDriveRack:
                     pdo.last_rx_s = None  # re-armed by the next reception
                     self._counters.rpdo_timeouts += 1
                     self._connection_lost(axis, cia402.EMCY_RPDO_TIMEOUT, now)
-            period_s = axis.value(cia402.CYCLE_PERIOD) * 1e-6
+            period_s = axis.value(od.CYCLE_PERIOD) * 1e-6
             if (
                 period_s > 0.0
                 and axis.drive.power is PowerState.OPERATION_ENABLED
@@ -1209,12 +1236,23 @@ class VirtualDriveRack:
             logger.warning("virtual drive: %s (further ones are only counted)", message)
 
 
-def _count_pdos(od: ObjectDictionary, communication_base: int) -> int:
-    mapping_offset = cia402.RPDO_MAPPING - cia402.RPDO_COMMUNICATION
+def _signal_getter(
+    signals: Any, row: int, column: int, encode: Callable[[float], int]
+) -> Callable[[], int]:
+    """A getter encoding one plant signal of one axis (`SIGNAL_NAMES` row, axis column)."""
+
+    def get() -> int:
+        return encode(float(signals[row, column]))
+
+    return get
+
+
+def _count_pdos(dictionary: ObjectDictionary, communication_base: int) -> int:
+    mapping_offset = od.RPDO_MAPPING - od.RPDO_COMMUNICATION
     count = 0
     while (
-        communication_base + count in od
-        and communication_base + count + mapping_offset in od
+        communication_base + count in dictionary
+        and communication_base + count + mapping_offset in dictionary
         and count < 512
     ):
         count += 1

@@ -1,10 +1,12 @@
-"""CiA 402 drive logic: the power state machine, statusword, CST torque demand, units (pure core).
+"""CiA 402 drive logic: the power state machine, statusword, CST torque demand (pure core).
 
 What a CiA 402 servo drive decides, with no bus and no clock: how a controlword moves the power
 state machine (CiA 402-2 / IEC 61800-7-201, figure "state machine", transitions 0-16), what the
-statusword reports, what torque the drive may apply in cyclic synchronous torque (CST) mode, and
-how the drive's integer units map to SI. Also the two small CiA 301 codecs the drive needs:
-PDO mapping entries and heartbeat-consumer entries.
+statusword reports, and what torque the drive may apply in cyclic synchronous torque (CST)
+mode. Also the two small CiA 301 codecs the drive needs: PDO mapping entries and
+heartbeat-consumer entries. The objects themselves (indices, types, defaults) are declared in
+`lca_sim.cia402.objects`, and their units (per mille, increments, ...) in
+`lca_sim.cia402.codec`.
 
 `lca_sim.canbus.virtual_rack` is the shell around this: it owns the CANopen nodes and the
 plant, turns frames into calls here, and times the watchdogs. Nothing here imports can,
@@ -21,46 +23,10 @@ State of one drive axis::
 from __future__ import annotations
 
 import enum
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
-# --- object indices (CiA 301 communication, CiA 402 drive profile, lca_hil manufacturer) ---
-
-DEVICE_TYPE = 0x1000
-ERROR_REGISTER = 0x1001
-COB_ID_SYNC = 0x1005
-CYCLE_PERIOD = 0x1006  # us
-COB_ID_EMCY = 0x1014
-HEARTBEAT_CONSUMER = 0x1016
-HEARTBEAT_PRODUCER = 0x1017  # ms
-RPDO_COMMUNICATION = 0x1400  # + PDO number - 1
-RPDO_MAPPING = 0x1600
-TPDO_COMMUNICATION = 0x1800
-TPDO_MAPPING = 0x1A00
-DRIVE_STATE = 0x2010  # gear functional state index (u8)
-MOTION_STATE = 0x2011  # -1, 0, +1 (i8)
-ETA_M = 0x2012  # per mille (u16)
-ETA_L = 0x2013
-ABORT_CONNECTION_OPTION = 0x6007
-ERROR_CODE = 0x603F
-CONTROLWORD = 0x6040
-STATUSWORD = 0x6041
-QUICK_STOP_OPTION = 0x605A
-MODES_OF_OPERATION = 0x6060
-MODES_OF_OPERATION_DISPLAY = 0x6061
-POSITION_ACTUAL = 0x6064  # increments
-VELOCITY_ACTUAL = 0x606C  # increments/s
-TARGET_TORQUE = 0x6071  # per mille of rated torque
-MAX_TORQUE = 0x6072
-MOTOR_RATED_CURRENT = 0x6075  # mA
-MOTOR_RATED_TORQUE = 0x6076  # mN m
-TORQUE_ACTUAL = 0x6077  # per mille of rated torque
-CURRENT_ACTUAL = 0x6078  # per mille of rated current
-POSITION_ENCODER_RESOLUTION = 0x608F
-SUPPORTED_DRIVE_MODES = 0x6502
-
-# --- modes of operation (0x6060) ---
+# --- modes of operation (CiA 402-2 0x6060) ---
 
 MODE_NONE = 0
 MODE_CST = 10  # cyclic synchronous torque
@@ -68,7 +34,7 @@ MODE_CST = 10  # cyclic synchronous torque
 SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CST})
 SUPPORTED_DRIVE_MODES_BITS = 1 << (MODE_CST - 1)  # 0x6502: bit 9 = CST
 
-# --- controlword bits (0x6040) ---
+# --- controlword bits (CiA 402-2 0x6040) ---
 
 CW_SWITCH_ON = 1 << 0
 CW_ENABLE_VOLTAGE = 1 << 1
@@ -77,7 +43,7 @@ CW_ENABLE_OPERATION = 1 << 3
 CW_FAULT_RESET = 1 << 7  # acts on its rising edge only
 CW_HALT = 1 << 8
 
-# --- statusword bits (0x6041) ---
+# --- statusword bits (CiA 402-2 0x6041) ---
 
 SW_READY_TO_SWITCH_ON = 1 << 0
 SW_SWITCHED_ON = 1 << 1
@@ -98,7 +64,7 @@ SW_MASK = 0x4F  # the others
 # |torque actual - torque demand| within which statusword bit 10 says "target reached".
 TARGET_TORQUE_WINDOW_PERMILLE = 10
 
-# --- 0x6007 abort connection option codes ---
+# --- abort connection option codes (CiA 402-2 0x6007) ---
 
 ABORT_NONE = 0
 ABORT_FAULT = 1
@@ -121,8 +87,6 @@ EMCY_RPDO_TIMEOUT = 0x8250
 EMCY_SYNC_LOSS = 0x8700  # sync controller error (no SYNC within the watch time)
 ERROR_REGISTER_GENERIC = 1 << 0
 ERROR_REGISTER_COMMUNICATION = 1 << 4
-
-INT16_MIN, INT16_MAX = -(1 << 15), (1 << 15) - 1
 
 
 class PowerState(enum.Enum):
@@ -383,71 +347,6 @@ def power_state_of(word: int) -> PowerState | None:
 def is_supported_mode(mode: int) -> bool:
     """True for the modes of operation this drive runs (0 no mode, 10 CST)."""
     return mode in SUPPORTED_MODES
-
-
-# --- unit scaling --------------------------------------------------------------------------
-
-
-def saturate_int16(value: float) -> int:
-    """Round to the nearest integer and clamp to the int16 range."""
-    return int(min(max(round(value), INT16_MIN), INT16_MAX))
-
-
-def wrap_int32(value: int) -> int:
-    """Two's-complement wrap into int32, as an encoder counter register overflows."""
-    return (value + (1 << 31)) % (1 << 32) - (1 << 31)
-
-
-def permille_to_current_a(permille: float, rated_current_a: float) -> float:
-    """Per mille of rated torque (or current) -> armature current, A.
-
-    Rated torque is k_t x rated current, so a torque in per mille of it is the same per mille of
-    the rated current.
-    """
-    return permille / 1000.0 * rated_current_a
-
-
-def current_a_to_permille(current_a: float, rated_current_a: float) -> int:
-    """Armature current, A -> per mille of rated current (0x6078), rounded, int16-saturated."""
-    return saturate_int16(current_a / rated_current_a * 1000.0)
-
-
-def permille_to_torque_nm(permille: float, rated_torque_nm: float) -> float:
-    """Per mille of rated torque -> motor torque, N m."""
-    return permille / 1000.0 * rated_torque_nm
-
-
-def torque_nm_to_permille(torque_nm: float, rated_torque_nm: float) -> int:
-    """Motor torque, N m -> per mille of rated torque (0x6071/0x6077), rounded, saturated."""
-    return saturate_int16(torque_nm / rated_torque_nm * 1000.0)
-
-
-def rated_torque_mnm(torque_constant_nm_per_a: float, rated_current_a: float) -> int:
-    """0x6076 motor rated torque, mN m: k_t x rated current."""
-    return round(torque_constant_nm_per_a * rated_current_a * 1000.0)
-
-
-def motor_rad_to_increments(angle_rad: float, increments_per_rev: int) -> int:
-    """Motor shaft angle, rad -> encoder increments (0x6064), rounded, wrapped to int32."""
-    return wrap_int32(round(angle_rad / (2.0 * math.pi) * increments_per_rev))
-
-
-def increments_to_motor_rad(increments: float, increments_per_rev: int) -> float:
-    """Encoder increments (or increments/s) -> motor angle, rad (or rad/s)."""
-    return increments / increments_per_rev * 2.0 * math.pi
-
-
-def motor_rad_s_to_increments_s(velocity_rad_s: float, increments_per_rev: int) -> int:
-    """Motor speed, rad/s -> increments per second (0x606C), rounded, int32-saturated."""
-    value = round(velocity_rad_s / (2.0 * math.pi) * increments_per_rev)
-    return int(min(max(value, -(1 << 31)), (1 << 31) - 1))
-
-
-def efficiency_to_permille(efficiency: float) -> int:
-    """eta_m or eta_l -> per mille (0x2012/0x2013); NaN (axis stopped) -> 0xFFFF."""
-    if math.isnan(efficiency):
-        return 0xFFFF
-    return int(min(max(round(efficiency * 1000.0), 0), 0xFFFE))
 
 
 # --- CiA 301 codecs ------------------------------------------------------------------------

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+from lca_sim.cia402 import codec
 from lca_sim.cia402.device import CW_FAULT_RESET, PowerState, power_state_of
 
 # Whole controlwords a master sends (CiA 402, "device control commands"); the single bits
@@ -21,9 +22,6 @@ CMD_QUICK_STOP = 0x0002
 CMD_SHUTDOWN = 0x0006
 CMD_SWITCH_ON = 0x0007
 CMD_ENABLE_OPERATION = 0x000F
-
-MODE_CST = 10  # cyclic synchronous torque
-MODE_CSV = 9  # cyclic synchronous velocity
 
 
 def power_state(statusword: int) -> PowerState | None:
@@ -87,6 +85,7 @@ class TorqueScale:
     torque_constant_nm_per_a: float
     rated_torque_nm: float
     max_torque_permille: int
+    _torque: codec.Codec = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not (self.torque_constant_nm_per_a > 0.0 and math.isfinite(self.rated_torque_nm)):
@@ -95,10 +94,13 @@ class TorqueScale:
             raise ValueError(f"rated torque must be > 0 N m, got {self.rated_torque_nm!r}")
         if not 0 < self.max_torque_permille <= 32767:
             raise ValueError(f"max torque must be 1..32767 per mille: {self.max_torque_permille}")
+        # 0x6071's codec: per mille of 0x6076 (the other two references do not enter it).
+        units = codec.DriveUnits(self.rated_torque_nm, rated_current_a=1.0, increments_per_rev=1.0)
+        object.__setattr__(self, "_torque", codec.torque(units))
 
     def target_permille(self, current_a: float) -> tuple[int, bool]:
-        """The target torque for a current command, and whether it was clamped."""
-        permille = round(self.torque_constant_nm_per_a * current_a / self.rated_torque_nm * 1000.0)
+        """The target torque (0x6071) for a finite current command, and whether it was clamped."""
+        permille = self._torque.encode(self.torque_constant_nm_per_a * current_a)
         limit = self.max_torque_permille
         if permille > limit:
             return limit, True

@@ -1,8 +1,11 @@
-"""The pure CiA 402 core: state machine table, statusword, torque demand, units, codecs."""
+"""The pure CiA 402 core: state machine table, statusword, torque demand, CiA 301 codecs.
+
+The units (per mille, increments, efficiency) are tested with the object table in
+test_objects_codec.py.
+"""
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import pytest
@@ -217,32 +220,6 @@ def test_supported_modes() -> None:
         False,
     ]
     assert cia402.SUPPORTED_DRIVE_MODES_BITS == 0x0200
-
-
-def test_unit_scaling() -> None:
-    """Per mille <-> A and N m, increments <-> rad, with the numbers worked by hand."""
-    assert cia402.permille_to_current_a(250, 10.0) == pytest.approx(2.5)
-    assert cia402.current_a_to_permille(-1.234, 10.0) == -123
-    assert cia402.current_a_to_permille(1000.0, 10.0) == 32767  # saturated int16
-    assert cia402.rated_torque_mnm(0.12, 10.0) == 1200
-    assert cia402.permille_to_torque_nm(500, 1.2) == pytest.approx(0.6)
-    assert cia402.torque_nm_to_permille(0.3, 1.2) == 250
-    assert cia402.motor_rad_to_increments(math.pi, 65536) == 32768
-    assert cia402.motor_rad_to_increments(-2.0 * math.pi, 65536) == -65536
-    assert cia402.increments_to_motor_rad(16384, 65536) == pytest.approx(math.pi / 2.0)
-    assert cia402.motor_rad_s_to_increments_s(2.0 * math.pi, 4096) == 4096
-    # pivot at 35 deg behind a 600:1 gear: 0.6109 * 600 / (2 pi) * 65536 increments
-    assert cia402.motor_rad_to_increments(0.6109 * 600.0, 65536) == 3823151
-    assert cia402.wrap_int32(2**31) == -(2**31)
-    assert cia402.efficiency_to_permille(0.55) == 550
-    assert cia402.efficiency_to_permille(math.nan) == 0xFFFF
-
-
-@given(st.integers(min_value=-(2**31), max_value=2**31 - 1))
-def test_increments_round_trip(increments: int) -> None:
-    """Encoder increments -> rad -> increments is exact within the int32 range."""
-    rad = cia402.increments_to_motor_rad(increments, 65536)
-    assert cia402.motor_rad_to_increments(rad, 65536) == increments
 
 
 @given(
