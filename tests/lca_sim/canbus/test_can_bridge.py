@@ -86,13 +86,15 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
     """Build rigs; everything started is stopped at the end, whatever happened."""
     cleanups: list[Callable[[], None]] = []
 
-    def build(**overrides: Any) -> Rig:
+    def build(before_init: Callable[[str], None] | None = None, **overrides: Any) -> Rig:
         channel = f"test_can_bridge_{next(_channels)}"
         rack_bus = can.Bus(interface="virtual", channel=channel)
         cleanups.append(rack_bus.shutdown)
         rack = VirtualDriveRack(rack_bus, load_rack_config(None))
         rack.start()
         cleanups.append(rack.stop)
+        if before_init is not None:  # e.g. remap the drives as a real one is mapped
+            before_init(channel)
         injector = can.Bus(interface="virtual", channel=channel)
         cleanups.append(injector.shutdown)
         network = canopen.Network(can.Bus(interface="virtual", channel=channel))
@@ -331,3 +333,104 @@ def test_settle_heap_takes_the_start_up_objects_out_of_the_collectors_sight() ->
         assert len(gc.get_objects()) < 0.1 * tracked_before
     finally:
         gc.unfreeze()  # the rest of the test session collects as usual
+
+
+# --- what the drives report beyond CiA 402 ------------------------------------------------
+
+
+def _first_frame(bus: can.BusABC, cob_id: int, timeout_s: float) -> bytes:
+    """The data of the first frame with `cob_id` in `bus`'s queue (it holds every frame)."""
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0:
+        msg = bus.recv(timeout=left)
+        if msg is not None and msg.arbitration_id == cob_id:
+            return bytes(msg.data)
+    pytest.fail(f"no frame 0x{cob_id:03X} within {timeout_s} s")
+
+
+def test_stopped_axis_reports_nan_efficiency(rig_factory: Callable[..., Rig]) -> None:
+    """0xFFFF in 0x2012 / 0x2013 (eq. 10 idle: the axis is stopped) decodes to NaN, not 65.535."""
+    rig = rig_factory()
+    assert _first_frame(rig.injector, 0x382, 5.0)[2:6] == b"\xff\xff\xff\xff"  # pivot's TPDO3
+    wait_for(
+        lambda: all(rig.bridge.axis_state(j).drive_state >= 0 for j in JOINTS),
+        5.0,
+        "every drive's TPDO3 decoded",
+    )
+    for joint in JOINTS:
+        state = rig.bridge.axis_state(joint)
+        assert state.motion_state == 0
+        assert math.isnan(state.eta_m), (joint, state.eta_m)
+        assert math.isnan(state.eta_l), (joint, state.eta_l)
+    assert rig.bridge.has_drive_state()
+
+
+def test_bridge_decodes_load_friction_and_voltage(rig_factory: Callable[..., Rig]) -> None:
+    """TPDO4: the pivot's gravity load at rest as the plant has it, then 2 A through 1 ohm."""
+    rig = rig_factory()
+    extras = {"load_torque_nm", "friction_torque_nm", "voltage_v"}
+    assert extras <= rig.bridge.decoded_fields()
+    wait_for(
+        lambda: all(math.isfinite(rig.bridge.axis_state(j).voltage_v) for j in JOINTS),
+        5.0,
+        "every drive's TPDO4 decoded",
+    )
+    pivot = JOINTS.index("pivot")
+    with rig.rack._lock:  # at rest, no current: the plant's signals stand still
+        load_nm = float(rig.rack.simulator.signals.values["load_torque_nm"][pivot])
+    state = rig.bridge.axis_state("pivot")
+    assert load_nm > 0.1  # gravity on the pivot at 35 deg, seen at the motor through 600:1
+    assert state.load_torque_nm == pytest.approx(load_nm, abs=0.6e-3)  # 1.2 mN m quantum
+    assert (state.friction_torque_nm, state.voltage_v) == (0.0, 0.0)
+    rig.currents_a = [0.0, 2.0, 0.0, 0.0]
+    _enabled(rig)
+    wait_for(
+        lambda: abs(rig.bridge.axis_state("pivot").voltage_v - 2.0) < 0.02,
+        5.0,
+        "the pivot's amplifier at 2 V (2 A, 1 ohm, standing still)",
+    )
+    held = rig.bridge.axis_state("pivot")
+    assert held.motion_state == 0
+    assert held.current_a == pytest.approx(2.0, abs=0.01)
+
+
+def _unmap_drive_chain(channel: str) -> None:
+    """Disable TPDO3 and TPDO4 on every drive over SDO: what a real CiA 402 drive maps is left."""
+    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
+    network.connect()
+    try:
+        for node_id in NODE_IDS:
+            node = canopen.RemoteNode(node_id, str(EDS))
+            network.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            node.sdo[0x1802][1].raw = 0x80000380 + node_id
+            node.sdo[0x1803][1].raw = 0x80000480 + node_id
+    finally:
+        network.disconnect()
+
+
+def test_a_drive_mapping_only_cia402_objects_is_accepted(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """Statusword, position, velocity, current only: the bridge runs; the rest stays unknown."""
+    rig = _enabled(rig_factory(before_init=_unmap_drive_chain))
+    assert not rig.bridge.has_drive_state()
+    assert rig.bridge.decoded_fields() == {
+        "statusword",
+        "position",
+        "motor_position_rad",
+        "velocity",
+        "motor_velocity_rad_s",
+        "current_a",
+    }
+    rig.currents_a = [0.0, 2.0, 0.0, 0.0]
+    wait_for(
+        lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05,
+        5.0,
+        "pivot current at 2 A",
+    )
+    state = rig.bridge.axis_state("pivot")
+    assert (state.drive_state, state.motion_state) == (-1, 0)
+    unknown = (state.eta_m, state.eta_l, state.load_torque_nm, state.friction_torque_nm)
+    assert all(math.isnan(v) for v in (*unknown, state.voltage_v))
+    assert rig.bridge.counters.bad_pdos == 0

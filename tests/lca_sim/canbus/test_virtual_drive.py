@@ -719,3 +719,56 @@ def test_only_whole_byte_numbers_map(data_type: int, mappable: bool) -> None:
         with pytest.raises(SdoAbortedError) as info:
             _frame_codec([obj])
         assert info.value.code == ABORT_NOT_MAPPABLE
+
+
+# --- the drive-chain extras (TPDO4: 0x2014-0x2016) ------------------------------------------
+
+
+def test_tpdo4_goes_every_tenth_sync(rack: VirtualDriveRack, probe: Probe) -> None:
+    """TPDO4 is transmission type 10: the 10th and 20th of 25 SYNCs, after that SYNC's TPDO1."""
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    mark = probe.mark()
+    sync(rack, probe, 25)
+    wait_until(lambda: len(probe.seen(0x182, mark)) == 25, "25 TPDO1s")
+    wait_until(lambda: len(probe.seen(0x482, mark)) == 2, "two TPDO4s")
+    with probe._lock:
+        ids = [m.arbitration_id for m in probe.frames[mark:] if m.arbitration_id in (0x182, 0x482)]
+    tpdo1_before = [ids[: i + 1].count(0x182) for i, cob in enumerate(ids) if cob == 0x482]
+    assert tpdo1_before == [10, 20]
+    assert all(len(data) == 6 for data in probe.seen(0x482, mark))
+
+
+def test_tpdo4_reports_load_friction_and_voltage(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """Motor-side load and friction torque (per mille of 1.2 N m) and voltage (10 mV) of the plant.
+
+    TPDO4 set to every SYNC (type 1); the pivot lifting at 8 A. A TPDO carries the plant state
+    before its SYNC's step, which is the state after the previous SYNC: read then, compared
+    within one quantum.
+    """
+    node = remote(master, PIVOT)
+    node.sdo[0x1803][2].raw = 1
+    node.sdo[0x1006].raw = 50_000  # SYNC loss after 500 ms: ample for a test sending SYNCs
+    node.sdo[0x6071].raw = 800
+    enable(node)
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    sync(rack, probe, 4)  # 150 ms of plant: the pivot is moving up
+    with rack._lock:
+        signals = rack.simulator.signals
+    pivot = rack.simulator.axis_names.index("pivot")
+    mark = probe.mark()
+    sync(rack, probe)
+    load, friction, voltage = struct.unpack("<hhh", probe.wait(0x482, mark))
+    expected = {name: float(signals.values[name][pivot]) for name in SIGNALS}
+    assert signals.motion[pivot] == 1  # direct: eq. 10 with friction and eta
+    assert load * 1.2e-3 == pytest.approx(expected["load_torque_nm"], abs=0.6e-3)
+    assert friction * 1.2e-3 == pytest.approx(expected["friction_torque_nm"], abs=0.6e-3)
+    assert voltage * 0.01 == pytest.approx(expected["voltage_v"], abs=0.005)
+    # real numbers, not zeros: gravity on the pivot, friction, 8 A through 1 ohm plus back-EMF
+    assert load > 50
+    assert friction > 20
+    assert voltage > 800
+
+
+SIGNALS = ("load_torque_nm", "friction_torque_nm", "voltage_v")
