@@ -429,59 +429,11 @@ class Cia402Master:
             )
         units = axis.units
         assert units is not None  # init() reads them before it binds the PDOs
-        gear = axis.gear
-        index = known.index
-        if index == od.STATUSWORD:
-
-            def statusword(s: AxisState, raw: int) -> None:
-                s.statusword = raw
-
-            return statusword, ("statusword",)
-        if index == od.POSITION_ACTUAL:
-            decode_position = codec.position(units).decode
-
-            def position(s: AxisState, raw: int) -> None:
-                motor_rad = decode_position(raw)
-                s.motor_position_rad = motor_rad
-                s.position = motor_rad / gear
-
-            return position, ("motor_position_rad", "position")
-        if index == od.VELOCITY_ACTUAL:
-            decode_velocity = codec.velocity(units).decode
-
-            def velocity(s: AxisState, raw: int) -> None:
-                motor_rad_s = decode_velocity(raw)
-                s.motor_velocity_rad_s = motor_rad_s
-                s.velocity = motor_rad_s / gear
-
-            return velocity, ("motor_velocity_rad_s", "velocity")
-        if index == od.CURRENT_ACTUAL:
-            decode_current = codec.current(units).decode
-
-            def current(s: AxisState, raw: int) -> None:
-                s.current_a = decode_current(raw)
-
-            return current, ("current_a",)
-        if index == od.DRIVE_STATE:
-
-            def drive_state(s: AxisState, raw: int) -> None:
-                s.drive_state = raw
-
-            return drive_state, ("drive_state",)
-        if index == od.MOTION_STATE:
-
-            def motion_state(s: AxisState, raw: int) -> None:
-                s.motion_state = raw
-
-            return motion_state, ("motion_state",)
+        make = _SETTERS.get(known.index)
+        if make is not None:
+            return make(units, axis.gear)
         if known.signal:  # eta_m, eta_l, load/friction torque, voltage: AxisState fields
-            decode_signal = codec.codec_for(known, units).decode
-            name = known.signal
-
-            def signal(s: AxisState, raw: int) -> None:
-                setattr(s, name, decode_signal(raw))
-
-            return signal, (name,)
+            return _set_scaled(known.signal, codec.codec_for(known, units).decode)
         return None
 
     def _mark_fresh(self, axis: _Axis, bit: int, now: float) -> None:
@@ -787,6 +739,55 @@ class Cia402Master:
             if axis.joint == joint:
                 return axis
         raise KeyError(f"unknown joint {joint!r}; joints are {list(self.params.joints)}")
+
+
+# --- TPDO field setters: how each object the bridge uses lands in AxisState -----------------
+
+
+def _set_raw(name: str) -> tuple[_Setter, tuple[str, ...]]:
+    """A code or bit field, stored as received (statusword, drive state, motion state)."""
+
+    def set_raw(s: AxisState, raw: int) -> None:
+        setattr(s, name, raw)
+
+    return set_raw, (name,)
+
+
+def _set_scaled(name: str, decode: Callable[[int], float]) -> tuple[_Setter, tuple[str, ...]]:
+    """A scaled quantity, decoded by its codec."""
+
+    def set_scaled(s: AxisState, raw: int) -> None:
+        setattr(s, name, decode(raw))
+
+    return set_scaled, (name,)
+
+
+def _set_motor_and_joint(
+    motor: str, joint: str, decode: Callable[[int], float], gear: float
+) -> tuple[_Setter, tuple[str, ...]]:
+    """A motor-side quantity decoded by its codec, and the joint-side one through the gear."""
+
+    def set_both(s: AxisState, raw: int) -> None:
+        value = decode(raw)
+        setattr(s, motor, value)
+        setattr(s, joint, value / gear)
+
+    return set_both, (motor, joint)
+
+
+# Objects with a setter of their own (the signal objects 0x2012-0x2016 go by their name).
+_SETTERS: dict[int, Callable[[DriveUnits, float], tuple[_Setter, tuple[str, ...]]]] = {
+    od.STATUSWORD: lambda units, gear: _set_raw("statusword"),
+    od.POSITION_ACTUAL: lambda units, gear: _set_motor_and_joint(
+        "motor_position_rad", "position", codec.position(units).decode, gear
+    ),
+    od.VELOCITY_ACTUAL: lambda units, gear: _set_motor_and_joint(
+        "motor_velocity_rad_s", "velocity", codec.velocity(units).decode, gear
+    ),
+    od.CURRENT_ACTUAL: lambda units, gear: _set_scaled("current_a", codec.current(units).decode),
+    od.DRIVE_STATE: lambda units, gear: _set_raw("drive_state"),
+    od.MOTION_STATE: lambda units, gear: _set_raw("motion_state"),
+}
 
 
 def _fields(state: AxisState) -> dict[str, Any]:

@@ -4,8 +4,10 @@ Four `canopen.LocalNode`s (SDO server, NMT slave with boot-up and heartbeat, EMC
 python-can bus, all backed by ONE `CommandedPlant(interface="current")` of one `Simulator`, so the
 axes stay coupled through the Pinocchio gantry model. The drive logic (state machine, statusword,
 torque demand, units) is the pure `lca_sim.cia402.device`; this module does the bus I/O, the object
-storage, the PDOs and the watchdog timing (`time.monotonic`, here only). docs/can.md is the
-contract: objects, default PDO mapping, units.
+storage, the PDOs and the watchdog timing (`time.monotonic`, here only). The objects, their
+types and defaults are `lca_sim.cia402.objects` (the EDS agrees with it), and every scaled value
+is encoded with `lca_sim.cia402.codec`. docs/can.md is the contract: objects, default PDO
+mapping, units.
 
 Public API::
 
@@ -40,7 +42,8 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   SYNC the plant does not move. Event-driven RPDOs (type 254/255) are applied on reception.
 * TPDOs: type 0 at a SYNC when their data changed, 1-240 every n-th SYNC, 254/255 when their
   data changed (checked after every SYNC and every `MONITOR_PERIOD_S`; inhibit time sub 3) and
-  at least every event timer (sub 5) ms. TPDO3 (0x2010-0x2013) is type 254 with 100 ms.
+  at least every event timer (sub 5) ms. TPDO3 (0x2010-0x2013) is type 254 with 100 ms;
+  TPDO4 (0x2014-0x2016: motor-side load and friction torque, voltage) type 10.
 * CST: target torque (per mille of 0x6076) -> current setpoint = permille / 1000 x rated current
   (0x6075), clamped to +-0x6072 (statusword bit 11 while clamped); the in-drive current PI
   (`CommandedPlant`) follows it at the plant rate. Zero current unless OPERATION ENABLED in mode 10
@@ -1049,18 +1052,7 @@ class VirtualDriveRack:
             self._set_drive(axis, axis.drive, now)
             axis.sync_loss_reported = False
         for axis in operational:
-            for pdo in axis.tpdos:
-                if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
-                    continue
-                if pdo.transmission_type == 0:
-                    frame = self._encode(axis, pdo)
-                    if frame != pdo.last_data:
-                        self._send_tpdo(pdo, frame, now)
-                    continue
-                pdo.sync_count += 1
-                if pdo.sync_count >= pdo.transmission_type:
-                    pdo.sync_count = 0
-                    self._send_tpdo(pdo, self._encode(axis, pdo), now)
+            self._send_sync_tpdos(axis, now)
         # A real drive's TPDOs leave in hardware while its CPU goes on; here the master reads
         # them on a thread of this process, so let it before the plant's period is computed.
         yield_gil()
@@ -1070,6 +1062,21 @@ class VirtualDriveRack:
         done = time.monotonic()
         self._service_event_tpdos(done)
         self._last_sync_done_s = done
+
+    def _send_sync_tpdos(self, axis: _Axis, now: float) -> None:
+        """At a SYNC: type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
+        for pdo in axis.tpdos:
+            if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
+                continue
+            if pdo.transmission_type == 0:
+                frame = self._encode(axis, pdo)
+                if frame != pdo.last_data:
+                    self._send_tpdo(pdo, frame, now)
+                continue
+            pdo.sync_count += 1
+            if pdo.sync_count >= pdo.transmission_type:
+                pdo.sync_count = 0
+                self._send_tpdo(pdo, self._encode(axis, pdo), now)
 
     def _cycle_period_s(self) -> float:
         return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
