@@ -45,7 +45,7 @@ from lca_control.contract import (
     JOINT_STATES,
     MOTOR_STATES,
 )
-from lca_sim.cli.results import save_png
+from lca_sim.cli.output import save_png
 from lca_sim.model.state_machine import StopState
 
 if TYPE_CHECKING:

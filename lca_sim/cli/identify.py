@@ -46,7 +46,7 @@ from lca_sim.analysis.identify import (
     StateEstimate,
     identify,
 )
-from lca_sim.cli.results import atomic_path
+from lca_sim.cli.output import atomic_path
 from lca_sim.config.loader import load_robot
 from lca_sim.errors import EXIT_OK, LcaHilError, OutputError, UnknownNameError, run_guarded
 from lca_sim.model.params import AxisParams, RobotParams

@@ -1,30 +1,24 @@
 """Writing scenario results: the result.csv table and a Fig. 9/10-style PNG (the I/O edge).
 
-Files are written to a temporary name in the target folder and renamed into place, so an
-interrupted run never leaves a half-written result behind.
+Both are written atomically (`lca_sim.cli.output`), so an interrupted run never leaves a
+half-written result behind.
 """
 
 from __future__ import annotations
 
-import csv
 import math
-import os
-import tempfile
-from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lca_sim.model.scenario import ScenarioResult
+from lca_sim.cli.output import number_cell, save_png, write_table
 from lca_sim.model.simulator import SIGNAL_NAMES
 from lca_sim.model.state_machine import MotionState
 
 if TYPE_CHECKING:
-    from matplotlib.figure import Figure
-
-PNG_DPI = 110  # every PNG the tools write
+    from lca_sim.model.scenario import ScenarioResult
 
 # Per-axis CSV columns after the axis-name prefix, in order.
 CSV_AXIS_COLUMNS: tuple[str, ...] = (
@@ -50,30 +44,6 @@ def csv_header(axis_names: tuple[str, ...]) -> list[str]:
     return ["t_s"] + [f"{axis}_{col}" for axis in axis_names for col in CSV_AXIS_COLUMNS]
 
 
-def _number(x: float) -> str:
-    return "nan" if math.isnan(x) else repr(float(x))
-
-
-def _cell(x: object) -> str:
-    """A CSV cell: floats in shortest round-trip form (nan as such), the rest as text."""
-    return _number(float(x)) if isinstance(x, float | np.floating) else str(x)
-
-
-def write_table(path: Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
-    """Write a CSV table atomically, floats in shortest round-trip form."""
-    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.writer(handle, lineterminator="\n")
-        writer.writerow(header)
-        writer.writerows([_cell(x) for x in row] for row in rows)
-
-
-def save_png(fig: Figure, path: Path) -> None:
-    """Lay out and write a matplotlib figure as PNG, atomically."""
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=PNG_DPI)
-
-
 def csv_rows(result: ScenarioResult) -> Iterator[list[str]]:
     """The rows of result.csv; floats in shortest round-trip form, states as names."""
     signal_columns = [
@@ -90,38 +60,20 @@ def csv_rows(result: ScenarioResult) -> Iterator[list[str]]:
     eta_m = result.signals[:, _signal_row("eta_m"), :]
     eta_l = result.signals[:, _signal_row("eta_l"), :]
     for k in range(len(result.time_s)):
-        row = [_number(result.time_s[k])]
+        row = [number_cell(result.time_s[k])]
         for a in range(len(result.axis_names)):
-            row.append(_number(result.position[k, a]))
-            row.append(_number(result.velocity[k, a]))
-            row.extend(_number(col[k, a]) for col in signal_columns)
+            row.append(number_cell(result.position[k, a]))
+            row.append(number_cell(result.velocity[k, a]))
+            row.extend(number_cell(col[k, a]) for col in signal_columns)
             row.append(_MOTION_NAMES[int(result.motion[k, a])])
             row.append(result.state_names[int(result.drive[k, a])])
-            row.append(_number(eta_m[k, a]))
-            row.append(_number(eta_l[k, a]))
+            row.append(number_cell(eta_m[k, a]))
+            row.append(number_cell(eta_l[k, a]))
         yield row
 
 
 def _signal_row(name: str) -> int:
     return SIGNAL_NAMES.index(name)
-
-
-@contextmanager
-def atomic_path(target: Path) -> Iterator[Path]:
-    """A temporary path next to `target`, renamed onto it only if the block succeeds."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o666 & ~umask)  # mkstemp makes 0600; the result is an ordinary file
-    try:
-        yield tmp
-        os.replace(tmp, target)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def write_csv(result: ScenarioResult, path: Path) -> None:

@@ -31,7 +31,7 @@ from lca_sim.analysis.linear import (
     cascade_loops,
     linearise_points,
 )
-from lca_sim.cli.results import atomic_path
+from lca_sim.cli.output import atomic_path
 from lca_sim.config.loader import config_dir, load_robot, read_yaml
 from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, run_guarded
 from lca_sim.model.simulator import Simulator
