@@ -6,7 +6,7 @@
     lca-hil identify RESULT --axis pivot   # efficiencies from recorded motion
 
 Only `fig15` (and `paper` with Fig. 15) imports rclpy, and only when it runs, so the other
-sub-commands work where ROS 2 is not installed.
+sub-commands work where ROS 2 is not installed; there, those two exit 2 with one error line.
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ from pathlib import Path
 from lca_sim.cli import identify as identify_cli
 from lca_sim.cli import paper as paper_cli
 from lca_sim.cli import tune
+from lca_sim.cli.ros_guard import ros_required
+from lca_sim.errors import run_guarded
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -37,8 +39,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return tune.run(args)
     if args.command == "paper":
         return paper_cli.run(args)
-    from lca_sim.cli.fig15 import run_fig15  # noqa: PLC0415  (rclpy: only for this command)
+    return run_guarded("lca-hil fig15", lambda: _fig15(args))
 
+
+def _fig15(args: argparse.Namespace) -> int:
+    with ros_required("this command"):
+        from lca_sim.cli.fig15 import run_fig15  # noqa: PLC0415  (rclpy: only for this command)
     return run_fig15(args.out, args.duration_s)
 
 

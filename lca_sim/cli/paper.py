@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import importlib
 import json
 import math
 import sys
@@ -42,7 +43,8 @@ from lca_sim.analysis.paper import (
     current_step,
     open_loop_phases,
 )
-from lca_sim.cli.results import atomic_path, save_png, write_table
+from lca_sim.cli.output import atomic_path, save_png, write_table
+from lca_sim.cli.ros_guard import ros_required
 from lca_sim.cli.tune import tune_axis
 from lca_sim.config.loader import load_robot, load_scenario
 from lca_sim.errors import EXIT_FAILED, USER_ERRORS, LcaHilError, OutputError, run_guarded
@@ -473,6 +475,10 @@ def _run(args: argparse.Namespace) -> int:
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise OutputError(f"--out {out}: expected a folder, but it is a file")
+    if not args.no_ros:
+        # Fail now, not after the other figures, where ROS 2 is not there.
+        with ros_required("Fig. 15", hint=", or pass --no-ros"):
+            importlib.import_module("lca_sim.cli.fig15")
     robot = load_robot(args.robot)
     reversible = load_robot("reversible")
     sim = Simulator(robot)
