@@ -1,1 +1,1 @@
-"""lca_sim.analysis."""
+"""lca_sim.analysis: linearisation, identification, the paper's figures as data (pure)."""

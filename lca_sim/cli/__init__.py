@@ -1,1 +1,1 @@
-"""lca_sim.cli.sim."""
+"""lca_sim.cli: the console scripts (lca-sim, lca-hil, lca-plot), their result files and plots."""

@@ -1,1 +1,1 @@
-"""lca_sim.config.loader."""
+"""lca_sim.config: YAML files -> validated, typed parameters (the one place that reads them)."""
