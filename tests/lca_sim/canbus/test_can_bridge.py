@@ -434,3 +434,32 @@ def test_a_drive_mapping_only_cia402_objects_is_accepted(
     unknown = (state.eta_m, state.eta_l, state.load_torque_nm, state.friction_torque_nm)
     assert all(math.isnan(v) for v in (*unknown, state.voltage_v))
     assert rig.bridge.counters.bad_pdos == 0
+
+
+def test_compiled_tpdo_decoder_agrees_with_the_codec() -> None:
+    """The bridge's per-mapping decoder gives the codec's values, NaN for 0xFFFF, skips bytes."""
+    import struct
+
+    from lca_sim.canbus.master import AxisState, _compile_apply, _Target
+    from lca_sim.cia402 import codec
+
+    units = codec.DriveUnits(rated_torque_nm=1.2, rated_current_a=10.0, increments_per_rev=65536)
+    targets = [
+        _Target(("statusword",)),
+        _Target(("motor_position_rad", "position"), codec.position(units).decoder()),
+        _Target(("eta_m",), codec.EFFICIENCY.decoder()),
+        _Target(("voltage_v",), codec.VOLTAGE.decoder()),
+    ]
+    # statusword, position, 2 bytes of an object the bridge skips, eta_m, voltage
+    frame = struct.pack("<Hi2xHh", 0x0237, -3823151, 0xFFFF, -1234)
+    apply = _compile_apply(targets, struct.Struct("<Hi2xHh").unpack_from, 600.0)
+    state = AxisState()
+    apply(state, bytearray(frame))
+    assert state.statusword == 0x0237
+    assert state.motor_position_rad == codec.position(units).decode(-3823151)
+    assert state.position == pytest.approx(-0.6109, abs=1e-6)  # 35 deg below, through 600:1
+    assert math.isnan(state.eta_m)
+    assert state.voltage_v == pytest.approx(-12.34)
+    assert math.isnan(state.load_torque_nm)  # not mapped: unknown
+    with pytest.raises(ValueError, match="not AxisState fields"):
+        _compile_apply([_Target(("__class__",))], struct.Struct("<H").unpack_from, 1.0)

@@ -82,6 +82,17 @@ def test_encode_of_decode_is_exact_for_every_raw_value(
     assert c.encode(c.decode(raw)) == raw
 
 
+@pytest.mark.parametrize("name", QUANTITIES)
+@given(units=units_st, data=st.data())
+def test_the_fast_decoder_is_decode(name: str, units: DriveUnits, data: st.DataObject) -> None:
+    """`Codec.decoder()` (what the bridge calls per frame) gives decode's value for every raw."""
+    c = QUANTITIES[name](units)
+    type_ = c.data_type
+    raw = data.draw(st.integers(type_.min_raw, type_.max_raw))
+    fast, exact = c.decoder()(raw), c.decode(raw)
+    assert fast == exact or (math.isnan(fast) and math.isnan(exact))
+
+
 @pytest.mark.parametrize(
     ("data_type", "lo", "hi"),
     [
