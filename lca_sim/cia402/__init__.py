@@ -1,1 +1,5 @@
-"""lca_sim.cia402.device."""
+"""Pure CANopen CiA 301 / CiA 402 logic: no bus, no clock, no file.
+
+`objects` declares the object dictionary once, `codec` its units, `device` what a drive decides
+(power state machine, statusword, torque demand), `master` what the bridge decides.
+"""
