@@ -1,29 +1,61 @@
-"""The ROS 2 topic interface of lca_hil: names, types and QoS shared by every node and tool.
+"""The plant contract: what every plant backend publishes and accepts over ROS 2.
 
-The simulator node and the CAN bridge publish the same topics and take the same commands, so
-the controller (and any user's controller) works against either unchanged.
+A controller needs the same things of any plant, so this is the one definition the simulator
+node and the CAN bridge (and any later backend) are held to; `lca_sim.ros.plant_contract` is the
+one builder that turns a `PlantSnapshot` into the messages, and
+`tests/lca_sim/ros/test_plant_contract.py` runs every backend against it. docs/contract.md is
+the prose and the table of keys.
 
-Topics (type, publisher, content):
+Topics (`PLANT_PUBLISHES`, `PLANT_SUBSCRIBES`; QoS as plain values in `QosSpec`):
 
-* `joint_states` (sensor_msgs/JointState, plant): joint side, SI (rad, rad/s; m, m/s for the
-  lift); effort = N * tau_m, the joint torque (force) the motor applies through the gear before
-  losses (N m, N).
+* `joint_states` (sensor_msgs/JointState, plant): joint side, SI (rad, rad/s; m, m/s for a
+  prismatic joint such as the lift); effort = N * tau_m, the joint torque (force) the motor
+  applies through the gear before losses (N m, N).
 * `motor_states` (sensor_msgs/JointState, plant): motor side, position (rad), velocity (rad/s),
   effort = armature current (A).
-* `drive_chain_states` (diagnostic_msgs/DiagnosticArray, plant): one status per axis, named
-  `drive_chain/<joint>`, message = drive state, key/values `DRIVE_STATE_KEYS`.
-* `/diagnostics` (diagnostic_msgs/DiagnosticArray, every node): 1 Hz health, counters, faults.
-* `/clock` (rosgraph_msgs/Clock, simulator): simulated time, in lockstep.
-* `voltage_commands` (std_msgs/Float64MultiArray, controller): V per joint, in the order of the
-  `joints` parameter (the ros2_control forward-command convention).
+* `drive_chain_states` (diagnostic_msgs/DiagnosticArray, plant): one status per joint, named
+  `drive_chain/<joint>`, message = drive state, key/values exactly `DRIVE_STATE_KEYS` in that
+  order (`DRIVE_KEYS` gives each key's unit and valid range).
+* `/diagnostics` (diagnostic_msgs/DiagnosticArray, every node): health, counters, faults.
+* `/clock` (rosgraph_msgs/Clock): simulated time; only a plant that runs in lockstep
+  publishes it.
 * `current_commands` (std_msgs/Float64MultiArray, controller): A per joint; the current loop
   runs in the drive.
-* `velocity_reference` (std_msgs/Float64MultiArray, user): rad/s (m/s) per joint.
+* `voltage_commands` (std_msgs/Float64MultiArray, controller): V per joint. A plant that cannot
+  take voltages (a CiA 402 drive takes torque) still subscribes, to count and refuse them.
+* `velocity_reference` (std_msgs/Float64MultiArray, user -> controller): rad/s (m/s) per joint.
 
-This module imports no ROS package: names and keys only, so tools and tests can share them.
+Joint order: every state message of a plant names all its joints in the robot's axis order
+(`RobotParams.axis_names`; l_arm, pivot, c_arc, lift for the shipped robots), the same in every
+message, and `drive_chain_states` has its statuses in that order. Command arrays are in the order
+of the receiving node's `joints` parameter (the ros2_control forward-command convention).
+
+Vocabularies: the motion state is one of `MOTION_STATE_NAMES` (`stop`, `direct`, `reverse`, the
+names of the model's `MotionState` and of result.csv; codes 0, +1, -1, the direction sign d).
+The drive state is one of the robot's state-machine state names
+(`RobotParams.state_machine.state_names`: the stop states first, then the moving states of the
+robot YAML), its code the index into them. `UNKNOWN` stands for either when the backend has no
+report of it (a real CiA 402 drive, or the virtual one before its first drive-chain PDO); a
+number a backend cannot know is NaN, never 0 and never a raw "undefined" marker.
+
+This module imports no ROS package (plain values and numpy only), so the controller, tools and
+tests share it without rclpy.
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from lca_control.pi import ControlParamError
+
+FloatArray = npt.NDArray[np.float64]
+
+# --- topics and types --------------------------------------------------------------------
 
 JOINT_STATES = "joint_states"
 MOTOR_STATES = "motor_states"
@@ -39,23 +71,292 @@ DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 FLOAT64_MULTI_ARRAY_TYPE = "std_msgs/msg/Float64MultiArray"
 
-# Keys of each per-axis DiagnosticStatus on `drive_chain_states` (values are strings, as
-# diagnostic_msgs/KeyValue requires; numbers in repr form, SI units in the key names). The
-# status `name` is `drive_chain/<joint>`, its `message` the drive-state name.
-DRIVE_STATE_KEYS: tuple[str, ...] = (
-    "motion_state",
-    "drive_state",
-    "eta_m",
-    "eta_l",
-    "motor_torque_nm",
-    "load_torque_nm",
-    "friction_torque_nm",
-    "current_a",
-    "voltage_v",
-)
-DRIVE_STATUS_PREFIX = "drive_chain/"
-
 # Reliable, keep-last: the lockstep loop must not drop a state or a command, and a recorder
 # that falls behind for a moment must not lose samples either.
 STATE_QOS_DEPTH = 100
 COMMAND_QOS_DEPTH = 10
+DIAGNOSTICS_QOS_DEPTH = 10
+CLOCK_QOS_DEPTH = 10
+
+RELIABLE = "reliable"
+BEST_EFFORT = "best_effort"
+
+
+@dataclass(frozen=True, slots=True)
+class QosSpec:
+    """A topic's QoS as plain values: keep-last `depth`, `reliability` RELIABLE or BEST_EFFORT.
+
+    Durability is volatile and history keep-last everywhere (the ROS defaults).
+    """
+
+    depth: int
+    reliability: str = RELIABLE
+
+
+STATE_QOS = QosSpec(STATE_QOS_DEPTH)
+COMMAND_QOS = QosSpec(COMMAND_QOS_DEPTH)
+DIAGNOSTICS_QOS = QosSpec(DIAGNOSTICS_QOS_DEPTH)
+CLOCK_QOS = QosSpec(CLOCK_QOS_DEPTH)
+
+
+@dataclass(frozen=True, slots=True)
+class TopicSpec:
+    """One topic of the contract.
+
+    Attributes:
+        name: the topic name (relative names take the node's namespace).
+        type: the ROS message type, `pkg/msg/Type`.
+        qos: what the plant's publisher or subscription uses.
+        required: every backend has it; False: only some do (`/clock`, in lockstep).
+    """
+
+    name: str
+    type: str
+    qos: QosSpec
+    required: bool = True
+
+
+PLANT_PUBLISHES: tuple[TopicSpec, ...] = (
+    TopicSpec(JOINT_STATES, JOINT_STATE_TYPE, STATE_QOS),
+    TopicSpec(MOTOR_STATES, JOINT_STATE_TYPE, STATE_QOS),
+    TopicSpec(DRIVE_CHAIN_STATES, DIAGNOSTIC_ARRAY_TYPE, STATE_QOS),
+    TopicSpec(DIAGNOSTICS, DIAGNOSTIC_ARRAY_TYPE, DIAGNOSTICS_QOS),
+    TopicSpec(CLOCK, CLOCK_TYPE, CLOCK_QOS, required=False),
+)
+PLANT_SUBSCRIBES: tuple[TopicSpec, ...] = (
+    TopicSpec(CURRENT_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
+    TopicSpec(VOLTAGE_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
+)
+
+# Units of the JointState fields (revolute joint; a prismatic one reads m, m/s, N).
+JOINT_STATE_UNITS: Mapping[str, str] = {"position": "rad", "velocity": "rad/s", "effort": "N m"}
+MOTOR_STATE_UNITS: Mapping[str, str] = {"position": "rad", "velocity": "rad/s", "effort": "A"}
+
+# --- vocabularies ------------------------------------------------------------------------
+
+UNKNOWN = "unknown"
+# The motion state (the upper level of the paper's Fig. 6): name <-> direction sign d.
+MOTION_STATE_CODES: Mapping[str, int] = {"stop": 0, "direct": 1, "reverse": -1}
+# Keyed by float too (an int code finds its name as well): snapshots carry the codes as floats.
+MOTION_STATE_NAMES: Mapping[float, str] = {code: name for name, code in MOTION_STATE_CODES.items()}
+
+
+class UnknownStateError(ControlParamError):
+    """A state name that is not in the contract's vocabulary (the valid names are listed)."""
+
+    def __init__(self, kind: str, name: str, valid: Sequence[str]) -> None:
+        self.kind = kind
+        self.name = name
+        self.valid = tuple(valid)
+        super().__init__(f"unknown {kind} {name!r}; valid: {', '.join(self.valid)}")
+
+
+def motion_state_name(code: float) -> str:
+    """The name of a motion-state code (-1, 0, +1, as int or exact float); UNKNOWN otherwise."""
+    return MOTION_STATE_NAMES.get(code, UNKNOWN)
+
+
+def motion_state_code(name: str) -> int:
+    """The code of a motion-state name.
+
+    Raises:
+        UnknownStateError: `name` is not one of MOTION_STATE_NAMES.
+    """
+    try:
+        return MOTION_STATE_CODES[name]
+    except KeyError:
+        raise UnknownStateError("motion state", name, tuple(MOTION_STATE_CODES)) from None
+
+
+def drive_state_name(code: float, state_names: Sequence[str]) -> str:
+    """The name of a drive-state code (an index into the robot's state names); UNKNOWN if none.
+
+    NaN, a negative code (the CAN bridge's "not reported yet") or one past the names is UNKNOWN.
+    """
+    if 0 <= code < len(state_names):
+        return state_names[int(code)]
+    return UNKNOWN
+
+
+# --- drive_chain/<joint> keys ------------------------------------------------------------
+
+DRIVE_STATUS_PREFIX = "drive_chain/"
+MOTION = "motion"  # DriveKey.kind of a motion-state name
+DRIVE = "drive"  # DriveKey.kind of a drive-state name
+NUMBER = "number"  # DriveKey.kind of a float, in repr form ('nan' for NaN)
+
+
+@dataclass(frozen=True, slots=True)
+class DriveKey:
+    """One key of a `drive_chain/<joint>` status.
+
+    Attributes:
+        name: the key; for a number it is also the `PlantSnapshot` field it comes from.
+        kind: MOTION, DRIVE (a name of that vocabulary, or UNKNOWN) or NUMBER.
+        unit: SI unit of a number ("1": unitless), "" for a name.
+        low, high: the closed range a finite number must lie in.
+        nan: what NaN means for this key; "" if a backend must never send NaN.
+        text: what the value is.
+    """
+
+    name: str
+    kind: str
+    unit: str
+    text: str
+    low: float = -math.inf
+    high: float = math.inf
+    nan: str = ""
+
+
+_NOT_REPORTED = "the backend cannot know it (a real CiA 402 drive does not report it)"
+
+DRIVE_KEYS: tuple[DriveKey, ...] = (
+    DriveKey(
+        "motion_state",
+        MOTION,
+        "",
+        "upper level of the state machine (Fig. 6): stop, direct or reverse",
+    ),
+    DriveKey(
+        "drive_state",
+        DRIVE,
+        "",
+        "lower level: one of the robot's state names (Figs 7-8, Table 1); = the status message",
+    ),
+    DriveKey(
+        "eta_m",
+        NUMBER,
+        "1",
+        "eq. (10) coefficient on the motor torque in the active drive state",
+        0.0,
+        1.0,
+        "undefined: the axis is stopped (the gear is locked), or " + _NOT_REPORTED,
+    ),
+    DriveKey(
+        "eta_l",
+        NUMBER,
+        "1",
+        "eq. (10) coefficient on the load torque in the active drive state",
+        0.0,
+        1.0,
+        "undefined: the axis is stopped (the gear is locked), or " + _NOT_REPORTED,
+    ),
+    DriveKey("motor_torque_nm", NUMBER, "N m", "motor torque k_t * i, motor side"),
+    DriveKey(
+        "load_torque_nm",
+        NUMBER,
+        "N m",
+        "torque the load demands at the motor shaft, eq. (8): N^-1 (C qdot + Q)",
+        nan=_NOT_REPORTED,
+    ),
+    DriveKey(
+        "friction_torque_nm",
+        NUMBER,
+        "N m",
+        "gear friction torque at the motor shaft, eq. (3) stopped, eq. (4) moving",
+        nan=_NOT_REPORTED,
+    ),
+    DriveKey("current_a", NUMBER, "A", "armature current"),
+    DriveKey(
+        "voltage_v",
+        NUMBER,
+        "V",
+        "amplifier output voltage (within the axis's voltage_limit_v)",
+        nan=_NOT_REPORTED,
+    ),
+)
+DRIVE_KEY = {key.name: key for key in DRIVE_KEYS}
+# Keys of each per-joint DiagnosticStatus on `drive_chain_states`, in message order (values are
+# strings, as diagnostic_msgs/KeyValue requires; numbers in repr form, 'nan' for NaN).
+DRIVE_STATE_KEYS: tuple[str, ...] = tuple(key.name for key in DRIVE_KEYS)
+# The numeric keys, in message order: each is the `PlantSnapshot` field of the same name.
+DRIVE_NUMBER_KEYS: tuple[str, ...] = tuple(k.name for k in DRIVE_KEYS if k.kind == NUMBER)
+
+
+def drive_value_problems(
+    values: Mapping[str, str], state_names: Sequence[str], *, allow_unknown: bool = True
+) -> list[str]:
+    """What is wrong with one `drive_chain/<joint>` status's key/values; [] if nothing.
+
+    Checks the key set and order against DRIVE_STATE_KEYS, names against their vocabulary
+    (with UNKNOWN only if `allow_unknown`), and numbers against their range and NaN rule.
+    """
+    problems: list[str] = []
+    if tuple(values) != DRIVE_STATE_KEYS:
+        problems.append(f"keys {list(values)}, expected {list(DRIVE_STATE_KEYS)}")
+    for key in DRIVE_KEYS:
+        if key.name not in values:
+            continue
+        text = values[key.name]
+        if key.kind != NUMBER:
+            vocabulary = tuple(MOTION_STATE_CODES) if key.kind == MOTION else tuple(state_names)
+            if text not in vocabulary and not (allow_unknown and text == UNKNOWN):
+                problems.append(f"{key.name} {text!r} not in {list(vocabulary)}")
+            continue
+        try:
+            number = float(text)
+        except ValueError:
+            problems.append(f"{key.name} {text!r} is not a number")
+            continue
+        if math.isnan(number):
+            if not key.nan:
+                problems.append(f"{key.name} is NaN, which it must never be")
+        elif not key.low <= number <= key.high:
+            problems.append(f"{key.name} {text} outside [{key.low:g}, {key.high:g}] {key.unit}")
+    return problems
+
+
+# --- the snapshot a backend fills --------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class PlantSnapshot:
+    """One instant of a plant, everything the contract's state topics carry (no ROS types).
+
+    Every per-joint field is a 1-D float64 array in `joints` order. A backend may hand views
+    of its live state (the simulator does, to keep its publish path free of copies): the
+    snapshot is then valid until the backend advances, and the builder consumes it at once.
+    NaN marks a value the backend cannot know.
+
+    Attributes:
+        stamp_s: the instant (s; simulated time, or the wall time of the CAN SYNC).
+        joints: joint names, in the robot's axis order.
+        position, velocity, effort: joint side (rad, rad/s, N m; m, m/s, N for the lift);
+            effort = N * tau_m.
+        motor_position_rad, motor_velocity_rad_s: motor side.
+        current_a: armature current (A).
+        motion_state: codes -1, 0, +1 (MOTION_STATE_NAMES) as floats; NaN if unknown.
+        drive_state: indices into `state_names` as floats; NaN (or negative) if unknown.
+        state_names: the robot's drive-state names (`RobotParams.state_machine.state_names`).
+        eta_m, eta_l: eq. (10) coefficients (1), NaN while stopped.
+        motor_torque_nm, load_torque_nm, friction_torque_nm: motor side (N m).
+        voltage_v: amplifier voltage (V).
+    """
+
+    stamp_s: float
+    joints: tuple[str, ...]
+    position: FloatArray
+    velocity: FloatArray
+    effort: FloatArray
+    motor_position_rad: FloatArray
+    motor_velocity_rad_s: FloatArray
+    current_a: FloatArray
+    motion_state: FloatArray
+    drive_state: FloatArray
+    state_names: tuple[str, ...]
+    eta_m: FloatArray
+    eta_l: FloatArray
+    motor_torque_nm: FloatArray
+    load_torque_nm: FloatArray
+    friction_torque_nm: FloatArray
+    voltage_v: FloatArray
+
+    @property
+    def motion_state_names(self) -> tuple[str, ...]:
+        """The motion state of each joint by name (UNKNOWN where the code is unknown)."""
+        return tuple(motion_state_name(c) for c in self.motion_state.tolist())
+
+    @property
+    def drive_state_names(self) -> tuple[str, ...]:
+        """The drive state of each joint by name (UNKNOWN where the code is unknown)."""
+        return tuple(drive_state_name(c, self.state_names) for c in self.drive_state.tolist())

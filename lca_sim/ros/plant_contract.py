@@ -1,0 +1,154 @@
+"""The one builder of the plant contract's messages: every backend publishes through it.
+
+A backend (the simulator node, the CAN bridge) fills a `lca_control.contract.PlantSnapshot` and
+hands it to `PlantPublisher.publish`; this module alone turns snapshots into `joint_states`,
+`motor_states`, `drive_chain_states` (and `/clock` for a lockstep plant), with the contract's
+topic names, types and QoS, so the backends cannot drift apart. The per-joint
+`drive_chain/<joint>` statuses carry exactly `DRIVE_STATE_KEYS`, names from the contract's
+vocabularies (`UNKNOWN` for a code the backend has no report of) and numbers in repr form
+('nan' for NaN).
+
+Cost: the messages are built once, as templates whose fields are rewritten in place each
+publish, and a message nobody subscribes to is not built at all (a subscriber that joins later
+gets it from its first match on). joint_states always goes out: it is what a controller waits
+for, so it goes first, then motor_states, /clock and the drive chain.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+
+from lca_control import contract as pc
+from lca_control.contract import PlantSnapshot
+from lca_sim.errors import LcaHilError
+from lca_sim.ros.node_util import to_stamp
+
+_RELIABILITY = {
+    pc.RELIABLE: ReliabilityPolicy.RELIABLE,
+    pc.BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT,
+}
+# Where each value goes in a drive_chain/<joint> status (positions in DRIVE_STATE_KEYS).
+_MOTION_AT = pc.DRIVE_STATE_KEYS.index("motion_state")
+_DRIVE_AT = pc.DRIVE_STATE_KEYS.index("drive_state")
+_NUMBERS_AT = tuple(pc.DRIVE_STATE_KEYS.index(name) for name in pc.DRIVE_NUMBER_KEYS)
+
+
+class SnapshotError(LcaHilError):
+    """A snapshot that does not fit the publisher (other joints, or in another order)."""
+
+
+def qos_profile(spec: pc.QosSpec) -> QoSProfile:
+    """The rclpy QoS profile of a contract QoS (keep-last depth, reliability, volatile)."""
+    return QoSProfile(depth=spec.depth, reliability=_RELIABILITY[spec.reliability])  # type: ignore[no-untyped-call]
+
+
+def drive_chain_template(joints: Sequence[str]) -> DiagnosticArray:
+    """The drive_chain_states message, one status per joint with every key, values empty."""
+    array = DiagnosticArray()
+    array.status = [
+        DiagnosticStatus(
+            level=DiagnosticStatus.OK,
+            name=pc.DRIVE_STATUS_PREFIX + joint,
+            values=[KeyValue(key=key, value="") for key in pc.DRIVE_STATE_KEYS],
+        )
+        for joint in joints
+    ]
+    return array
+
+
+def fill_drive_chain(array: DiagnosticArray, snap: PlantSnapshot) -> None:
+    """Rewrite a `drive_chain_template` of the snapshot's joints with its values.
+
+    The status message and `drive_state` are the drive-state name, `motion_state` the
+    motion-state name (UNKNOWN for a code the backend has no report of), numbers repr(float).
+    """
+    names = snap.state_names
+    n_names = len(names)
+    motion = snap.motion_state.tolist()
+    drive = snap.drive_state.tolist()
+    columns = [getattr(snap, key).tolist() for key in pc.DRIVE_NUMBER_KEYS]
+    motion_names = pc.MOTION_STATE_NAMES
+    unknown = pc.UNKNOWN
+    for a, axis_status in enumerate(array.status):
+        code = drive[a]
+        drive_state = names[int(code)] if 0 <= code < n_names else unknown
+        axis_status.message = drive_state
+        kv = axis_status.values
+        kv[_MOTION_AT].value = motion_names.get(motion[a], unknown)
+        kv[_DRIVE_AT].value = drive_state
+        for k, column in zip(_NUMBERS_AT, columns, strict=True):
+            kv[k].value = repr(column[a])
+
+
+class PlantPublisher:
+    """A plant's state publishers, with the contract's names, types and QoS.
+
+    Args:
+        node: the backend's node; the publishers are created on it.
+        joints: the joint names every snapshot carries, in the robot's axis order.
+        clock: also publish /clock with each snapshot's stamp (a lockstep plant).
+    """
+
+    def __init__(self, node: Node, joints: Sequence[str], *, clock: bool = False) -> None:
+        self.joints = tuple(joints)
+        state_qos = qos_profile(pc.STATE_QOS)
+        self.joint_pub: Publisher = node.create_publisher(JointState, pc.JOINT_STATES, state_qos)
+        self.motor_pub: Publisher = node.create_publisher(JointState, pc.MOTOR_STATES, state_qos)
+        self.drive_pub: Publisher = node.create_publisher(
+            DiagnosticArray, pc.DRIVE_CHAIN_STATES, state_qos
+        )
+        self.diagnostics_pub: Publisher = node.create_publisher(
+            DiagnosticArray, pc.DIAGNOSTICS, qos_profile(pc.DIAGNOSTICS_QOS)
+        )
+        self.clock_pub: Publisher | None = (
+            node.create_publisher(Clock, pc.CLOCK, qos_profile(pc.CLOCK_QOS)) if clock else None
+        )
+        self._joint_msg = JointState(name=list(self.joints))
+        self._motor_msg = JointState(name=list(self.joints))
+        self._drive_msg = drive_chain_template(self.joints)
+        self.published = 0
+
+    def publish(self, snap: PlantSnapshot) -> None:
+        """Publish one instant: joint_states always, the others if anyone subscribes.
+
+        Raises:
+            SnapshotError: the snapshot's joints are not this publisher's (a backend bug).
+        """
+        if snap.joints is not self.joints and snap.joints != self.joints:
+            raise SnapshotError(
+                f"snapshot joints {list(snap.joints)}, the publisher's {list(self.joints)}"
+            )
+        stamp = to_stamp(snap.stamp_s)
+        joint = self._joint_msg
+        joint.header.stamp = stamp
+        joint.position = snap.position.tolist()
+        joint.velocity = snap.velocity.tolist()
+        joint.effort = snap.effort.tolist()
+        self.joint_pub.publish(joint)
+
+        if self.motor_pub.get_subscription_count():
+            motor = self._motor_msg
+            motor.header.stamp = stamp
+            motor.position = snap.motor_position_rad.tolist()
+            motor.velocity = snap.motor_velocity_rad_s.tolist()
+            motor.effort = snap.current_a.tolist()
+            self.motor_pub.publish(motor)
+        if self.clock_pub is not None and self.clock_pub.get_subscription_count():
+            self.clock_pub.publish(Clock(clock=stamp))
+        if self.drive_pub.get_subscription_count():
+            drive = self._drive_msg
+            drive.header.stamp = stamp
+            fill_drive_chain(drive, snap)
+            self.drive_pub.publish(drive)
+        self.published += 1
+
+    def publish_diagnostics(self, array: DiagnosticArray) -> None:
+        """Publish the node's own /diagnostics (its content is the node's)."""
+        self.diagnostics_pub.publish(array)
