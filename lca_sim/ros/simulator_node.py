@@ -23,30 +23,26 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
 from lca_control import contract as ri
+from lca_control.contract import PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
-from lca_sim.model.state_machine import MotionState
 from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
     run_node,
     status,
-    to_stamp,
 )
+from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
 from lca_sim.ros.simulator_params import (
     SIMULATOR_PARAMETERS,
     SimulatorNodeParams,
@@ -55,18 +51,6 @@ from lca_sim.ros.simulator_params import (
 
 MAX_CATCH_UP_PERIODS = 4
 _ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
-_MOTION_NAMES = {int(m): m.name.lower() for m in MotionState}
-# The numeric drive-chain values per axis, in message order after motion and drive state.
-_DRIVE_SIGNALS = (
-    "eta_m",
-    "eta_l",
-    "motor_torque_nm",
-    "load_torque_nm",
-    "friction_torque_nm",
-    "current_a",
-    "voltage_v",
-)
-_DRIVE_SIGNAL_ROWS = tuple(_ROW[name] for name in _DRIVE_SIGNALS)
 
 
 class SimulatorNode(Node):
@@ -108,17 +92,9 @@ class SimulatorNode(Node):
         self._published = 0
         self._wrong_interface = 0
         self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
-        self._joint_msg = JointState(name=list(self.sim.axis_names))
-        self._motor_msg = JointState(name=list(self.sim.axis_names))
-        self._drive_msg = self._drive_chain_template()
-
-        state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-        self._joint_pub = self.create_publisher(JointState, ri.JOINT_STATES, state_qos)
-        self._motor_pub = self.create_publisher(JointState, ri.MOTOR_STATES, state_qos)
-        self._drive_pub = self.create_publisher(DiagnosticArray, ri.DRIVE_CHAIN_STATES, state_qos)
-        self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
-        self._clock_pub = self.create_publisher(Clock, ri.CLOCK, 10) if self._lockstep else None
-        command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        self._plant = PlantPublisher(self, self.sim.axis_names, clock=self._lockstep)
+        self._bind_snapshot_rows()
+        command_qos = qos_profile(ri.COMMAND_QOS)
         active, other = (
             (ri.VOLTAGE_COMMANDS, ri.CURRENT_COMMANDS)
             if p.command_interface == "voltage"
@@ -214,7 +190,7 @@ class SimulatorNode(Node):
     def _lockstep_kick(self) -> None:
         p = self.params
         if not self._started:
-            if self._joint_pub.get_subscription_count() >= p.lockstep_subscribers:
+            if self._plant.joint_pub.get_subscription_count() >= p.lockstep_subscribers:
                 self._started = True
                 self._publish_state()
             return
@@ -225,67 +201,59 @@ class SimulatorNode(Node):
 
     # --- publishing ----------------------------------------------------------------------
 
+    def _bind_snapshot_rows(self) -> None:
+        """The simulator's rows a snapshot is made of, taken once.
+
+        `Simulator` updates its arrays in place, so these views stay current and a publish
+        only fills the two products below and the snapshot itself: no per-axis objects.
+        """
+        sim = self.sim
+        state = sim.state_array
+        modes = sim.mode_array
+        signals = sim.signal_array
+        self._q = state[0]
+        self._qdot = state[1]
+        self._current = state[2]
+        self._motion = modes[0]
+        self._drive = modes[1]
+        self._signal_rows = {name: signals[row] for row, name in enumerate(SIGNAL_NAMES)}
+        self._effort = np.zeros(len(sim.axis_names))  # N * tau_m, joint side
+        self._motor_position = np.zeros(len(sim.axis_names))  # N * q
+
+    def _snapshot(self) -> PlantSnapshot:
+        """The plant now, as the contract's snapshot (views of the live state; see above)."""
+        rows = self._signal_rows
+        np.multiply(rows["motor_torque_nm"], self._gear_ratio, out=self._effort)
+        np.multiply(self._q, self._gear_ratio, out=self._motor_position)
+        return PlantSnapshot(
+            stamp_s=self.sim_time_s,
+            joints=self.sim.axis_names,
+            position=self._q,
+            velocity=self._qdot,
+            effort=self._effort,
+            motor_position_rad=self._motor_position,
+            motor_velocity_rad_s=rows["motor_velocity_rad_s"],
+            current_a=self._current,
+            motion_state=self._motion,
+            drive_state=self._drive,
+            state_names=self.sim.state_names,
+            eta_m=rows["eta_m"],
+            eta_l=rows["eta_l"],
+            motor_torque_nm=rows["motor_torque_nm"],
+            load_torque_nm=rows["load_torque_nm"],
+            friction_torque_nm=rows["friction_torque_nm"],
+            voltage_v=rows["voltage_v"],
+        )
+
     def _publish_state(self) -> None:
-        """Publish one instant, joint_states first and the drive-chain states last.
+        """Publish one instant through the contract's builder (joint_states first).
 
         joint_states is what a current-commanding controller waits for: its next command is
         being computed while motor_states, /clock and the drive-chain states go out.
         """
-        sim = self.sim
-        stamp = to_stamp(self.sim_time_s)
-        state = sim.state_array
-        signals = sim.signal_array
-
-        joint = self._joint_msg
-        joint.header.stamp = stamp
-        joint.position = state[0].tolist()
-        joint.velocity = state[1].tolist()
-        joint.effort = (signals[_ROW["motor_torque_nm"]] * self._gear_ratio).tolist()
-        self._joint_pub.publish(joint)
-
-        # Messages nobody has subscribed to are not even built (a subscriber that joins later,
-        # a use_sim_time node's clock included, gets them from its first match on);
-        # joint_states always goes out.
-        if self._motor_pub.get_subscription_count():
-            motor = self._motor_msg
-            motor.header.stamp = stamp
-            motor.position = (state[0] * self._gear_ratio).tolist()
-            motor.velocity = signals[_ROW["motor_velocity_rad_s"]].tolist()
-            motor.effort = state[2].tolist()
-            self._motor_pub.publish(motor)
-
-        if self._clock_pub is not None and self._clock_pub.get_subscription_count():
-            self._clock_pub.publish(Clock(clock=stamp))
-        if self._drive_pub.get_subscription_count():
-            self._publish_drive_chain(stamp)
+        self._plant.publish(self._snapshot())
         self._published += 1
         self._last_publish_wall = time.monotonic()
-
-    def _drive_chain_template(self) -> DiagnosticArray:
-        """The drive-chain message, built once: each publish only rewrites its values."""
-        array = DiagnosticArray()
-        for name in self.sim.axis_names:
-            values = dict.fromkeys(("motion_state", "drive_state", *_DRIVE_SIGNALS), "")
-            array.status.append(
-                status(ri.DRIVE_STATUS_PREFIX + name, DiagnosticStatus.OK, "", values)
-            )
-        return array
-
-    def _publish_drive_chain(self, stamp: Time) -> None:
-        sim = self.sim
-        modes = sim.mode_array
-        rows = sim.signal_array
-        drive = self._drive_msg
-        drive.header.stamp = stamp
-        for a, axis_status in enumerate(drive.status):
-            drive_state = sim.state_names[int(modes[1, a])]
-            axis_status.message = drive_state
-            kv = axis_status.values
-            kv[0].value = _MOTION_NAMES[int(modes[0, a])]
-            kv[1].value = drive_state
-            for k, row in enumerate(_DRIVE_SIGNAL_ROWS, start=2):
-                kv[k].value = repr(float(rows[row, a]))
-        self._drive_pub.publish(drive)
 
     def _publish_diagnostics(self) -> None:
         p = self.params
@@ -333,7 +301,7 @@ class SimulatorNode(Node):
                     },
                 )
             )
-        self._diag_pub.publish(array)
+        self._plant.publish_diagnostics(array)
 
     # --- services and parameters ---------------------------------------------------------
 
