@@ -1,9 +1,12 @@
 r"""The CAN bridge node: `ros2 run lca_hil can_bridge` (console script `lca-can-bridge`).
 
-Swaps the simulator node for CiA 402 drives on a CAN bus, with the same topics (see
-`lca_control.contract`): it takes `current_commands` from the controller and publishes
-`joint_states`, `motor_states`, `drive_chain_states` (when the drives report it: the virtual
-drive does) and `/diagnostics`. The CANopen master itself is `lca_sim.canbus.master.Cia402Master`.
+Swaps the simulator node for CiA 402 drives on a CAN bus, with the same topics (the plant
+contract, `lca_control.contract`): it takes `current_commands` from the controller and publishes
+`joint_states`, `motor_states`, `drive_chain_states` and `/diagnostics` through the contract's
+builder (`lca_sim.ros.plant_contract`). Each complete SYNC cycle becomes one `PlantSnapshot`
+(`plant_snapshot`): what the drives do not report (a real drive: the drive and motion states,
+the efficiencies, the load and friction torques, the voltage) is NaN or `unknown`. The CANopen
+master itself is `lca_sim.canbus.master.Cia402Master`.
 
     lca-can-bridge --ros-args --params-file config/ros/can_bridge.yaml           # virtual rack
     lca-can-bridge --ros-args --params-file config/ros/can_bridge.yaml \\
@@ -32,19 +35,20 @@ from typing import Any
 
 import can
 import canopen
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterType, ParameterValue, SetParametersResult
 from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from lca_control import contract as ri
+from lca_control.contract import FloatArray, PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_sim.canbus.master import (
     GIL_SWITCH_INTERVAL_S,
+    AxisState,
     BridgeError,
     BridgeParams,
     Cia402Master,
@@ -58,10 +62,10 @@ from lca_sim.ros.can_bridge_params import (
     CanBridgeNodeParams,
     validate_can_bridge_params,
 )
-from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status, to_stamp
+from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status
+from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
 from lca_sim.runtime import settle_heap
 
-MOTION_NAMES = {-1: "reverse", 0: "stopped", 1: "direct"}
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
 
 
@@ -94,6 +98,71 @@ def open_bus(interface: str, channel: str, bitrate: int) -> can.BusABC:
         raise ConfigError(
             "parameters", "interface", f"cannot open {interface} channel {channel!r}: {exc}{hint}"
         ) from exc
+
+
+def _axis_row(a: AxisState) -> tuple[float, ...]:
+    """One drive's values in `plant_snapshot`'s row order."""
+    return (
+        a.position,
+        a.velocity,
+        a.motor_position_rad,
+        a.motor_velocity_rad_s,
+        a.current_a,
+        a.motion_state,
+        a.drive_state,
+        a.eta_m,
+        a.eta_l,
+        a.load_torque_nm,
+        a.friction_torque_nm,
+        a.voltage_v,
+    )
+
+
+def plant_snapshot(
+    snap: Snapshot,
+    joints: tuple[str, ...],
+    torque_constants_nm_per_a: FloatArray,
+    gear_ratios: FloatArray,
+    state_names: tuple[str, ...],
+    decoded: frozenset[str],
+) -> PlantSnapshot:
+    """One SYNC cycle of the drives as the plant contract's snapshot.
+
+    effort = k_t * i * N (joint side), motor torque = k_t * i (motor side, k_t from the robot
+    config). A field the drives' TPDOs do not fill (`decoded`: `Cia402Master.decoded_fields`)
+    is unknown: the efficiencies, torques and voltage stay NaN (`AxisState`'s default), the drive
+    state code becomes NaN, and the motion state is NaN unless it is mapped and has been
+    reported (the drive-state code is -1 until the first drive-chain TPDO, and the motion code,
+    0 by default, would read as `stop` before it).
+    """
+    rows = np.array([_axis_row(a) for a in snap.axes], dtype=np.float64).T
+    position, velocity, motor_position, motor_velocity, current, motion, drive = rows[:7]
+    if "drive_state" not in decoded:
+        drive = np.full_like(drive, np.nan)
+    if "motion_state" not in decoded:
+        motion = np.full_like(motion, np.nan)
+    elif "drive_state" in decoded:
+        motion = np.where(drive >= 0.0, motion, np.nan)
+    motor_torque = current * torque_constants_nm_per_a
+    return PlantSnapshot(
+        stamp_s=snap.sync_wall_s,
+        joints=joints,
+        position=position,
+        velocity=velocity,
+        effort=motor_torque * gear_ratios,
+        motor_position_rad=motor_position,
+        motor_velocity_rad_s=motor_velocity,
+        current_a=current,
+        motion_state=motion,
+        drive_state=drive,
+        state_names=state_names,
+        eta_m=rows[7],
+        eta_l=rows[8],
+        motor_torque_nm=motor_torque,
+        load_torque_nm=rows[9],
+        friction_torque_nm=rows[10],
+        voltage_v=rows[11],
+    )
 
 
 def parse_object_name(name: str) -> tuple[str, int, int]:
@@ -173,12 +242,10 @@ class CanBridgeNode(Node):
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
         self._init_lock = threading.Lock()
 
-        state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-        command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-        self._joint_pub = self.create_publisher(JointState, ri.JOINT_STATES, state_qos)
-        self._motor_pub = self.create_publisher(JointState, ri.MOTOR_STATES, state_qos)
-        self._drive_pub = self.create_publisher(DiagnosticArray, ri.DRIVE_CHAIN_STATES, state_qos)
-        self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
+        self._plant = PlantPublisher(self, p.joints)
+        self._torque_constants = np.array(self.bridge.params.torque_constants_nm_per_a)
+        self._gear_ratios = np.array(self.bridge.params.gear_ratios)
+        command_qos = qos_profile(ri.COMMAND_QOS)
         self.create_subscription(
             Float64MultiArray, ri.CURRENT_COMMANDS, self._on_command, command_qos
         )
@@ -300,59 +367,17 @@ class CanBridgeNode(Node):
 
     def _on_state(self, snap: Snapshot) -> None:
         """A complete cycle (notifier thread): publish it. rclpy publishers are thread-safe."""
-        stamp = to_stamp(snap.sync_wall_s)
-        names = list(self.params.joints)
-        axes = snap.axes
-        torque_scale = self.bridge.params.torque_constants_nm_per_a
-        gears = self.bridge.params.gear_ratios
-        joint = JointState(name=names)
-        joint.header.stamp = stamp
-        joint.position = [a.position for a in axes]
-        joint.velocity = [a.velocity for a in axes]
-        joint.effort = [
-            a.current_a * k * n for a, k, n in zip(axes, torque_scale, gears, strict=True)
-        ]
-        self._joint_pub.publish(joint)
-        if self._motor_pub.get_subscription_count():
-            motor = JointState(name=names)
-            motor.header.stamp = stamp
-            motor.position = [a.motor_position_rad for a in axes]
-            motor.velocity = [a.motor_velocity_rad_s for a in axes]
-            motor.effort = [a.current_a for a in axes]
-            self._motor_pub.publish(motor)
-        if self.bridge.has_drive_state() and self._drive_pub.get_subscription_count():
-            self._drive_pub.publish(self._drive_chain(snap, stamp))
+        self._plant.publish(
+            plant_snapshot(
+                snap,
+                self._plant.joints,
+                self._torque_constants,
+                self._gear_ratios,
+                self._state_names,
+                self.bridge.decoded_fields(),
+            )
+        )
         self._published += 1
-
-    def _drive_chain(self, snap: Snapshot, stamp: Any) -> DiagnosticArray:
-        array = DiagnosticArray()
-        array.header.stamp = stamp
-        gears = self.bridge.params.gear_ratios
-        for name, a, k_t, gear in zip(
-            self.params.joints,
-            snap.axes,
-            self.bridge.params.torque_constants_nm_per_a,
-            gears,
-            strict=True,
-        ):
-            drive_state = (
-                self._state_names[a.drive_state]
-                if 0 <= a.drive_state < len(self._state_names)
-                else "unknown"
-            )
-            values = {
-                "motion_state": MOTION_NAMES.get(a.motion_state, "unknown"),
-                "drive_state": drive_state,
-                "eta_m": a.eta_m,
-                "eta_l": a.eta_l,
-                "motor_torque_nm": k_t * a.current_a,
-                "current_a": a.current_a,
-                "gear_ratio": gear,
-            }
-            array.status.append(
-                status(ri.DRIVE_STATUS_PREFIX + name, DiagnosticStatus.OK, drive_state, values)
-            )
-        return array
 
     # --- services ------------------------------------------------------------------------
 
@@ -473,7 +498,7 @@ class CanBridgeNode(Node):
                     },
                 )
             )
-        self._diag_pub.publish(array)
+        self._plant.publish_diagnostics(array)
 
 
 def main(args: Sequence[str] | None = None) -> int:
