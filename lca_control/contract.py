@@ -314,9 +314,9 @@ class PlantSnapshot:
     """One instant of a plant, everything the contract's state topics carry (no ROS types).
 
     Every per-joint field is a 1-D float64 array in `joints` order. A backend may hand views
-    of its live state (the simulator does, to keep its publish path free of copies): the
-    snapshot is then valid until the backend advances, and the builder consumes it at once.
-    NaN marks a value the backend cannot know.
+    of its live state and reuse its arrays (the simulator does, to keep its publish path free
+    of allocations): the snapshot is then valid until the backend advances or takes its next
+    snapshot, and the builder consumes it at once. NaN marks a value the backend cannot know.
 
     Attributes:
         stamp_s: the instant (s; simulated time, or the wall time of the CAN SYNC).
