@@ -46,7 +46,7 @@ from support import wait_until
 from lca_control import contract as pc
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim import load_robot
-from lca_sim.canbus.master import REQUIRED_TPDO_OBJECTS, AxisState, Snapshot
+from lca_sim.canbus.master import AxisState, Snapshot
 from lca_sim.config.loader import config_dir
 from lca_sim.model.state_machine import MotionState, StopState
 from lca_sim.ros.can_bridge_node import CanBridgeNode, plant_snapshot
@@ -590,11 +590,10 @@ def test_bridge_map_before_the_first_drive_chain_pdo() -> None:
 
 def test_bridge_map_of_a_real_cia402_drive() -> None:
     """A drive mapping only CiA 402 objects: the drive chain unknown and NaN, not 0."""
+    # What 0x6041, 0x6064, 0x606C and 0x6078 fill (the master's REQUIRED_TPDO_OBJECTS).
     decoded = frozenset(
-        {"statusword", "position", "motor_position_rad", "velocity", "motor_velocity_rad_s"}
-        | {"current_a"}
-    )
-    assert len(REQUIRED_TPDO_OBJECTS) == 4  # statusword, position, velocity, current
+        ("statusword", "position", "motor_position_rad", "velocity", "motor_velocity_rad_s")
+    ) | {"current_a"}
     values = _drive_values(_map(_snapshot(current_a=1.0), decoded))[PIVOT]
     assert values["motion_state"] == values["drive_state"] == pc.UNKNOWN
     for key in ("eta_m", "eta_l", "load_torque_nm", "friction_torque_nm", "voltage_v"):
