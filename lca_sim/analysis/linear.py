@@ -239,9 +239,6 @@ def independence_frequency(
 # across its range, on both sides of the motor-driving -> load-driving switch near 55 deg.
 DEFAULT_POSITIONS_DEG: tuple[float, ...] = (10.0, 30.0, 45.0, 65.0, 80.0, 100.0)
 DEFAULT_SPEED_DEG_S = 7.0
-# The controller's period (config/ros/controller.yaml): its velocity loop is sampled at it, and
-# the lockstep simulator advances by it per command.
-CONTROL_PERIOD_S = 0.004
 
 
 def linearise_points(

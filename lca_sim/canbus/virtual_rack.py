@@ -91,7 +91,7 @@ from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
 from lca_sim.cia402.device import Cia402AxisState, MappingEntry, PowerState
 from lca_sim.config.loader import config_dir, load_robot, read_yaml
-from lca_sim.errors import USER_ERRORS, ConfigError, UnknownNameError
+from lca_sim.errors import EXIT_BAD_INPUT, USER_ERRORS, ConfigError, UnknownNameError
 from lca_sim.model.commanded_plant import CURRENT, CommandedPlant
 from lca_sim.model.params import AXIS_NAMES, RobotParams
 from lca_sim.model.schema import MappingReader
@@ -1296,7 +1296,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_rack_config(args.config)
     except USER_ERRORS as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     kwargs: dict[str, Any] = {} if args.bitrate is None else {"bitrate": args.bitrate}
     try:
         bus = can.Bus(interface=args.interface, channel=args.channel, **kwargs)
@@ -1306,7 +1306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"channel {args.channel!r}: {exc}",
             file=sys.stderr,
         )
-        return 2
+        return EXIT_BAD_INPUT
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -1329,7 +1329,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             pass
     except USER_ERRORS as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     finally:
         if rack is not None:
             rack.stop()

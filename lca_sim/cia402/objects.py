@@ -356,7 +356,7 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     ObjectEntry(DRIVE_STATE, 0, "Gear functional state", _U8, _RO, True, "lca_hil",
                 default=0),  # index into the robot's drive-state names
     ObjectEntry(MOTION_STATE, 0, "Motion state", _I8, _RO, True, "lca_hil",
-                default=0),  # -1 reverse, 0 stopped, +1 direct
+                default=0),  # -1 reverse, 0 stop, +1 direct
     ObjectEntry(ETA_M, 0, "Motor-side efficiency eta_m", _U16, _RO, True, "lca_hil", "",
                 Scaling.PERMILLE, _SAT, default=EFFICIENCY_UNDEFINED,
                 undefined=EFFICIENCY_UNDEFINED, signal="eta_m"),

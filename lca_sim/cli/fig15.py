@@ -29,14 +29,14 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from lca_control import contract as ri
+from lca_control.cascade import CONTROL_PERIOD_S
 from lca_control.profiles import RampProfile
-from lca_sim.analysis.linear import CONTROL_PERIOD_S
 from lca_sim.cli.bagplot import BagReadError, read_bag
 from lca_sim.config.loader import config_dir
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
 from lca_sim.ros.node_util import from_stamp
 
 PIVOT_START_DEG = 35.0
-EXIT_FAILED = 1
 
 
 def _script(name: str) -> str:
@@ -73,7 +73,7 @@ def run_fig15(out: Path, duration_s: float) -> int:
     bag = out / "bag"
     if bag.exists():
         print(f"lca-hil: error: {bag} exists; choose another --out", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     params = config_dir() / "ros"
     start_rad = math.radians(PIVOT_START_DEG)
     simulator = [

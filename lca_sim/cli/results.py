@@ -13,9 +13,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lca_control.contract import MOTION_STATE_NAMES
 from lca_sim.cli.output import number_cell, save_png, write_table
 from lca_sim.model.simulator import SIGNAL_NAMES
-from lca_sim.model.state_machine import MotionState
 
 if TYPE_CHECKING:
     from lca_sim.model.scenario import ScenarioResult
@@ -35,8 +35,6 @@ CSV_AXIS_COLUMNS: tuple[str, ...] = (
     "eta_m",
     "eta_l",
 )
-
-_MOTION_NAMES = {int(m): m.name.lower() for m in MotionState}
 
 
 def csv_header(axis_names: tuple[str, ...]) -> list[str]:
@@ -65,7 +63,7 @@ def csv_rows(result: ScenarioResult) -> Iterator[list[str]]:
             row.append(number_cell(result.position[k, a]))
             row.append(number_cell(result.velocity[k, a]))
             row.extend(number_cell(col[k, a]) for col in signal_columns)
-            row.append(_MOTION_NAMES[int(result.motion[k, a])])
+            row.append(MOTION_STATE_NAMES[int(result.motion[k, a])])
             row.append(result.state_names[int(result.drive[k, a])])
             row.append(number_cell(eta_m[k, a]))
             row.append(number_cell(eta_l[k, a]))

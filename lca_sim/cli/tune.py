@@ -22,9 +22,9 @@ from typing import Any
 
 import yaml
 
+from lca_control.cascade import CONTROL_PERIOD_S
 from lca_control.tuning import PiTuning, response_time_to_crossover, tune_pi
 from lca_sim.analysis.linear import (
-    CONTROL_PERIOD_S,
     LinearAxisModel,
     LoopMargins,
     PointLoops,
