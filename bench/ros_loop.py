@@ -245,6 +245,87 @@ def role_pong(deadline: float, stop: StopFlag, executor_kind: str) -> JsonDict:
     return {"role": "pong", "ok": True, "answered": answered[0]}
 
 
+class Pinger:
+    """The ping side of ping-pong: one JointState out, the next when its answer is back.
+
+    Round trips are counted on the answers' arrival times: the first answer starts the warm-up,
+    the window opens `warmup_s` later and closes `window_s` after that (no next ping then).
+    """
+
+    def __init__(self, pub: Any, joint_state: type, warmup_s: float, window_s: float) -> None:
+        self.pub = pub
+        self.joint_state = joint_state
+        self.warmup_s = warmup_s
+        self.window_s = window_s
+        self.seq = 0
+        self.count = 0
+        self.sent_at = 0.0
+        self.resends = 0
+        self.stale = 0
+        self.marks: dict[str, float] = {}
+
+    def send(self) -> None:
+        """Publish the ping of the current sequence number (carried in the stamp)."""
+        msg = self.joint_state()
+        msg.header.stamp.nanosec = self.seq
+        msg.name = list(JOINTS)
+        msg.position = [float(self.seq), 0.6109, 0.0, 0.0]
+        msg.velocity = [0.0, 0.01, 0.0, 0.0]
+        msg.effort = [0.0, 1.0, 0.0, 0.0]
+        self.pub.publish(msg)
+        self.sent_at = time.monotonic()
+
+    def on_pong(self, msg: Any) -> None:
+        """Count an answer to the current ping and send the next; ignore stale answers."""
+        now = time.monotonic()
+        if not msg.data or int(msg.data[0]) != self.seq:
+            self.stale += 1
+            return
+        self.count += 1
+        if self.mark_window(now):
+            return  # done: no next ping
+        self.seq = (self.seq + 1) % 1_000_000_000
+        self.send()
+
+    def mark_window(self, now: float) -> bool:
+        """Mark the warm-up start and the window's ends at `now`; True when the window closed."""
+        marks = self.marks
+        if "first_t" not in marks:
+            marks["first_t"] = now
+        elif "a_t" not in marks and now >= marks["first_t"] + self.warmup_s:
+            marks["a_t"], marks["a_n"] = now, self.count
+        elif "a_t" in marks and "b_t" not in marks and now >= marks["a_t"] + self.window_s:
+            marks["b_t"], marks["b_n"] = now, self.count
+            return True
+        return False
+
+    def done(self) -> bool:
+        """True once the window closed; resends a ping whose answer is overdue."""
+        if "b_t" in self.marks:
+            return True
+        if time.monotonic() - self.sent_at > PING_RESEND_S:
+            self.resends += 1
+            self.send()
+        return False
+
+    def result(self) -> JsonDict:
+        """The JSON result of a closed window."""
+        marks = self.marks
+        round_trips = int(marks["b_n"] - marks["a_n"])
+        wall_s = marks["b_t"] - marks["a_t"]
+        return {
+            "role": "ping",
+            "ok": True,
+            "round_trips": round_trips,
+            "wall_s": wall_s,
+            "round_trips_per_s": round_trips / wall_s,
+            "t_start": marks["a_t"],
+            "t_end": marks["b_t"],
+            "resends": self.resends,
+            "stale": self.stale,
+        }
+
+
 def role_ping(
     warmup_s: float, window_s: float, deadline: float, stop: StopFlag, executor_kind: str
 ) -> JsonDict:
@@ -256,38 +337,8 @@ def role_ping(
     node = Node("bench_ping")
     qos = reliable_qos(PINGPONG_QOS_DEPTH)
     pub = node.create_publisher(JointState, PING_TOPIC, qos)
-    state: JsonDict = {"seq": 0, "count": 0, "sent_at": 0.0, "resends": 0, "stale": 0}
-    marks: dict[str, float] = {}
-
-    def send() -> None:
-        seq = state["seq"]
-        msg = JointState()
-        msg.header.stamp.nanosec = seq
-        msg.name = list(JOINTS)
-        msg.position = [float(seq), 0.6109, 0.0, 0.0]
-        msg.velocity = [0.0, 0.01, 0.0, 0.0]
-        msg.effort = [0.0, 1.0, 0.0, 0.0]
-        pub.publish(msg)
-        state["sent_at"] = time.monotonic()
-
-    def on_pong(msg: Any) -> None:
-        now = time.monotonic()
-        if not msg.data or int(msg.data[0]) != state["seq"]:
-            state["stale"] += 1
-            return
-        state["count"] += 1
-        count = state["count"]
-        if "first_t" not in marks:
-            marks["first_t"] = now
-        elif "a_t" not in marks and now >= marks["first_t"] + warmup_s:
-            marks["a_t"], marks["a_n"] = now, count
-        elif "a_t" in marks and "b_t" not in marks and now >= marks["a_t"] + window_s:
-            marks["b_t"], marks["b_n"] = now, count
-            return  # done: no next ping
-        state["seq"] = (state["seq"] + 1) % 1_000_000_000
-        send()
-
-    node.create_subscription(Float64MultiArray, PONG_TOPIC, on_pong, qos)
+    pinger = Pinger(pub, JointState, warmup_s, window_s)
+    node.create_subscription(Float64MultiArray, PONG_TOPIC, pinger.on_pong, qos)
     matched = spin_until(
         node,
         lambda: node.count_subscribers(PING_TOPIC) >= 1 and node.count_publishers(PONG_TOPIC) >= 1,
@@ -298,33 +349,12 @@ def role_ping(
     if not matched:
         node.destroy_node()  # type: ignore[no-untyped-call]
         return {"role": "ping", "ok": False, "error": "pong not discovered"}
-    send()
-
-    def done() -> bool:
-        if "b_t" in marks:
-            return True
-        if time.monotonic() - state["sent_at"] > PING_RESEND_S:
-            state["resends"] += 1
-            send()
-        return False
-
-    finished = spin_until(node, done, deadline, stop, executor_kind)
+    pinger.send()
+    finished = spin_until(node, pinger.done, deadline, stop, executor_kind)
     node.destroy_node()  # type: ignore[no-untyped-call]
     if not finished:
         return {"role": "ping", "ok": False, "error": "no full window before the deadline"}
-    round_trips = int(marks["b_n"] - marks["a_n"])
-    wall_s = marks["b_t"] - marks["a_t"]
-    return {
-        "role": "ping",
-        "ok": True,
-        "round_trips": round_trips,
-        "wall_s": wall_s,
-        "round_trips_per_s": round_trips / wall_s,
-        "t_start": marks["a_t"],
-        "t_end": marks["b_t"],
-        "resends": state["resends"],
-        "stale": state["stale"],
-    }
+    return pinger.result()
 
 
 @dataclass(slots=True)

@@ -206,49 +206,64 @@ def _import_module_name(call: ast.Call) -> str | None:
     return None
 
 
+def _resolve_target(name: str, modules: Mapping[str, Module]) -> str:
+    """An outside module as written; a project one as its nearest existing module.
+
+    `lca_sim.data` (a data-only namespace) is `lca_sim`.
+    """
+    if name.partition(".")[0] not in PROJECT_ROOTS:
+        return name
+    while name not in modules and "." in name:
+        name = name.rpartition(".")[0]
+    return name
+
+
+def _from_base(module: Module, node: ast.ImportFrom) -> str:
+    """The package a `from ... import` takes its names from, relative imports resolved."""
+    if not node.level:
+        return node.module or ""
+    package = module.package.split(".")
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join([*base, *([node.module] if node.module else [])])
+
+
+def _imports_at(
+    node: ast.AST, kind: str, module: Module, modules: Mapping[str, Module]
+) -> list[Import]:
+    """The imports one node makes itself (its children not included)."""
+    if isinstance(node, ast.Import):
+        names = [alias.name for alias in node.names]
+    elif isinstance(node, ast.ImportFrom):
+        base = _from_base(module, node)
+        submodules = (f"{base}.{alias.name}" for alias in node.names)
+        names = [submodule if submodule in modules else base for submodule in submodules]
+    elif isinstance(node, ast.Call) and (name := _import_module_name(node)) is not None:
+        names = [name]
+    else:
+        return []
+    return [Import(module, _resolve_target(n, modules), node.lineno, kind) for n in names]
+
+
+def _child_kind(node: ast.AST, kind: str) -> str:
+    """The kind of the imports below `node`: a function body runs later, so EAGER turns LAZY."""
+    lazy = isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda)
+    return LAZY if lazy and kind == EAGER else kind
+
+
 def read_imports(module: Module, source: str, modules: Mapping[str, Module]) -> list[Import]:
     """Every import of one module's source, with its kind (see the module docstring)."""
     found: list[Import] = []
 
-    def project_target(name: str) -> str:
-        # The nearest existing module: `lca_sim.data` (a data-only namespace) is `lca_sim`.
-        while name not in modules and "." in name:
-            name = name.rpartition(".")[0]
-        return name
-
-    def add(target: str, node: ast.stmt | ast.expr, kind: str) -> None:
-        if target.partition(".")[0] in PROJECT_ROOTS:
-            target = project_target(target)
-        found.append(Import(module, target, node.lineno, kind))
-
-    def from_base(node: ast.ImportFrom) -> str:
-        if not node.level:
-            return node.module or ""
-        package = module.package.split(".")
-        base = package[: len(package) - (node.level - 1)]
-        return ".".join([*base, *([node.module] if node.module else [])])
-
     def walk(node: ast.AST, kind: str) -> None:
-        if isinstance(node, ast.Import):
-            for alias in node.names:
-                add(alias.name, node, kind)
-        elif isinstance(node, ast.ImportFrom):
-            base = from_base(node)
-            for alias in node.names:
-                submodule = f"{base}.{alias.name}"
-                add(submodule if submodule in modules else base, node, kind)
-        elif isinstance(node, ast.Call) and (name := _import_module_name(node)) is not None:
-            add(name, node, kind)
+        found.extend(_imports_at(node, kind, module, modules))
         if isinstance(node, ast.If) and _is_type_checking(node.test):
             for stmt in node.body:
                 walk(stmt, TYPING)
             for stmt in node.orelse:
                 walk(stmt, kind)
             return
-        lazy = isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda)
-        inner = LAZY if lazy and kind == EAGER else kind
         for child in ast.iter_child_nodes(node):
-            walk(child, inner)
+            walk(child, _child_kind(node, kind))
 
     walk(ast.parse(source, filename=str(module.path)), EAGER)
     return found

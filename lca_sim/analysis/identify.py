@@ -410,6 +410,35 @@ def _uniform(
     Returns the time, position, velocity and current on the grid, and a mask that is False
     inside gaps of the original stamps (where the grid's values are interpolated, not measured).
     """
+    time_s, position, velocity, current = _checked_arrays(record, n_axes)
+    n = time_s.shape[0]
+    steps = np.diff(time_s)
+    if np.any(steps <= 0.0):
+        raise IdentificationError("time_s: expected strictly increasing times")
+    period = float(np.median(steps))
+    if float(np.max(np.abs(steps - period))) <= _JITTER_TOLERANCE * period:
+        return time_s, position, velocity, current, np.ones(n, dtype=np.bool_)
+    count = math.floor((time_s[-1] - time_s[0]) / period + 1e-9) + 1
+    grid = time_s[0] + period * np.arange(count, dtype=np.float64)
+    right = np.clip(np.searchsorted(time_s, grid, side="right"), 1, n - 1)
+    valid = (time_s[right] - time_s[right - 1]) <= _GAP_PERIODS * period
+    return (
+        grid,
+        _resample(grid, time_s, position),
+        _resample(grid, time_s, velocity),
+        _resample(grid, time_s, current),
+        valid,
+    )
+
+
+def _checked_arrays(
+    record: MotionRecord, n_axes: int
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The record's time, position, velocity and current as float arrays of matching shapes.
+
+    Raises:
+        IdentificationError: A wrong shape, a non-finite value or fewer than 3 samples.
+    """
     time_s = np.asarray(record.time_s, dtype=np.float64)
     position = np.asarray(record.position, dtype=np.float64)
     velocity = np.asarray(record.velocity, dtype=np.float64)
@@ -434,24 +463,15 @@ def _uniform(
             raise IdentificationError(f"{name}: expected finite values only")
     if n < 3:
         raise IdentificationError(f"expected at least 3 samples, got {n}")
-    steps = np.diff(time_s)
-    if np.any(steps <= 0.0):
-        raise IdentificationError("time_s: expected strictly increasing times")
-    period = float(np.median(steps))
-    if float(np.max(np.abs(steps - period))) <= _JITTER_TOLERANCE * period:
-        return time_s, position, velocity, current, np.ones(n, dtype=np.bool_)
-    count = math.floor((time_s[-1] - time_s[0]) / period + 1e-9) + 1
-    grid = time_s[0] + period * np.arange(count, dtype=np.float64)
+    return time_s, position, velocity, current
 
-    def resample(values: FloatArray) -> FloatArray:
-        if values.ndim == 1:
-            return np.asarray(np.interp(grid, time_s, values), dtype=np.float64)
-        columns = [np.interp(grid, time_s, col) for col in values.T]
-        return np.asarray(np.stack(columns, axis=1), dtype=np.float64)
 
-    right = np.clip(np.searchsorted(time_s, grid, side="right"), 1, n - 1)
-    valid = (time_s[right] - time_s[right - 1]) <= _GAP_PERIODS * period
-    return grid, resample(position), resample(velocity), resample(current), valid
+def _resample(grid: FloatArray, time_s: FloatArray, values: FloatArray) -> FloatArray:
+    """`values` sampled at `time_s` (1-D, or one column per axis) interpolated onto `grid`."""
+    if values.ndim == 1:
+        return np.asarray(np.interp(grid, time_s, values), dtype=np.float64)
+    columns = [np.interp(grid, time_s, col) for col in values.T]
+    return np.asarray(np.stack(columns, axis=1), dtype=np.float64)
 
 
 def _window_samples(opts: IdentifyOptions, period_s: float, n: int) -> int:

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from lca_control.cascade import (
+    CONTROL_PERIOD_S,
     PAPER_CURRENT_KP_V_PER_A,
     PAPER_CURRENT_TI_S,
     PAPER_VELOCITY_KP_A_PER_RAD_S,
@@ -34,7 +35,6 @@ from lca_control.cascade import (
 )
 from lca_control.pi import PIController, PIParams
 from lca_sim.analysis.linear import (
-    CONTROL_PERIOD_S,
     LinearAxisModel,
     LinearisationError,
     LoopMargins,
@@ -164,6 +164,34 @@ class Phase:
     start_position_rad: float
 
 
+def _phase_states(robot: RobotParams) -> tuple[tuple[str, frozenset[str]], ...]:
+    """The moving phases of Figs 9-10 and the drive states that belong to each, in test order."""
+    return (
+        ("motor driving", _states_where(robot, MotorCondition.DRIVES, LoadCondition.RESISTS)),
+        ("load driving", _states_where(robot, MotorCondition.DRIVES, LoadCondition.DRIVES)),
+        ("braking", _states_where(robot, MotorCondition.BRAKES)),
+    )
+
+
+def _phase_name(
+    state: str,
+    named_states: tuple[tuple[str, frozenset[str]], ...],
+    hold: str,
+    *,
+    moved: bool,
+    current: str | None,
+) -> str | None:
+    """The phase a drive state belongs to; None while held, `current` for a stop sub-state."""
+    for name, states in named_states:
+        if state in states:
+            return name
+    if state == hold:
+        return None
+    if not moved:
+        return "starting"
+    return current  # a stop sub-state after motion: the phase runs on to the hold
+
+
 def open_loop_phases(result: ScenarioResult, robot: RobotParams, axis: str = PIVOT) -> list[Phase]:
     """The four phases of Figs 9-10, from the drive-state transitions of a run.
 
@@ -174,9 +202,7 @@ def open_loop_phases(result: ScenarioResult, robot: RobotParams, axis: str = PIV
       centre of gravity has passed over the axis);
     * braking: the motor brakes (its torque opposes the motion) until the axis is held again.
     """
-    motor_driving = _states_where(robot, MotorCondition.DRIVES, LoadCondition.RESISTS)
-    load_driving = _states_where(robot, MotorCondition.DRIVES, LoadCondition.DRIVES)
-    braking = _states_where(robot, MotorCondition.BRAKES)
+    named_states = _phase_states(robot)
     hold = result.state_names[StopState.STOP_HOLD]
     moving = set(result.state_names[FIRST_MOVING_STATE:])
     phases: list[Phase] = []
@@ -185,18 +211,7 @@ def open_loop_phases(result: ScenarioResult, robot: RobotParams, axis: str = PIV
     for t in result.phases(axis):
         if t.state in moving:
             moved = True
-        if t.state in motor_driving:
-            name: str | None = "motor driving"
-        elif t.state in load_driving:
-            name = "load driving"
-        elif t.state in braking:
-            name = "braking"
-        elif t.state == hold:
-            name = None
-        elif not moved:
-            name = "starting"
-        else:
-            name = current  # a stop sub-state after motion: the phase runs on to the hold
+        name = _phase_name(t.state, named_states, hold, moved=moved, current=current)
         if name != current:
             if phases:
                 phases[-1] = replace(phases[-1], end_s=t.time_s)

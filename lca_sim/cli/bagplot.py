@@ -31,7 +31,7 @@ import argparse
 import math
 import sys
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -221,6 +221,78 @@ def _unit(joint: str, per_s: bool) -> tuple[float, str]:
     return scale, f"{unit}/s" if per_s else unit
 
 
+class _Figures:
+    """The figures of one bag: titled, one panel per row, saved as PNG files into `out_dir`."""
+
+    def __init__(self, plt: Any, title: str, time_base: str, out_dir: Path) -> None:
+        self.plt = plt
+        self.title = title
+        self.time_base = time_base
+        self.out_dir = out_dir
+        self.written: list[Path] = []
+
+    def figure(self, n_rows: int, what: str) -> tuple[Any, list[Axes]]:
+        """A figure of `n_rows` panels sharing the time axis, titled with `what`."""
+        fig, panels = self.plt.subplots(
+            n_rows, 1, figsize=(9, 1.0 + 2.0 * n_rows), sharex=True, squeeze=False
+        )
+        fig.suptitle(f"{self.title}: {what}")
+        return fig, [row[0] for row in panels]
+
+    def save(self, fig: Any, panels: list[Axes], name: str) -> None:
+        """Label the time axis, grid the panels, write `name` and close the figure."""
+        panels[-1].set_xlabel(f"time (s, {self.time_base} stamps)")
+        for panel in panels:
+            panel.grid(True, alpha=0.3)
+        path = self.out_dir / name
+        save_png(fig, path)
+        self.plt.close(fig)
+        self.written.append(path)
+
+
+def _plot_joints(figures: _Figures, data: BagData) -> None:
+    """positions.png and velocities.png from joint_states."""
+    for key, name, per_s in (
+        ("position", "positions.png", False),
+        ("velocity", "velocities.png", True),
+    ):
+        fig, panels = figures.figure(len(data.joints), f"joint {key} ({JOINT_STATES})")
+        for panel, (joint, series) in zip(panels, data.joints.items(), strict=True):
+            scale, unit = _unit(joint, per_s)
+            panel.plot(series.time_s, [v * scale for v in series.values[key]])
+            panel.set_ylabel(f"{joint} ({unit})")
+        figures.save(fig, panels, name)
+
+
+def _plot_currents(figures: _Figures, data: BagData) -> None:
+    """currents.png from motor_states."""
+    fig, panels = figures.figure(len(data.motors), f"current ({MOTOR_STATES})")
+    for panel, (joint, series) in zip(panels, data.motors.items(), strict=True):
+        panel.plot(series.time_s, series.values["effort"])
+        panel.set_ylabel(f"{joint} (A)")
+    figures.save(fig, panels, "currents.png")
+
+
+def _plot_drives(figures: _Figures, data: BagData) -> None:
+    """drive_states.png and efficiencies.png from drive_chain_states."""
+    fig, panels = figures.figure(len(data.drives), "drive state")
+    for panel, (axis, drive) in zip(panels, data.drives.items(), strict=True):
+        order = state_order(drive.state)
+        index = {name: i for i, name in enumerate(order)}
+        panel.step(drive.time_s, [index[s] for s in drive.state], where="post")
+        panel.set_yticks(range(len(order)))
+        panel.set_yticklabels(order, fontsize=7)
+        panel.set_ylabel(axis)
+    figures.save(fig, panels, "drive_states.png")
+    fig, panels = figures.figure(len(data.drives), "efficiency (eq. 10)")
+    for panel, (axis, drive) in zip(panels, data.drives.items(), strict=True):
+        for key in ETA_KEYS:
+            panel.plot(drive.time_s, drive.eta[key], label=key)
+        panel.set_ylabel(axis)
+        panel.legend(loc="upper left", fontsize=7)
+    figures.save(fig, panels, "efficiencies.png")
+
+
 def write_plots(data: BagData, out_dir: Path, title: str) -> tuple[list[Path], list[str]]:
     """Write the PNG files of `data` into `out_dir`; the paths written and notes on skips."""
     import matplotlib  # noqa: PLC0415  # about a second to import: only when plotting
@@ -228,70 +300,28 @@ def write_plots(data: BagData, out_dir: Path, title: str) -> tuple[list[Path], l
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    written: list[Path] = []
+    figures = _Figures(plt, title, data.time_base, out_dir)
     notes: list[str] = []
-
-    def figure(n_rows: int, what: str) -> tuple[Any, list[Axes]]:
-        fig, panels = plt.subplots(
-            n_rows, 1, figsize=(9, 1.0 + 2.0 * n_rows), sharex=True, squeeze=False
-        )
-        fig.suptitle(f"{title}: {what}")
-        return fig, [row[0] for row in panels]
-
-    def save(fig: Any, panels: list[Axes], name: str) -> None:
-        panels[-1].set_xlabel(f"time (s, {data.time_base} stamps)")
-        for panel in panels:
-            panel.grid(True, alpha=0.3)
-        path = out_dir / name
-        save_png(fig, path)
-        plt.close(fig)
-        written.append(path)
-
-    if data.joints:
-        for key, name, per_s in (
-            ("position", "positions.png", False),
-            ("velocity", "velocities.png", True),
-        ):
-            fig, panels = figure(len(data.joints), f"joint {key} ({JOINT_STATES})")
-            for panel, (joint, series) in zip(panels, data.joints.items(), strict=True):
-                scale, unit = _unit(joint, per_s)
-                panel.plot(series.time_s, [v * scale for v in series.values[key]])
-                panel.set_ylabel(f"{joint} ({unit})")
-            save(fig, panels, name)
-    else:
-        notes.append(f"no {JOINT_STATES} in the bag: positions.png, velocities.png skipped")
-
-    if data.motors:
-        fig, panels = figure(len(data.motors), f"current ({MOTOR_STATES})")
-        for panel, (joint, series) in zip(panels, data.motors.items(), strict=True):
-            panel.plot(series.time_s, series.values["effort"])
-            panel.set_ylabel(f"{joint} (A)")
-        save(fig, panels, "currents.png")
-    else:
-        notes.append(f"no {MOTOR_STATES} in the bag: currents.png skipped")
-
-    if data.drives:
-        fig, panels = figure(len(data.drives), "drive state")
-        for panel, (axis, drive) in zip(panels, data.drives.items(), strict=True):
-            order = state_order(drive.state)
-            index = {name: i for i, name in enumerate(order)}
-            panel.step(drive.time_s, [index[s] for s in drive.state], where="post")
-            panel.set_yticks(range(len(order)))
-            panel.set_yticklabels(order, fontsize=7)
-            panel.set_ylabel(axis)
-        save(fig, panels, "drive_states.png")
-        fig, panels = figure(len(data.drives), "efficiency (eq. 10)")
-        for panel, (axis, drive) in zip(panels, data.drives.items(), strict=True):
-            for key in ETA_KEYS:
-                panel.plot(drive.time_s, drive.eta[key], label=key)
-            panel.set_ylabel(axis)
-            panel.legend(loc="upper left", fontsize=7)
-        save(fig, panels, "efficiencies.png")
-    else:
-        notes.append(
-            f"no {DRIVE_CHAIN_STATES} in the bag: drive_states.png, efficiencies.png skipped"
-        )
-    return written, notes
+    # Per topic: whether the bag has it, what plots it, and the note when it does not.
+    sections: tuple[tuple[bool, Callable[[_Figures, BagData], None], str], ...] = (
+        (
+            bool(data.joints),
+            _plot_joints,
+            f"no {JOINT_STATES} in the bag: positions.png, velocities.png skipped",
+        ),
+        (bool(data.motors), _plot_currents, f"no {MOTOR_STATES} in the bag: currents.png skipped"),
+        (
+            bool(data.drives),
+            _plot_drives,
+            f"no {DRIVE_CHAIN_STATES} in the bag: drive_states.png, efficiencies.png skipped",
+        ),
+    )
+    for present, plot, skipped in sections:
+        if present:
+            plot(figures, data)
+        else:
+            notes.append(skipped)
+    return figures.written, notes
 
 
 def build_parser() -> argparse.ArgumentParser:

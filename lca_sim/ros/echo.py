@@ -136,17 +136,11 @@ class _Printer:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the lca-echo console script."""
     all_args = ["lca-echo", *(sys.argv[1:] if argv is None else argv)]
-    parser = build_parser()
     try:
         own_args = remove_ros_args(all_args)[1:]
     except Exception as exc:  # rclpy's RCLInvalidROSArgsError
         return _fail(f"bad ROS arguments: {first_line(exc)}")
-    args = parser.parse_args(own_args)
-    limit: int | None = 1 if args.once else args.count
-    if limit is not None and limit < 1:
-        parser.error("--count must be >= 1")
-    if math.isnan(args.wait_s) or args.wait_s < 0:
-        parser.error("--wait-s must be >= 0")
+    args, limit = _parse_args(own_args)
 
     done = threading.Event()
 
@@ -162,39 +156,81 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         except Exception as exc:  # rclpy reports bad ROS arguments with its own exceptions
             return _fail(f"cannot start ROS: {first_line(exc)}")
-        node = Node(NODE_NAME, context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        try:
-            try:
-                topic = node.resolve_topic_name(args.topic)
-            except Exception as exc:  # rclpy's name validation errors
-                return _fail(f"bad topic name {args.topic!r}: {first_line(exc)}")
-            msgtype = _wait_for_type(node, executor, topic, args.wait_s, done)
-            if msgtype is None:
-                if done.is_set():  # interrupted while waiting
-                    return EXIT_OK
-                return _fail(f"topic {topic} did not appear within {args.wait_s:g} s")
-            msg_class = import_message_class(msgtype)
-            qos = subscription_qos(topic, node.get_publishers_info_by_topic(topic))
-            if args.qos_reliability == "reliable":
-                qos.reliability = ReliabilityPolicy.RELIABLE
-            elif args.qos_reliability == "best_effort":
-                qos.reliability = ReliabilityPolicy.BEST_EFFORT
-            printer = _Printer(limit, done)
-            node.create_subscription(msg_class, topic, cast("Callable[[Any], None]", printer), qos)
-            while not done.is_set():
-                executor.spin_once(timeout_sec=0.05)
-        except RecorderError as exc:
-            return _fail(str(exc))
-        finally:
-            executor.shutdown(timeout_sec=1.0)
-            node.destroy_node()
+        return _run_node(context, args, limit, done)
     finally:
         if context.ok():
             rclpy.shutdown(context=context)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _parse_args(own_args: list[str]) -> tuple[argparse.Namespace, int | None]:
+    """The parsed arguments and the number of messages to print (None: no limit).
+
+    Bad arguments exit through `parser.error` (status 2).
+    """
+    parser = build_parser()
+    args = parser.parse_args(own_args)
+    limit: int | None = 1 if args.once else args.count
+    if limit is not None and limit < 1:
+        parser.error("--count must be >= 1")
+    if math.isnan(args.wait_s) or args.wait_s < 0:
+        parser.error("--wait-s must be >= 0")
+    return args, limit
+
+
+def _run_node(
+    context: Context, args: argparse.Namespace, limit: int | None, done: threading.Event
+) -> int:
+    """Create the node and its executor, echo, and take both down again; the exit code."""
+    node = Node(NODE_NAME, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        return _echo(node, executor, args, limit, done)
+    except RecorderError as exc:
+        return _fail(str(exc))
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+
+
+# --qos-reliability choices that override what the publishers offer ("auto" keeps that).
+_FORCED_RELIABILITY = {
+    "reliable": ReliabilityPolicy.RELIABLE,
+    "best_effort": ReliabilityPolicy.BEST_EFFORT,
+}
+
+
+def _echo(
+    node: Node,
+    executor: Executor,
+    args: argparse.Namespace,
+    limit: int | None,
+    done: threading.Event,
+) -> int:
+    """Wait for the topic's type, subscribe and print until `limit` messages or a signal.
+
+    Raises:
+        RecorderError: The topic's message type cannot be imported.
+    """
+    try:
+        topic = node.resolve_topic_name(args.topic)
+    except Exception as exc:  # rclpy's name validation errors
+        return _fail(f"bad topic name {args.topic!r}: {first_line(exc)}")
+    msgtype = _wait_for_type(node, executor, topic, args.wait_s, done)
+    if msgtype is None:
+        if done.is_set():  # interrupted while waiting
+            return EXIT_OK
+        return _fail(f"topic {topic} did not appear within {args.wait_s:g} s")
+    msg_class = import_message_class(msgtype)
+    qos = subscription_qos(topic, node.get_publishers_info_by_topic(topic))
+    if args.qos_reliability in _FORCED_RELIABILITY:
+        qos.reliability = _FORCED_RELIABILITY[args.qos_reliability]
+    printer = _Printer(limit, done)
+    node.create_subscription(msg_class, topic, cast("Callable[[Any], None]", printer), qos)
+    while not done.is_set():
+        executor.spin_once(timeout_sec=0.05)
     return EXIT_OK
 
 

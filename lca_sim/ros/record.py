@@ -382,6 +382,15 @@ class BagRecorder:
         if self._writer is None:
             return
         types = dict(self._node.get_topic_names_and_types())
+        self._poll_waiting(types)
+        if self._record_all:
+            self._subscribe_appeared(types)
+        for rec in self._recorded.values():
+            self._adapt_qos(rec)
+            self._note_if_matched(rec)
+
+    def _poll_waiting(self, types: dict[str, list[str]]) -> None:
+        """Subscribe to the named topics whose type appeared; drop those overdue after wait_s."""
         for name in list(self._waiting):
             if types.get(name):
                 del self._waiting[name]
@@ -390,28 +399,32 @@ class BagRecorder:
                 del self._waiting[name]
                 self._dropped.append(name)
                 self._log(f"no publisher or type for {name} after {self._wait_s:g} s; skipped")
-        if self._record_all:
-            for name, type_names in types.items():
-                if (
-                    name in self._recorded
-                    or name in self._skipped
-                    or name in self._waiting
-                    or name in INFRASTRUCTURE_TOPICS
-                    or is_hidden_topic(name)
-                    or not type_names
-                ):
-                    continue
+
+    def _subscribe_appeared(self, types: dict[str, list[str]]) -> None:
+        """For --all: subscribe to every topic with a type that is not handled already."""
+        for name, type_names in types.items():
+            if self._new_for_all(name) and type_names:
                 self._subscribe(name, type_names, named=False)
-        for rec in self._recorded.values():
-            self._adapt_qos(rec)
-            if not rec.matched and rec.subscription is not None:
-                n_publishers = rec.subscription.get_publisher_count()
-                if n_publishers > 0:
-                    rec.matched = True
-                    plural = "s" if n_publishers > 1 else ""
-                    self._note(
-                        f"recording {rec.topic} ({rec.msgtype}, {n_publishers} publisher{plural})"
-                    )
+
+    def _new_for_all(self, name: str) -> bool:
+        """Neither recorded, skipped nor waited for, and not a topic --all leaves out."""
+        return not (
+            name in self._recorded
+            or name in self._skipped
+            or name in self._waiting
+            or name in INFRASTRUCTURE_TOPICS
+            or is_hidden_topic(name)
+        )
+
+    def _note_if_matched(self, rec: _Recorded) -> None:
+        """Note a recorded topic once its subscription has matched a publisher."""
+        if rec.matched or rec.subscription is None:
+            return
+        n_publishers = rec.subscription.get_publisher_count()
+        if n_publishers > 0:
+            rec.matched = True
+            plural = "s" if n_publishers > 1 else ""
+            self._note(f"recording {rec.topic} ({rec.msgtype}, {n_publishers} publisher{plural})")
 
     def _subscribe(self, topic: str, type_names: list[str], *, named: bool) -> None:
         msgtype = type_names[0]
@@ -564,20 +577,11 @@ class _StopFlag:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the lca-record console script."""
     all_args = ["lca-record", *(sys.argv[1:] if argv is None else argv)]
-    parser = build_parser()
     try:
         own_args = remove_ros_args(all_args)[1:]
     except Exception as exc:  # rclpy's RCLInvalidROSArgsError
         return _fail(f"bad ROS arguments: {first_line(exc)}")
-    args = parser.parse_args(own_args)
-    if not args.topics and not args.all:
-        parser.error("name at least one TOPIC or use --all")
-    if args.max_duration_s is not None and not args.max_duration_s > 0:
-        parser.error("--max-duration-s must be > 0")
-    if math.isnan(args.wait_s) or args.wait_s < 0:
-        parser.error("--wait-s must be >= 0")
-    if args.depth < 1:
-        parser.error("--depth must be >= 1")
+    args = _parse_args(own_args)
     output: Path = args.output if args.output is not None else default_output()
     if output.exists():
         return _fail(f"output {output} exists already; not overwriting (choose another -o)")
@@ -592,32 +596,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         except Exception as exc:  # rclpy reports bad ROS arguments with its own exceptions
             return _fail(f"cannot start ROS: {first_line(exc)}")
-        node = Node(NODE_NAME, context=context)
-        recorder: BagRecorder | None = None
-        try:
-            recorder = BagRecorder(
-                node,
-                output,
-                args.topics,
-                record_all=args.all,
-                wait_s=args.wait_s,
-                depth=args.depth,
-                log=_warn,
-                note=_note,
-            )
-            recorder.start()
-            executor = make_executor(context, args.executor)
-            executor.add_node(node)
-            reason = _spin(executor, recorder, stop, args.max_duration_s, verbose=args.verbose)
-            never_seen = recorder.waiting
-            recorder.stop_discovery()
-            _drain(executor, recorder)
-            counts = recorder.close()
-            executor.shutdown(timeout_sec=1.0)
-        finally:
-            if recorder is not None:
-                recorder.close()  # idempotent; after an unexpected error it still writes metadata
-            node.destroy_node()
+        run = _record(context, args, output, stop)
     except RecorderError as exc:
         return _fail(str(exc))
     finally:
@@ -625,11 +604,76 @@ def main(argv: Sequence[str] | None = None) -> int:
             rclpy.shutdown(context=context)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    _print_summary(output, counts, reason)
-    if never_seen:
-        _warn(f"stopped while still waiting for {', '.join(never_seen)}")
-    if reason == REASON_IDLE:
-        dropped = ", ".join(recorder.dropped)
+    return _finish(output, run)
+
+
+def _parse_args(own_args: list[str]) -> argparse.Namespace:
+    """The parsed arguments; bad ones exit through `parser.error` (status 2)."""
+    parser = build_parser()
+    args = parser.parse_args(own_args)
+    if not args.topics and not args.all:
+        parser.error("name at least one TOPIC or use --all")
+    if args.max_duration_s is not None and not args.max_duration_s > 0:
+        parser.error("--max-duration-s must be > 0")
+    if math.isnan(args.wait_s) or args.wait_s < 0:
+        parser.error("--wait-s must be >= 0")
+    if args.depth < 1:
+        parser.error("--depth must be >= 1")
+    return args
+
+
+@dataclass(frozen=True, slots=True)
+class _Run:
+    """How a recording ended: why, the messages per topic, and the named topics not recorded."""
+
+    reason: str
+    counts: dict[str, int]
+    never_seen: list[str]  # still waited for when it stopped
+    dropped: list[str]  # given up (not appeared within --wait-s, or an unknown type)
+
+
+def _record(context: Context, args: argparse.Namespace, output: Path, stop: _StopFlag) -> _Run:
+    """Record on a node of its own until stopped, then close the bag.
+
+    Raises:
+        RecorderError: The bag cannot be created or a topic name is bad.
+    """
+    node = Node(NODE_NAME, context=context)
+    recorder: BagRecorder | None = None
+    try:
+        recorder = BagRecorder(
+            node,
+            output,
+            args.topics,
+            record_all=args.all,
+            wait_s=args.wait_s,
+            depth=args.depth,
+            log=_warn,
+            note=_note,
+        )
+        recorder.start()
+        executor = make_executor(context, args.executor)
+        executor.add_node(node)
+        reason = _spin(executor, recorder, stop, args.max_duration_s, verbose=args.verbose)
+        never_seen = recorder.waiting
+        recorder.stop_discovery()
+        _drain(executor, recorder)
+        counts = recorder.close()
+        executor.shutdown(timeout_sec=1.0)
+    finally:
+        if recorder is not None:
+            recorder.close()  # idempotent; after an unexpected error it still writes metadata
+        node.destroy_node()
+    return _Run(reason, counts, never_seen, recorder.dropped)
+
+
+def _finish(output: Path, run: _Run) -> int:
+    """Print the summary and warnings of a finished recording; the exit code."""
+    _print_summary(output, run.counts, run.reason)
+    if run.never_seen:
+        _warn(f"stopped while still waiting for {', '.join(run.never_seen)}")
+    if run.reason == REASON_IDLE:
+        dropped = ", ".join(run.dropped)
         return _fail(f"could not record {dropped}; {output} is empty")
     return EXIT_OK
 
