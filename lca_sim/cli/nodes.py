@@ -13,6 +13,7 @@ nodes declare, so the help cannot drift from what the node does.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from lca_control.parameters import ParameterTable
 from lca_sim.errors import EXIT_OK
 from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
 from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+from lca_sim.ros.tool_args import echo_parser, record_parser
 
 HELP_FLAGS = frozenset({"-h", "--help"})
 ROS_ARGS = "--ros-args"
@@ -199,5 +201,30 @@ def can_bridge(args: Sequence[str] | None = None) -> int:
     if answered_help(CAN_BRIDGE, args):
         return EXIT_OK
     from lca_sim.ros.can_bridge_node import main  # noqa: PLC0415
+
+    return main(args)
+
+
+def _tool_help(parser: argparse.ArgumentParser, args: Sequence[str] | None) -> bool:
+    if not wants_help(sys.argv[1:] if args is None else args):
+        return False
+    sys.stdout.write(parser.format_help())
+    return True
+
+
+def record(args: Sequence[str] | None = None) -> int:
+    """Entry point of `lca-record` / `ros2 run lca_hil record`."""
+    if _tool_help(record_parser(), args):
+        return EXIT_OK
+    from lca_sim.ros.record import main  # noqa: PLC0415
+
+    return main(args)
+
+
+def echo(args: Sequence[str] | None = None) -> int:
+    """Entry point of `lca-echo`."""
+    if _tool_help(echo_parser(), args):
+        return EXIT_OK
+    from lca_sim.ros.echo import main  # noqa: PLC0415
 
     return main(args)

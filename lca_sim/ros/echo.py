@@ -40,12 +40,11 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lca_sim.ros.record import RecorderError, first_line, import_message_class, subscription_qos
+from lca_sim.ros.tool_args import echo_parser
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
 NODE_NAME = "lca_echo"
-DEFAULT_WAIT_S = 5.0
-RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
 
 # YAML scalars a message field can hold; everything else is converted.
 _PLAIN = (bool, int, float, str)
@@ -77,32 +76,6 @@ def message_to_yaml(msg: Any) -> str:
     return yaml.safe_dump(
         message_to_plain(msg), sort_keys=False, default_flow_style=False, allow_unicode=True
     )
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of lca-echo (ROS arguments are removed before it runs)."""
-    parser = argparse.ArgumentParser(
-        prog="lca-echo",
-        description="Print the messages of a ROS 2 topic as YAML.",
-        epilog="ROS arguments go last: --ros-args -p use_sim_time:=true -r __ns:=/robot1",
-    )
-    parser.add_argument("topic", metavar="TOPIC", help="topic name (relative names get the ns)")
-    count = parser.add_mutually_exclusive_group()
-    count.add_argument("--once", action="store_true", help="print one message and exit")
-    count.add_argument("-n", "--count", type=int, default=None, help="print N messages and exit")
-    parser.add_argument(
-        "--wait-s",
-        type=float,
-        default=DEFAULT_WAIT_S,
-        help=f"wait this long for the topic to appear (default {DEFAULT_WAIT_S:g}; inf ok)",
-    )
-    parser.add_argument(
-        "--qos-reliability",
-        choices=RELIABILITY_CHOICES,
-        default="auto",
-        help="subscription reliability (default auto: match the publishers)",
-    )
-    return parser
 
 
 class _Printer:
@@ -169,7 +142,7 @@ def _parse_args(own_args: list[str]) -> tuple[argparse.Namespace, int | None]:
 
     Bad arguments exit through `parser.error` (status 2).
     """
-    parser = build_parser()
+    parser = echo_parser()
     args = parser.parse_args(own_args)
     limit: int | None = 1 if args.once else args.count
     if limit is not None and limit < 1:

@@ -117,6 +117,8 @@ from rosbags.typesys.store import Typestore
 from lca_control.contract import CLOCK, STATE_QOS_DEPTH
 from lca_sim.errors import LcaHilError
 from lca_sim.ros.node_util import make_executor
+from lca_sim.ros.tool_args import RECORD_WAIT_S as DEFAULT_WAIT_S
+from lca_sim.ros.tool_args import record_parser
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
@@ -125,8 +127,6 @@ NODE_NAME = "lca_record"
 # Recorded by --all only when named: every node publishes them, the recorder itself included.
 INFRASTRUCTURE_TOPICS = frozenset({"/rosout", "/parameter_events"})
 GRAPH_POLL_PERIOD_S = 0.1
-DEFAULT_WAIT_S = 10.0
-EXECUTORS = ("events", "single")
 REASON_IDLE = "no topic left to record"
 # After a stop request: keep taking already-received messages until none came for this long.
 DRAIN_QUIET_S = 0.05
@@ -521,47 +521,6 @@ def default_output(now: datetime | None = None) -> Path:
     return Path(f"lca_bag_{(now or datetime.now()).strftime('%Y%m%d_%H%M%S')}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of lca-record (ROS arguments are removed before it runs)."""
-    parser = argparse.ArgumentParser(
-        prog="lca-record",
-        description="Record ROS 2 topics to a rosbag2 MCAP bag (raw CDR, node-clock stamps).",
-        epilog="ROS arguments go last: --ros-args -p use_sim_time:=true -r __ns:=/robot1",
-    )
-    parser.add_argument("topics", nargs="*", metavar="TOPIC", help="topics to record")
-    parser.add_argument(
-        "--all", action="store_true", help="record every topic, also ones that appear later"
-    )
-    parser.add_argument(
-        "-o", "--output", type=Path, default=None, help="bag folder (default lca_bag_<time>)"
-    )
-    parser.add_argument(
-        "--wait-s",
-        type=float,
-        default=DEFAULT_WAIT_S,
-        help=f"wait this long for a named topic to appear (default {DEFAULT_WAIT_S:g}; inf ok)",
-    )
-    parser.add_argument(
-        "--max-duration-s", type=float, default=None, help="stop after this many seconds"
-    )
-    parser.add_argument(
-        "--depth",
-        type=int,
-        default=STATE_QOS_DEPTH,
-        help=f"keep-last depth of the subscriptions (default STATE_QOS_DEPTH = {STATE_QOS_DEPTH}); "
-        "a deeper queue rides out longer CPU stalls of the recorder",
-    )
-    parser.add_argument(
-        "--executor",
-        choices=EXECUTORS,
-        default=EXECUTORS[0],
-        help="rclpy executor: events (C++ events executor, about half the CPU per message; "
-        "the default when available) or single (SingleThreadedExecutor)",
-    )
-    parser.add_argument("-v", "--verbose", action="store_true", help="print progress each second")
-    return parser
-
-
 class _StopFlag:
     """Set by SIGINT/SIGTERM; the spin loop checks it between short waits."""
 
@@ -609,7 +568,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _parse_args(own_args: list[str]) -> argparse.Namespace:
     """The parsed arguments; bad ones exit through `parser.error` (status 2)."""
-    parser = build_parser()
+    parser = record_parser()
     args = parser.parse_args(own_args)
     if not args.topics and not args.all:
         parser.error("name at least one TOPIC or use --all")

@@ -1,0 +1,84 @@
+"""The command lines of lca-record and lca-echo, without ROS 2.
+
+The two tools import rclpy at module level; their parsers live here so that `--help` is
+answered (by `lca_sim.cli.nodes`) before rclpy is imported.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lca_control.contract import STATE_QOS_DEPTH
+
+RECORD_WAIT_S = 10.0
+EXECUTORS = ("events", "single")
+ECHO_WAIT_S = 5.0
+RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
+
+
+def record_parser() -> argparse.ArgumentParser:
+    """The argument parser of lca-record (ROS arguments are removed before it runs)."""
+    parser = argparse.ArgumentParser(
+        prog="lca-record",
+        description="Record ROS 2 topics to a rosbag2 MCAP bag (raw CDR, node-clock stamps).",
+        epilog="ROS arguments go last: --ros-args -p use_sim_time:=true -r __ns:=/robot1",
+    )
+    parser.add_argument("topics", nargs="*", metavar="TOPIC", help="topics to record")
+    parser.add_argument(
+        "--all", action="store_true", help="record every topic, also ones that appear later"
+    )
+    parser.add_argument(
+        "-o", "--output", type=Path, default=None, help="bag folder (default lca_bag_<time>)"
+    )
+    parser.add_argument(
+        "--wait-s",
+        type=float,
+        default=RECORD_WAIT_S,
+        help=f"wait this long for a named topic to appear (default {RECORD_WAIT_S:g}; inf ok)",
+    )
+    parser.add_argument(
+        "--max-duration-s", type=float, default=None, help="stop after this many seconds"
+    )
+    parser.add_argument(
+        "--depth",
+        type=int,
+        default=STATE_QOS_DEPTH,
+        help=f"keep-last depth of the subscriptions (default STATE_QOS_DEPTH = {STATE_QOS_DEPTH}); "
+        "a deeper queue rides out longer CPU stalls of the recorder",
+    )
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default=EXECUTORS[0],
+        help="rclpy executor: events (C++ events executor, about half the CPU per message; "
+        "the default when available) or single (SingleThreadedExecutor)",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="print progress each second")
+    return parser
+
+
+def echo_parser() -> argparse.ArgumentParser:
+    """The argument parser of lca-echo (ROS arguments are removed before it runs)."""
+    parser = argparse.ArgumentParser(
+        prog="lca-echo",
+        description="Print the messages of a ROS 2 topic as YAML.",
+        epilog="ROS arguments go last: --ros-args -p use_sim_time:=true -r __ns:=/robot1",
+    )
+    parser.add_argument("topic", metavar="TOPIC", help="topic name (relative names get the ns)")
+    count = parser.add_mutually_exclusive_group()
+    count.add_argument("--once", action="store_true", help="print one message and exit")
+    count.add_argument("-n", "--count", type=int, default=None, help="print N messages and exit")
+    parser.add_argument(
+        "--wait-s",
+        type=float,
+        default=ECHO_WAIT_S,
+        help=f"wait this long for the topic to appear (default {ECHO_WAIT_S:g}; inf ok)",
+    )
+    parser.add_argument(
+        "--qos-reliability",
+        choices=RELIABILITY_CHOICES,
+        default="auto",
+        help="subscription reliability (default auto: match the publishers)",
+    )
+    return parser
