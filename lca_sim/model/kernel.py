@@ -17,7 +17,8 @@ costs too, so the kernel takes two packed float arrays, both built once per simu
   Cholesky factor).
 
 Sign conventions (docs/model.md): tau_m is the motor torque, tau_l = N^-1 (C qdot + Q) the torque
-the load demands at the motor shaft (eq. 8), both positive in the direct direction.
+the load demands at the motor shaft (eq. 8), both positive in the direct direction. The state
+machine reads tau_l through a per-axis sign band, `P_LOAD_TORQUE_BAND` (docs/model.md, section 4).
 """
 
 from __future__ import annotations
@@ -47,11 +48,12 @@ P_POSITION_MIN = 12
 P_POSITION_MAX = 13
 P_VELOCITY_EPS = 14
 P_TORQUE_EPS = 15
-N_PARAMS = 16
+P_LOAD_TORQUE_BAND = 16  # |tau_l| up to this counts as zero in Fig. 8 (load_torque_band_nm)
+N_PARAMS = 17
 # Rows of `model` after the constants.
-P_IRREVERSIBLE = 16
-P_N_RULES = 17
-P_RULES = 18  # 3 rows per rule (motor, load, dominant codes), then 4 rows per rule of eta
+P_IRREVERSIBLE = 17
+P_N_RULES = 18
+P_RULES = 19  # 3 rows per rule (motor, load, dominant codes), then 4 rows per rule of eta
 
 # Rows of `work`: the state.
 X_POSITION = 0
@@ -88,7 +90,8 @@ W_ACC = 25
 W_MOVING = 26
 W_INDEX = 27
 W_SOLVE = 28
-W_INERTIA = 29  # n rows: the motor-side inertia J = J_m + N^-1 A N^-1
+W_TAU_L_STATE = 29  # tau_l as the state machine reads it: 0.0 inside the sign band
+W_INERTIA = 30  # n rows: the motor-side inertia J = J_m + N^-1 A N^-1
 
 
 def work_rows(n_axes: int) -> int:
@@ -158,7 +161,8 @@ def classify(direction: int, tau_m: float, tau_l: float, model: FloatArray) -> i
     Args:
         direction: +1 in DIRECT, -1 in REVERSE motion.
         tau_m: motor torque, N m.
-        tau_l: load torque demanded at the motor shaft, N m (eq. 8).
+        tau_l: load torque demanded at the motor shaft, N m (eq. 8); the step passes 0.0 for a
+            load inside the axis's sign band (`_select_state`), this function reads exact signs.
         model: the packed model (its rule table).
 
     Returns:
@@ -248,9 +252,17 @@ def _solve_moving(work: FloatArray, n: int) -> None:  # noqa: C901
 
 @njit(cache=True)
 def _select_state(work: FloatArray, model: FloatArray, a: int, direction: int) -> int:
-    """Pick the moving state of axis a for a direction and set its eta_m, eta_l signals."""
+    """Pick the moving state of axis a for a direction and set its eta_m, eta_l signals.
+
+    The load torque it classifies is `W_TAU_L_STATE`: tau_l, or exactly 0.0 inside the axis's
+    sign band (|tau_l| <= P_LOAD_TORQUE_BAND), where tau_l is Pinocchio's rounding residue on an
+    axis without a gravity load and Fig. 8's states, which do not meet at tau_l = 0, would follow
+    its random sign (state_machine.load_torque_band_nm). Only the choice of state sees the band:
+    eq. (10) keeps the real tau_l (`W_TAU_L`), and the state a zero load picks has eta_l = 1
+    (eq. 11, checked on load), so the band neither creates nor burns energy.
+    """
     tau_m = work[W_TAU_M, a]
-    tau_l = work[W_TAU_L, a]
+    tau_l = work[W_TAU_L_STATE, a]
     n_rules = int(model[P_N_RULES, 0])
     rule = classify(direction, tau_m, tau_l, model)
     eta_m = model[eta_row(n_rules, direction, rule, 0), a]
@@ -290,10 +302,14 @@ def step(  # noqa: C901  (the compiled step; see the note above _solve_moving)
 
     # Motor side quantities (eq. 8): w_m = N qdot, tau_l = N^-1 (C qdot + Q),
     # J = J_m + N^-1 A(q) N^-1 (the coupled inertia of eq. 9-10, off-diagonal terms kept).
+    # The state machine reads tau_l through the sign band, set aside here once per step: in
+    # _select_state, called for every moving axis, the same test cost a tenth of the kernel.
     for a in range(n):
         ratio = model[P_GEAR_RATIO, a]
         work[W_OMEGA, a] = ratio * work[X_VELOCITY, a]
-        work[W_TAU_L, a] = nonlinear_effects[a] / ratio
+        tau_l = nonlinear_effects[a] / ratio
+        work[W_TAU_L, a] = tau_l
+        work[W_TAU_L_STATE, a] = tau_l if abs(tau_l) > model[P_LOAD_TORQUE_BAND, a] else 0.0
         for b in range(n):
             m_ab = mass_matrix[a, b] if a <= b else mass_matrix[b, a]
             work[W_INERTIA + a, b] = m_ab / (ratio * model[P_GEAR_RATIO, b])

@@ -37,6 +37,15 @@ class MotorParams:
     rotor_inertia_kg_m2: float
     voltage_limit_v: float
 
+    @property
+    def stall_torque_nm(self) -> float:
+        """k_t V_max / R, N m: the largest torque the amplifier can make the motor produce.
+
+        The torque scale of the axis; the state machine's load-sign band is a few thousand
+        rounding units of it (`state_machine.load_torque_band_nm`).
+        """
+        return self.torque_constant_nm_per_a * self.voltage_limit_v / self.resistance_ohm
+
 
 @dataclass(frozen=True, slots=True)
 class FrictionParams:

@@ -18,7 +18,7 @@ from lca_sim.errors import ConfigError, LcaHilError, UnknownNameError
 from lca_sim.model import kernel
 from lca_sim.model.gantry import Gantry
 from lca_sim.model.params import RobotParams
-from lca_sim.model.state_machine import FIRST_MOVING_STATE, MotionState
+from lca_sim.model.state_machine import FIRST_MOVING_STATE, MotionState, load_torque_band_nm
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -467,6 +467,7 @@ def _params_array(robot: RobotParams, gantry: Gantry) -> FloatArray:
         params[kernel.P_POSITION_MAX, a] = joint.position_max
         params[kernel.P_VELOCITY_EPS, a] = machine.velocity_eps_rad_s
         params[kernel.P_TORQUE_EPS, a] = machine.motor_torque_eps_nm
+        params[kernel.P_LOAD_TORQUE_BAND, a] = load_torque_band_nm(m.stall_torque_nm)
     return params
 
 

@@ -29,6 +29,12 @@ Lower level: the drive state.
   "load dominant" means |tau_m| < |tau_l|. Table 1 writes these conditions with the load torque
   the load *applies* (-tau_l), which is why its "motor driving" row reads tau_m * tau_l < 0.
 
+  The load's sign is read through a band (`load_torque_band_nm`): a |tau_l| within a few thousand
+  rounding units of the axis's torque scale is taken as exactly zero, so an axis without a
+  gravity load (the L-arm) is not thrown between Fig. 8's states by Pinocchio's rounding noise.
+  A zero load neither drives nor dominates: the motor alone drives (`motor_driving`) or, braking,
+  the axis coasts.
+
 Each state carries eta_m and eta_l per direction (eq. 10). See docs/model.md for why each
 coefficient applies to the torque of the element that emits power (eq. 11).
 """
@@ -36,6 +42,7 @@ coefficient applies to the torque of the element that emits power (eq. 11).
 from __future__ import annotations
 
 import enum
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,11 +82,47 @@ class MotorCondition(enum.IntEnum):
 
 
 class LoadCondition(enum.IntEnum):
-    """What the load torque does along the motion direction."""
+    """What the load torque does along the motion direction (tau_l after the sign band)."""
 
     ANY = 0
-    DRIVES = 1  # -d * tau_l > 0: the load emits power into the gear
-    RESISTS = 2  # -d * tau_l <= 0: the load absorbs power (or none)
+    DRIVES = 1  # -d * tau_l > band: the load emits power into the gear
+    RESISTS = 2  # -d * tau_l <= band: the load absorbs power (or none)
+
+
+# Width of the load's sign band in units of machine epsilon times the axis's torque scale: 2**12,
+# see `load_torque_band_nm`.
+LOAD_SIGN_BAND_EPS = 4096.0
+
+
+def load_torque_band_nm(torque_scale_nm: float) -> float:
+    """The band |tau_l| <= this, N m at the motor, inside which a load torque counts as zero.
+
+    Fig. 8 (and its mirror) decides on the sign of tau_l, and its states do not meet at
+    tau_l = 0: with the motor driving, `motor_driving` (Table 1 row 1, eta_m = 0.9) and the
+    motor-dominant motor-and-load state (row 3, eta_m = 1, eta_l = 0.45) differ in eq. (10) by
+    0.1 tau_m however small tau_l is. An axis without a gravity load (the L-arm turns about the
+    vertical) gets tau_l = N^-1 (C qdot + Q) from Pinocchio as a rounding residue of its sums,
+    1e-20 to 1e-15 N m of random sign, and its state flipped between the two every few steps
+    (24,886 changes in 12 s at 12 V) at a biased speed. Inside the band the load is taken as exactly
+    zero, so the state is the one the table gives a zero load, deterministically.
+
+    The residue is a few ulps of the largest torques Pinocchio sums for the joint (the weight and
+    inertia of everything it carries), and a drive is sized so that those torques, at the motor
+    shaft, are of the order of its torque scale: the stall torque k_t V_max / R. On the default
+    robot the L-arm's residue is at most 0.98 eps times it (20,000 random poses). 2**12 eps
+    leaves room for structures thousands of times heavier than their motors, and stays 1e5 times
+    below the paper's own torque threshold (T_m_eps = 1e-5 N m, Fig. 7) and below the pivot's
+    load change in one step as it crosses 55 deg (3e-6 N m in Fig. 9), so physical crossings
+    switch on the same step as without a band. docs/model.md, section 4, gives the figures.
+
+    Args:
+        torque_scale_nm: the axis's torque scale, N m at the motor (`MotorParams.stall_torque_nm`).
+
+    Returns:
+        LOAD_SIGN_BAND_EPS * eps * torque_scale_nm, N m.
+
+    """
+    return LOAD_SIGN_BAND_EPS * sys.float_info.epsilon * torque_scale_nm
 
 
 class Dominance(enum.IntEnum):
