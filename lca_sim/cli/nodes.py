@@ -216,6 +216,12 @@ def record(args: Sequence[str] | None = None) -> int:
     """Entry point of `lca-record` / `ros2 run lca_hil record`."""
     if _tool_help(record_parser(), args):
         return EXIT_OK
+    own = own_arguments(sys.argv[1:] if args is None else args)
+    if any(arg == "--recover" or arg.startswith("--recover=") for arg in own):
+        # Recovery reads and writes files only: no rclpy, so it works where ROS 2 is absent.
+        from lca_sim.ros.bag_recover import recover_main  # noqa: PLC0415
+
+        return recover_main(own)
     from lca_sim.ros.record import main  # noqa: PLC0415
 
     return main(args)

@@ -33,6 +33,15 @@ lost. (A publisher that sees the recorder in `get_subscription_count()` is *not*
 matching is two-sided, and messages sent before the recorder's side has matched are dropped by
 its volatile subscription.) `--verbose` adds the counts every second.
 
+Crash safety: the writer closes the open MCAP chunk and flushes it to the file every
+`--flush-period-s` (default 0.25 s; at the first message after the period, and from a
+steady-clock timer when messages stop), so a recorder killed with SIGKILL loses at most that
+much of what it had received. Such a bag has no summary, footer or metadata.yaml; `lca-record
+--recover BAG` (`lca_sim.ros.bag_recover`, no ROS needed) rewrites it from its complete chunks
+so that lca-plot, rosbags and mcap readers open it. Without the periodic flush rosbags closes a
+chunk only at 1 MiB and buffers the file, and a killed recording lost everything after the last
+full chunk.
+
 Stopping: SIGINT (Ctrl-C), SIGTERM or `--max-duration-s`. The recorder then takes the messages
 already received by the middleware, closes the bag (metadata.yaml is written) and prints the
 number of messages per topic. Exit codes: 0 stopped normally (also on a signal), 2 bad
@@ -111,12 +120,15 @@ from rosbags.interfaces import (
     QosTime,
 )
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+from rosbags.rosbag2.storage_mcap import McapWriter
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from lca_control.contract import CLOCK, STATE_QOS_DEPTH
 from lca_sim.errors import LcaHilError
+from lca_sim.ros.bag_recover import recover_main
 from lca_sim.ros.node_util import make_executor
+from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S as DEFAULT_FLUSH_PERIOD_S
 from lca_sim.ros.tool_args import RECORD_WAIT_S as DEFAULT_WAIT_S
 from lca_sim.ros.tool_args import record_parser
 
@@ -249,6 +261,8 @@ class BagRecorder:
         depth: Keep-last depth of the subscriptions.
         graph_poll_period_s: Period of the graph check for new topics and publishers (steady
             clock, so it runs even while simulated time stands still).
+        flush_period_s: Close and flush the open MCAP chunk at least this often (steady
+            clock): what a killed recorder can lose.
         log: Where warnings go (default: the node's logger at warning level).
         note: Where the one-line "recording <topic>" notes go (default: the node's logger at
             info level). A topic is noted once its subscription has matched a publisher.
@@ -264,6 +278,7 @@ class BagRecorder:
         wait_s: float = DEFAULT_WAIT_S,
         depth: int = STATE_QOS_DEPTH,
         graph_poll_period_s: float = GRAPH_POLL_PERIOD_S,
+        flush_period_s: float = DEFAULT_FLUSH_PERIOD_S,
         log: Callable[[str], None] | None = None,
         note: Callable[[str], None] | None = None,
     ) -> None:
@@ -273,6 +288,11 @@ class BagRecorder:
         self._wait_s = wait_s
         self._depth = depth
         self._poll_period_s = graph_poll_period_s
+        if not flush_period_s > 0 or math.isinf(flush_period_s):
+            raise RecorderError(f"flush period must be > 0 and finite, not {flush_period_s}")
+        self._flush_period_s = flush_period_s
+        self._next_flush_s = math.inf
+        self._flush_timer: Timer | None = None
         self._log: Callable[[str], None] = log or node.get_logger().warning
         self._note: Callable[[str], None] = note or node.get_logger().info
         self._clock = node.get_clock()
@@ -343,12 +363,34 @@ class BagRecorder:
             writer.open()
         except (WriterError, OSError) as exc:
             raise RecorderError(f"cannot create bag {self.output}: {exc}") from None
+        if not isinstance(writer.storage, McapWriter):  # the flush uses its chunk interface
+            writer.abort()
+            raise RecorderError("rosbags' MCAP writer has changed; cannot flush chunks")
         self._writer = writer
+        self._next_flush_s = time.monotonic() + self._flush_period_s
         self._waiting = {name: _Waiting(name) for name in self._named}
         self.poll_graph()
-        self._timer = self._node.create_timer(
-            self._poll_period_s, self.poll_graph, clock=Clock(clock_type=ClockType.STEADY_TIME)
-        )
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._timer = self._node.create_timer(self._poll_period_s, self.poll_graph, clock=steady)
+        self._flush_timer = self._node.create_timer(self._flush_period_s, self.flush, clock=steady)
+
+    def flush(self) -> None:
+        """Close the open MCAP chunk (if it holds anything) and flush the file to the OS.
+
+        What is flushed survives a SIGKILL of the recorder (`lca-record --recover` reads it).
+        """
+        with self._lock:
+            self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        writer = self._writer
+        if writer is None:
+            return
+        storage = cast("McapWriter", writer.storage)
+        if storage.chunk.bio.tell():
+            storage.close_chunk()
+        storage.bio.flush()
+        self._next_flush_s = time.monotonic() + self._flush_period_s
 
     def stop_discovery(self) -> None:
         """Stop looking for new topics (recording of subscribed topics goes on)."""
@@ -366,6 +408,9 @@ class BagRecorder:
         if self._closed:
             return self.counts
         self.stop_discovery()
+        if self._flush_timer is not None:
+            self._node.destroy_timer(self._flush_timer)
+            self._flush_timer = None
         for rec in self._recorded.values():
             if rec.subscription is not None:
                 self._node.destroy_subscription(rec.subscription)
@@ -510,6 +555,8 @@ class BagRecorder:
                     return
                 writer.write(rec.connection, stamp_ns, data)
                 rec.count += 1
+                if time.monotonic() >= self._next_flush_s:
+                    self._flush_locked()
 
         # raw=True hands the callback the serialized bytes; rclpy types it for messages.
         callback = cast("Callable[[Any], None]", on_message)
@@ -541,6 +588,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # rclpy's RCLInvalidROSArgsError
         return _fail(f"bad ROS arguments: {first_line(exc)}")
     args = _parse_args(own_args)
+    if args.recover is not None:
+        return recover_main(own_args)
     output: Path = args.output if args.output is not None else default_output()
     if output.exists():
         return _fail(f"output {output} exists already; not overwriting (choose another -o)")
@@ -570,6 +619,8 @@ def _parse_args(own_args: list[str]) -> argparse.Namespace:
     """The parsed arguments; bad ones exit through `parser.error` (status 2)."""
     parser = record_parser()
     args = parser.parse_args(own_args)
+    if args.recover is not None:
+        return args  # checked by recover_main
     if not args.topics and not args.all:
         parser.error("name at least one TOPIC or use --all")
     if args.max_duration_s is not None and not args.max_duration_s > 0:
@@ -578,6 +629,8 @@ def _parse_args(own_args: list[str]) -> argparse.Namespace:
         parser.error("--wait-s must be >= 0")
     if args.depth < 1:
         parser.error("--depth must be >= 1")
+    if not args.flush_period_s > 0 or math.isinf(args.flush_period_s):
+        parser.error("--flush-period-s must be > 0 and finite")
     return args
 
 
@@ -607,6 +660,7 @@ def _record(context: Context, args: argparse.Namespace, output: Path, stop: _Sto
             record_all=args.all,
             wait_s=args.wait_s,
             depth=args.depth,
+            flush_period_s=args.flush_period_s,
             log=_warn,
             note=_note,
         )

@@ -12,6 +12,8 @@ from pathlib import Path
 from lca_control.contract import STATE_QOS_DEPTH
 
 RECORD_WAIT_S = 10.0
+# A SIGKILLed recorder loses at most this much: every period the open chunk is closed and flushed.
+RECORD_FLUSH_PERIOD_S = 0.25
 EXECUTORS = ("events", "single")
 ECHO_WAIT_S = 5.0
 RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
@@ -53,6 +55,21 @@ def record_parser() -> argparse.ArgumentParser:
         default=EXECUTORS[0],
         help="rclpy executor: events (C++ events executor, about half the CPU per message; "
         "the default when available) or single (SingleThreadedExecutor)",
+    )
+    parser.add_argument(
+        "--flush-period-s",
+        type=float,
+        default=RECORD_FLUSH_PERIOD_S,
+        help="close and flush the open MCAP chunk this often, so a killed recorder loses at "
+        f"most this much (default {RECORD_FLUSH_PERIOD_S:g})",
+    )
+    parser.add_argument(
+        "--recover",
+        type=Path,
+        default=None,
+        metavar="BAG",
+        help="make the bag of a killed recording readable (keeps its complete chunks, rewrites "
+        "the MCAP summary and metadata.yaml) and exit; needs no ROS",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="print progress each second")
     return parser
