@@ -33,6 +33,9 @@ from lca_control.pi import PIParams
 from lca_control.profiles import Profile, RampProfile, TrapezoidProfile
 
 REFERENCE_SOURCES = ("topic", "ramp", "trapezoid", "hold")
+# A stamp older than the last one by more than this is a plant that restarted (its time began
+# again), not a late message: 1 us is above the float rounding of wall-clock stamps (~0.2 us).
+PLANT_TIME_TOLERANCE_S = 1e-6
 COMMAND_INTERFACES = ("voltage", "current")
 
 D = ParamKind.DOUBLE
@@ -73,6 +76,8 @@ CONTROLLER_PARAMETERS = ParameterTable(
         positive("velocity_limit", 0.2, "position loop velocity cap, rad/s (m/s)"),
         positive("reference_timeout_s", 0.5, "topic reference older than this counts as zero, s"),
         positive("nominal_period_s", CONTROL_PERIOD_S, "dt used for the very first state, s"),
+        positive("plant_timeout_s", 0.5,
+                 "no plant state for this long is reported (WARN on /diagnostics), s"),
         ParamSpec("enabled", ParamKind.BOOL, True, "compute commands; disabled sends zeros"),
     )
 )  # fmt: skip
@@ -91,6 +96,7 @@ class ControllerParams:
     reference_timeout_s: float
     nominal_period_s: float
     enabled: bool
+    plant_timeout_s: float
 
 
 def validate_controller_params(values: Mapping[str, Any]) -> ControllerParams:
@@ -130,7 +136,7 @@ def validate_controller_params(values: Mapping[str, Any]) -> ControllerParams:
     )
     return ControllerParams(
         joints, v["command_interface"], source, profile_joint, profile, cascade,
-        v["reference_timeout_s"], v["nominal_period_s"], v["enabled"],
+        v["reference_timeout_s"], v["nominal_period_s"], v["enabled"], v["plant_timeout_s"],
     )  # fmt: skip
 
 
@@ -147,6 +153,8 @@ class JointController:
         self._topic_reference_t_s = -math.inf
         self.last_velocity_reference: list[float] = [0.0] * len(params.joints)
         self.rejected_references = 0
+        self.plant_restarts = 0
+        self.last_restart_from_s = 0.0  # the stamp before the latest restart, s
 
     @property
     def elapsed_s(self) -> float:
@@ -165,6 +173,21 @@ class JointController:
         """Zero the integrators (on enable)."""
         for cascade in self.cascades:
             cascade.reset()
+
+    def _restart(self) -> None:
+        """Begin again as on the very first state: the plant's time has restarted.
+
+        Integrators from zero, the profile from its start and the hold pose from the new state;
+        a topic reference stamped on the old time base no longer counts.
+        """
+        self.plant_restarts += 1
+        self.last_restart_from_s = self._last_t_s if self._last_t_s is not None else 0.0
+        self.reset()
+        self._t0_s = None
+        self._last_t_s = None
+        self._hold_position = None
+        self._topic_reference_t_s = -math.inf
+        self.last_velocity_reference = [0.0] * len(self.params.joints)
 
     def set_topic_reference(self, values: Sequence[float], t_s: float) -> str | None:
         """Take a velocity reference array (joint order); return why it was refused, if so."""
@@ -208,14 +231,22 @@ class JointController:
     ) -> list[float] | None:
         """One control step on a plant state stamped t_s; None for a stale or repeated stamp.
 
+        A stamp earlier than the last by more than `PLANT_TIME_TOLERANCE_S` is a restarted
+        plant (a simulator or bridge started again, its time from 0): the loops and the
+        profiles restart from this state (`plant_restarts` counts it) instead of waiting for
+        the old time, which would never come.
+
         Returns the command array in joint order: volts (voltage interface, needs the
         currents) or amps (current interface).
         """
         p = self.params
-        if self._last_t_s is not None and t_s <= self._last_t_s:
-            return None
         if p.command_interface == "voltage" and currents_a is None:
             return None  # the current loop needs the measured currents
+        if self._last_t_s is not None:
+            if t_s < self._last_t_s - PLANT_TIME_TOLERANCE_S:
+                self._restart()
+            elif t_s <= self._last_t_s:
+                return None
         dt_s = p.nominal_period_s if self._last_t_s is None else t_s - self._last_t_s
         if self._t0_s is None:
             self._t0_s = t_s

@@ -11,10 +11,13 @@ stamps, never the node clock, so the loop runs on simulated time exactly in lock
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -53,6 +56,11 @@ class ControllerNode(Node):
         self.commands_sent = 0
         self.states_skipped = 0
         self.bad_states = 0
+        # Peer watch on the wall clock: /clock (use_sim_time) stops with a lost simulator.
+        self._last_state_wall = time.monotonic()
+        self._plant_lost = False
+        self.plant_losses = 0
+        self._restarts_logged = 0
         state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         topic = (
@@ -69,7 +77,11 @@ class ControllerNode(Node):
             Float64MultiArray, ri.VELOCITY_REFERENCE, self._on_reference, command_qos
         )
         self.create_service(SetBool, "~/enable", self._on_enable)
-        self.create_timer(1.0, self._publish_diagnostics)
+        # A steady clock: on sim time this timer would stop with /clock, i.e. exactly when a
+        # lost simulator has to be reported.
+        self.create_timer(
+            1.0, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME)
+        )
         self.get_logger().info(
             f"{params.reference_source} reference, {params.command_interface} commands on "
             f"{topic} for {list(params.joints)}"
@@ -83,6 +95,11 @@ class ControllerNode(Node):
 
     def _on_joint_states(self, msg: JointState) -> None:
         self._joint = msg
+        now = time.monotonic()
+        if self._plant_lost:
+            self._plant_lost = False
+            self.get_logger().info(f"plant states again after {now - self._last_state_wall:.1f} s")
+        self._last_state_wall = now
         self._try_step()
 
     def _try_step(self) -> None:
@@ -106,6 +123,13 @@ class ControllerNode(Node):
             self.get_logger().warning("malformed joint or motor state", throttle_duration_sec=5.0)
             return
         commands = self.core.update(t_s, positions, velocities, currents)
+        if self.core.plant_restarts != self._restarts_logged:
+            self._restarts_logged = self.core.plant_restarts
+            self.get_logger().warning(
+                f"plant time went back from {self.core.last_restart_from_s:.4f} s to "
+                f"{t_s:.4f} s: a restarted simulator or bridge; loops and reference restart "
+                f"from this state (restart {self.core.plant_restarts})"
+            )
         if commands is None:
             self.states_skipped += 1
             return
@@ -155,13 +179,32 @@ class ControllerNode(Node):
         if new.enabled and not old.enabled:
             self.core.reset()  # re-enabling starts the integrators from zero
 
+    def _plant_health(self) -> tuple[bytes, str]:
+        """The plant peer for /diagnostics: WARN while no state came for plant_timeout_s.
+
+        The loss is logged once when it begins; its end is logged when states return.
+        """
+        silent_s = time.monotonic() - self._last_state_wall
+        if silent_s > self.core.params.plant_timeout_s:
+            what = f"no plant state for {silent_s:.1f} s"
+            if self._joint is None:
+                what += " (none since start)"
+            if not self._plant_lost:
+                self._plant_lost = True
+                self.plant_losses += self._joint is not None  # a start-up wait is no loss
+                self.get_logger().warning(
+                    f"{what}: no commands are sent; is the simulator or CAN bridge running?"
+                )
+            return DiagnosticStatus.WARN, what
+        if self.plant_losses:
+            return DiagnosticStatus.OK, "plant states again"
+        return DiagnosticStatus.OK, "running"
+
     def _publish_diagnostics(self) -> None:
         core = self.core
-        level = (
-            DiagnosticStatus.WARN
-            if (core.rejected_references or self.bad_states)
-            else (DiagnosticStatus.OK)
-        )
+        level, message = self._plant_health()
+        if level == DiagnosticStatus.OK and (core.rejected_references or self.bad_states):
+            level, message = DiagnosticStatus.WARN, "bad states or references (see counters)"
         values: dict[str, object] = {
             "enabled": core.params.enabled,
             "reference_source": core.params.reference_source,
@@ -170,12 +213,15 @@ class ControllerNode(Node):
             "states_skipped": self.states_skipped,
             "bad_states": self.bad_states,
             "references_rejected": core.rejected_references,
+            "plant_state_age_s": time.monotonic() - self._last_state_wall,
+            "plant_losses": self.plant_losses,
+            "plant_restarts": core.plant_restarts,
         }
         for joint, reference in zip(core.params.joints, core.last_velocity_reference, strict=True):
             values[f"{joint}_velocity_reference"] = reference
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        array.status.append(status("lca_hil/controller", level, "running", values))
+        array.status.append(status("lca_hil/controller", level, message, values))
         self._diag_pub.publish(array)
 
 

@@ -91,6 +91,8 @@ class SimulatorNode(Node):
         self._overrun_steps = 0
         self._published = 0
         self._wrong_interface = 0
+        self._commands_lost = False  # the controller peer, as /diagnostics reports it
+        self._command_losses = 0
         self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
         self._plant = PlantPublisher(self, self.sim.axis_names, clock=self._lockstep)
         self._bind_snapshot_rows()
@@ -255,15 +257,52 @@ class SimulatorNode(Node):
         self._published += 1
         self._last_publish_wall = time.monotonic()
 
+    def _command_health(self, command_age_s: float) -> tuple[bytes, str] | None:
+        """The controller peer: a WARN while commands are missing, else None.
+
+        Realtime: silence beyond command_timeout_s (the plant is at 0 V then). Lockstep: no
+        command for lockstep_resend_s (simulated time stands still), or the start still
+        waiting for its subscribers. A loss is logged once when it begins and once when it ends.
+        """
+        p = self.params
+        if self._lockstep and not self._started:
+            matched = self._plant.joint_pub.get_subscription_count()
+            return DiagnosticStatus.WARN, (
+                f"waiting for {p.lockstep_subscribers} joint_states subscribers "
+                f"({matched} so far): simulated time has not started"
+            )
+        limit_s = p.lockstep_resend_s if self._lockstep else p.command_timeout_s
+        if command_age_s <= limit_s:
+            if self._commands_lost:
+                self._commands_lost = False
+                self.get_logger().info(f"commands again; simulated time {self.sim_time_s:.3f} s")
+            return None
+        what = (
+            "simulated time paused, the last state is re-sent"
+            if self._lockstep
+            else "holding (0 V)"
+        )
+        message = f"no command for {command_age_s:.1f} s: {what}"
+        if not self._commands_lost:
+            self._commands_lost = True
+            self._command_losses += 1
+            self.get_logger().warning(f"{message}; is the controller running?")
+        return DiagnosticStatus.WARN, message
+
     def _publish_diagnostics(self) -> None:
         p = self.params
         wall_s = time.monotonic() - self._wall_start
         level = DiagnosticStatus.OK
         message = "running" if self.plant.enabled else "disabled"
+        if self._command_losses:
+            message = "commands again" if self.plant.enabled else "disabled; commands again"
         counters = self.plant.counters
         if counters.rejected or self._wrong_interface:
             level, message = DiagnosticStatus.WARN, "commands rejected"
         command_age_s = time.monotonic() - self._last_command_wall
+        peer = self._command_health(command_age_s)
+        if peer is not None:
+            level, message = peer
         values: dict[str, object] = {
             "timing_mode": p.timing_mode,
             "command_interface": p.command_interface,
@@ -274,6 +313,7 @@ class SimulatorNode(Node):
             "overrun_steps": self._overrun_steps,
             "command_age_s": command_age_s,
             "commands_wrong_interface": self._wrong_interface,
+            "command_losses": self._command_losses,
             **counters.as_dict(),
         }
         if not self._lockstep and wall_s > 0.0:

@@ -227,6 +227,7 @@ def test_controller_applies_or_rejects_every_parameter() -> None:
             "velocity_limit": (0.1, lambda n: n.core.params.cascade.velocity_limit == 0.1),
             "reference_timeout_s": core("reference_timeout_s", 0.25),
             "nominal_period_s": core("nominal_period_s", 0.002),
+            "plant_timeout_s": core("plant_timeout_s", 0.25),
             "enabled": (
                 False,
                 lambda n: n.core.update(1.0, [0.0] * 4, [0.5] * 4, [1.0] * 4) == [0.0] * 4,
