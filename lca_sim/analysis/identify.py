@@ -26,6 +26,17 @@ never from recorded eta values. Samples are left out when the axis is stopped (l
 does not hold), within a guard of a state change, a stop, a gap or the record's ends (where the
 differentiator smears a kink), and where the noise could flip a condition of the state table.
 
+End stops. A sample whose position of the identified axis is within `end_stop_margin_rad`
+(default 3 deg) of a joint limit of the URDF (the limits `Simulator.position_limits` reports), and
+every sample within the guard of one, is left out and counted (`n_end_stop`). Eq. (10) has no term
+for the stop's reaction: the impact is a velocity step the differentiator smears over half its
+window, and the state labels near it are computed from those smeared signals, so the guard
+around a label change does not reliably cover it (a run into the lower stop of the pivot gave
+eta_l = 0.29 for a true 0.06 from 186 samples just before the impact). The margin is wider than
+the smear at any speed the pivot reaches (0.4 rad/s covers 3 deg in 130 ms, the smear is 15 ms)
+and covers a real stop's bumper engaging a little before the nominal limit and the homing
+offset. Only the identified axis's limits are checked.
+
 What is estimated in each state follows the power-flow rule of eq. (11) (docs/model.md): the
 coefficient belongs to the torque of the element that emits power, the other is 1.
 
@@ -44,6 +55,17 @@ than the differentiator's window), so the serial correlation the smoothing and a
 error introduce widens the interval instead of being mistaken for independent samples: the
 estimate +- t(blocks - 1) times the bootstrap standard deviation. It covers noise, not a wrong
 friction, inertia or torque-constant value (those bias every estimate alike).
+
+Identifiability. An estimate is only written over the prior when its interval is narrow enough
+to say something: width (high - low) at most `ci_width_relative` (0.2, i.e. +-10 %) of the
+estimate clipped to [0, 1] -- the relative criterion -- or at most `ci_width_absolute` (0.1, i.e.
++-0.05) -- the absolute criterion -- whichever is larger. The switch is at an estimate of 0.5, where
+both give 0.1, so the bound is continuous. Below it the absolute criterion judges: for the worm's
+reverse states (Table 1: 0.06, 0.16) +-10 % would be +-0.006, far below what the friction and
+inertia model can vouch for, while +-0.05 bounds the error of the torque passed through the gear
+to 5 % of the load torque, the same torque error +-10 % gives at 0.5. A wider interval is
+NOT_IDENTIFIABLE: the estimate and interval are reported, the prior is kept. The tests' noisy
+record gives widths up to 0.025, a record with 0.5 A current noise 0.1-0.5 in the short states.
 """
 
 from __future__ import annotations
@@ -85,6 +107,14 @@ _MAD_TO_SIGMA = 1.4826
 _STOPPED = -1
 _AMBIGUOUS = -2
 _INVALID = -3
+_END_STOP = -4
+
+
+class Criterion(enum.Enum):
+    """How the width of a confidence interval is judged (module docstring, Identifiability)."""
+
+    RELATIVE = "relative"  # width <= ci_width_relative * estimate
+    ABSOLUTE = "absolute"  # width <= ci_width_absolute (small efficiencies)
 
 
 class IdentificationError(LcaHilError, ValueError):
@@ -98,6 +128,7 @@ class EstimateStatus(enum.Enum):
     NOT_VISITED = "not_visited"  # no usable sample in this state
     TOO_FEW_SAMPLES = "too_few_samples"  # fewer than `min_samples` usable samples
     WEAK_EXCITATION = "weak_excitation"  # the emitter's torque is lost in the current noise
+    NOT_IDENTIFIABLE = "not_identifiable"  # the interval is wider than the bound (module doc)
     FIXED = "fixed"  # no emitter coefficient (coasting): both are 1 by eq. (11)
 
     @property
@@ -140,6 +171,10 @@ class IdentifyOptions:
         confidence: level of the confidence intervals.
         bootstrap_replicates: moving-block bootstrap replicates per state.
         seed: of the bootstrap's random generator (results are reproducible).
+        end_stop_margin_rad: samples this close to a joint limit of the identified axis (rad; m
+            for a prismatic axis), and those within the guard of one, are left out.
+        ci_width_relative: widest interval accepted, relative to the estimate clipped to [0, 1].
+        ci_width_absolute: widest interval accepted, absolute (the floor for small estimates).
 
     """
 
@@ -151,6 +186,9 @@ class IdentifyOptions:
     confidence: float = 0.95
     bootstrap_replicates: int = 2000
     seed: int = 0
+    end_stop_margin_rad: float = math.radians(3.0)
+    ci_width_relative: float = 0.2
+    ci_width_absolute: float = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,6 +214,8 @@ class StateEstimate:
         residual_mean_nm: mean eq. (10) residual with the identified coefficients, N m.
         residual_rms_nm: its RMS, N m.
         regressor_rms_nm: RMS of the emitter's torque over the samples, N m (the excitation).
+        criterion: how the interval's width was judged, None when no interval was drawn.
+        ci_width_bound: the widest interval accepted under `criterion` (NaN when None).
 
     """
 
@@ -195,6 +235,13 @@ class StateEstimate:
     residual_mean_nm: float
     residual_rms_nm: float
     regressor_rms_nm: float
+    criterion: Criterion | None = None
+    ci_width_bound: float = math.nan
+
+    @property
+    def ci_width(self) -> float:
+        """Width of the confidence interval, high - low (NaN when not estimated)."""
+        return self.ci_high - self.ci_low
 
 
 @dataclass(frozen=True, slots=True)
@@ -208,12 +255,14 @@ class IdentificationResult:
         time_s: [n] the sample times used (a uniform grid).
         direction: [n] motion direction per sample (+1, -1, 0 when stopped).
         state_index: [n] moving-state index per sample into `state_names`, or -1 stopped,
-            -2 ambiguous (a condition within the noise margin), -3 invalid (gap, record end).
+            -2 ambiguous (a condition within the noise margin), -3 invalid (gap, record end),
+            -4 at or near an end stop (`IdentifyOptions.end_stop_margin_rad`, and its guard).
         used: [n] True where the sample entered a fit.
         state_names: the robot's moving-state names.
         current_noise_a: estimated standard deviation of the current noise, A.
         velocity_noise_rad_s: estimated standard deviation of the motor velocity noise, rad/s.
         moving_threshold_rad_s: motor speed below which a sample counts as stopped.
+        position_limits: (min, max) of the identified axis from the URDF (rad; m).
         options: the options used.
 
     """
@@ -229,6 +278,7 @@ class IdentificationResult:
     current_noise_a: float
     velocity_noise_rad_s: float
     moving_threshold_rad_s: float
+    position_limits: tuple[float, float]
     options: IdentifyOptions
 
     @property
@@ -240,6 +290,11 @@ class IdentificationResult:
     def n_moving(self) -> int:
         """Samples where the identified axis moves."""
         return int(np.count_nonzero(self.direction))
+
+    @property
+    def n_end_stop(self) -> int:
+        """Samples left out at or near an end stop (within the margin or its guard)."""
+        return int(np.count_nonzero(self.state_index == _END_STOP))
 
     @property
     def n_used(self) -> int:
@@ -337,14 +392,19 @@ def identify(
     direction = direction.astype(np.int64)
     moving = (direction != 0) & valid
 
-    tau_l, inertia_nm = _load_and_inertia(robot, a, position, smooth_v, accel, moving)
+    gantry = Gantry(robot.urdf_xml, robot.gravity_m_s2, robot.source)
+    joint = gantry.joints[a]
+    limits = (joint.position_min, joint.position_max)
+    end_stop = _near_end_stop(position[:, a], limits, opts.end_stop_margin_rad, guard)
+    tau_l, inertia_nm = _load_and_inertia(robot, gantry, a, position, smooth_v, accel, moving)
     tau_fv = _velocity_friction(params, direction, omega_m)
     # Eq. (10) with the unknowns on the left: eta_m tau_m - eta_l tau_l = y.
     y = inertia_nm + tau_fv
 
     rules = robot.state_machine.rules
     state = classify_samples(rules, direction, tau_m, tau_l, tau_margin_nm)
-    labels = np.where(moving, state, np.where(valid, _STOPPED, _INVALID)).astype(np.int64)
+    labels = np.where(moving, state, np.where(valid, _STOPPED, _INVALID))
+    labels = np.where(end_stop, _END_STOP, labels).astype(np.int64)
     key = np.where(labels >= 0, (direction > 0) * len(rules) + labels, labels)
     used = _guarded(key, guard) & (labels >= 0)
 
@@ -379,6 +439,7 @@ def identify(
         current_noise_a=current_noise_a,
         velocity_noise_rad_s=velocity_noise,
         moving_threshold_rad_s=threshold,
+        position_limits=limits,
         options=opts,
     )
 
@@ -396,6 +457,9 @@ def _check_options(opts: IdentifyOptions) -> None:
         ("min_samples", opts.min_samples >= 1, ">= 1"),
         ("confidence", 0.0 < opts.confidence < 1.0, "in (0, 1)"),
         ("bootstrap_replicates", opts.bootstrap_replicates >= 10, ">= 10"),
+        ("end_stop_margin_rad", opts.end_stop_margin_rad >= 0.0, ">= 0"),
+        ("ci_width_relative", opts.ci_width_relative > 0.0, "> 0"),
+        ("ci_width_absolute", opts.ci_width_absolute > 0.0, "> 0"),
     )
     for name, ok, expected in checks:
         if not ok:
@@ -516,8 +580,25 @@ def _noise_sigma(residual: FloatArray, h: FloatArray) -> float:
     return _MAD_TO_SIGMA * mad / math.sqrt(max(1.0 - h0, 1e-12))
 
 
+def _near_end_stop(
+    position: FloatArray, limits: tuple[float, float], margin: float, guard: int
+) -> BoolArray:
+    """True where the axis is within `margin` of an end stop, or within `guard` samples of that.
+
+    The guard covers the differentiator's smear of the impact (module docstring, End stops).
+    """
+    near = (position <= limits[0] + margin) | (position >= limits[1] - margin)
+    if not np.any(near):
+        return near
+    # Dilate by `guard` samples on both sides: a running count over a window of 2 guard + 1.
+    counts = np.convolve(near.astype(np.int64), np.ones(2 * guard + 1, dtype=np.int64), "same")
+    out: BoolArray = counts > 0
+    return out
+
+
 def _load_and_inertia(
     robot: RobotParams,
+    gantry: Gantry,
     a: int,
     position: FloatArray,
     velocity: FloatArray,
@@ -529,7 +610,6 @@ def _load_and_inertia(
     tau_l = N^-1 (C qdot + Q)_a and the coupled inertia torque
     (J qddot_m)_a = J_m N_a qddot_a + N_a^-1 (A(q) qddot)_a, from Pinocchio.
     """
-    gantry = Gantry(robot.urdf_xml, robot.gravity_m_s2, robot.source)
     ratio = robot.axes[a].gear_ratio
     rotor = robot.axes[a].motor.rotor_inertia_kg_m2
     n_axes = len(robot.axes)
@@ -646,6 +726,7 @@ def _estimate_state(
         n_effective: float = 0.0,
         block_length: int = 0,
         regressor_rms: float = nan,
+        judged: tuple[Criterion | None, float] = (None, nan),
     ) -> StateEstimate:
         mean = rms = nan
         if residual is not None and len(residual) > 0:
@@ -668,6 +749,8 @@ def _estimate_state(
             residual_mean_nm=mean,
             residual_rms_nm=rms,
             regressor_rms_nm=regressor_rms,
+            criterion=judged[0],
+            ci_width_bound=judged[1],
         )
 
     if n == 0:
@@ -696,18 +779,44 @@ def _estimate_state(
     ci = _block_bootstrap(x, z, estimate, block, opts, rng)
     low_limit = 0.0 if coefficient == "eta_l" else 1e-3
     value = min(max(estimate, low_limit), 1.0)
+    criterion, bound = judge_interval(value, opts)
+    status = EstimateStatus.IDENTIFIED
     identified = Efficiency(value, 1.0) if coefficient == "eta_m" else Efficiency(1.0, value)
+    if not ci[1] - ci[0] <= bound:  # also a NaN width (too few bootstrap replicates)
+        status, identified = EstimateStatus.NOT_IDENTIFIABLE, prior
     return result(
-        EstimateStatus.IDENTIFIED,
+        status,
         estimate=estimate,
         ci=ci,
         identified=identified,
         clipped=value != estimate,
+        judged=(criterion, bound),
         residual=residual,
         n_effective=n / tau,
         block_length=block,
         regressor_rms=regressor_rms,
     )
+
+
+def judge_interval(value: float, opts: IdentifyOptions) -> tuple[Criterion, float]:
+    """The criterion an estimate's interval is judged by, and the widest interval it accepts.
+
+    Module docstring, Identifiability: the larger of `ci_width_relative` times the estimate
+    (clipped to [0, 1]: an efficiency is never above 1) and `ci_width_absolute`; the absolute
+    criterion wins for small efficiencies, where a relative bound is meaningless.
+
+    Args:
+        value: the estimate (clipped to the admissible range by the caller or here).
+        opts: the bounds.
+
+    Returns:
+        (criterion, widest accepted high - low).
+    """
+    scale = min(abs(value), 1.0)
+    relative = opts.ci_width_relative * scale
+    if relative >= opts.ci_width_absolute:
+        return Criterion.RELATIVE, relative
+    return Criterion.ABSOLUTE, opts.ci_width_absolute
 
 
 def _pooled_correlation_time(residual: FloatArray, runs: list[IntArray]) -> float:

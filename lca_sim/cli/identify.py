@@ -85,6 +85,12 @@ def add_parser(sub: Any) -> None:
         default=IdentifyOptions().min_samples,
         help="usable samples a state needs to be identified",
     )
+    parser.add_argument(
+        "--end-stop-margin-deg",
+        type=float,
+        default=math.degrees(IdentifyOptions().end_stop_margin_rad),
+        help="leave out samples this close to a joint limit, deg (lift: the rad value, as m)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -100,14 +106,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run(parser.parse_args(argv))
 
 
+def _options(args: argparse.Namespace) -> IdentifyOptions:
+    """The identification options of the command line, checked.
+
+    Raises:
+        InputFileError: --min-samples below 1 or a negative --end-stop-margin-deg.
+    """
+    if args.min_samples < 1:
+        raise InputFileError(f"--min-samples: expected >= 1, got {args.min_samples}")
+    if not args.end_stop_margin_deg >= 0.0:
+        raise InputFileError(
+            f"--end-stop-margin-deg: expected >= 0, got {args.end_stop_margin_deg}"
+        )
+    return IdentifyOptions(
+        min_samples=args.min_samples, end_stop_margin_rad=math.radians(args.end_stop_margin_deg)
+    )
+
+
 def _run(args: argparse.Namespace) -> int:
     source: Path = args.input
     is_bag = source.is_dir()
     out: Path = args.out if args.out is not None else (source if is_bag else source.parent)
     if out.exists() and not out.is_dir():
         raise OutputError(f"--out {out}: expected a folder, but it is a file")
-    if args.min_samples < 1:
-        raise InputFileError(f"--min-samples: expected >= 1, got {args.min_samples}")
+    options = _options(args)
     robot = load_robot(args.robot)
     if args.axis not in robot.axis_names:
         raise UnknownNameError("axis", args.axis, robot.axis_names)
@@ -119,7 +141,7 @@ def _run(args: argparse.Namespace) -> int:
     else:
         raise InputFileError(f"{source}: no such file or folder")
     try:
-        result = identify(robot, args.axis, record, IdentifyOptions(min_samples=args.min_samples))
+        result = identify(robot, args.axis, record, options)
     except IdentificationError as exc:
         raise InputFileError(f"{source}: {exc}") from None
     if result.n_moving == 0:
@@ -275,11 +297,14 @@ def _summary(result: IdentificationResult, robot: RobotParams, source: Path) -> 
         f"{PROG}: axis {result.axis} of {robot.name}, from {source}",
         f"  {result.n_samples} samples every {period_ms:.4g} ms; {result.n_moving} moving, "
         f"{result.n_used} used (stops, state changes and their guard, ambiguous samples out)",
+        f"  {result.n_end_stop} samples left out at or near an end stop (within "
+        f"{math.degrees(result.options.end_stop_margin_rad):.3g} deg of "
+        f"[{result.position_limits[0]:.4g}, {result.position_limits[1]:.4g}], and the guard)",
         f"  current noise {result.current_noise_a:.3g} A; moving above "
         f"{result.moving_threshold_rad_s:.3g} rad/s at the motor",
         "",
         f"{'state':40s} {'direction':9s} {'coef':5s} {'estimate':>9s}  "
-        f"{'95 % CI':19s} {'samples':>7s}  prior",
+        f"{'95 % CI':19s} {'samples':>7s}  prior  judged",
     ]
     for e in result.estimates:
         lines.append(_row(e))
@@ -302,7 +327,7 @@ def _summary(result: IdentificationResult, robot: RobotParams, source: Path) -> 
 def _row(e: StateEstimate) -> str:
     coef = e.coefficient or "-"
     prior = _value(e.prior, e.coefficient)
-    if e.status is EstimateStatus.IDENTIFIED:
+    if e.status in (EstimateStatus.IDENTIFIED, EstimateStatus.NOT_IDENTIFIABLE):
         value = f"{e.estimate:9.4f}"
         interval = f"[{e.ci_low:.4f}, {e.ci_high:.4f}]"
     elif e.status is EstimateStatus.FIXED:
@@ -312,10 +337,19 @@ def _row(e: StateEstimate) -> str:
         value = f"{'-':>9s}"
         interval = e.status.value.replace("_", " ")
     flag = " (clipped)" if e.clipped else ""
+    if e.status is EstimateStatus.NOT_IDENTIFIABLE:
+        flag += " NOT IDENTIFIABLE"
     return (
         f"{e.state:40s} {e.direction.name.lower():9s} {coef:5s} {value}  {interval:19s} "
-        f"{e.n_samples:7d}  {prior:g}{flag}"
+        f"{e.n_samples:7d}  {prior:g}  {_judged(e)}{flag}"
     )
+
+
+def _judged(e: StateEstimate) -> str:
+    """The criterion the interval was judged by: `relative: width <= 0.18`, or `-`."""
+    if e.criterion is None:
+        return "-"
+    return f"{e.criterion.value}: width <= {e.ci_width_bound:.3g}"
 
 
 def _reason(e: StateEstimate, options: IdentifyOptions) -> str:
@@ -324,6 +358,13 @@ def _reason(e: StateEstimate, options: IdentifyOptions) -> str:
         return "not visited"
     if e.status is EstimateStatus.TOO_FEW_SAMPLES:
         return f"{e.n_samples} usable samples, fewer than {options.min_samples}"
+    if e.status is EstimateStatus.NOT_IDENTIFIABLE:
+        assert e.criterion is not None
+        return (
+            f"not identifiable: {options.confidence * 100:g} % CI [{e.ci_low:.4g}, "
+            f"{e.ci_high:.4g}] is {e.ci_width:.3g} wide, wider than {e.ci_width_bound:.3g} "
+            f"({e.criterion.value} criterion)"
+        )
     assert e.status is EstimateStatus.WEAK_EXCITATION, e.status  # the last one keeping the prior
     return f"the {e.coefficient} torque ({e.regressor_rms_nm:.2g} N m rms) is within the noise"
 
@@ -493,6 +534,8 @@ def identification_json(result: IdentificationResult, robot: RobotParams, source
         "current_noise_a": result.current_noise_a,
         "velocity_noise_rad_s": result.velocity_noise_rad_s,
         "moving_threshold_rad_s": result.moving_threshold_rad_s,
+        "n_end_stop": result.n_end_stop,
+        "position_limits": list(result.position_limits),
         "options": dataclasses.asdict(result.options),
         "estimates": [
             {
@@ -513,15 +556,33 @@ def identification_json(result: IdentificationResult, robot: RobotParams, source
                 "residual_mean_nm": _finite(e.residual_mean_nm),
                 "residual_rms_nm": _finite(e.residual_rms_nm),
                 "regressor_rms_nm": _finite(e.regressor_rms_nm),
+                "criterion": e.criterion.value if e.criterion is not None else None,
+                "ci_width": _finite(e.ci_width),
+                "ci_width_bound": _finite(e.ci_width_bound),
+                "reason": _json_reason(e, result.options),
             }
             for e in result.estimates
         ],
         "not_identified": [
-            {"state": e.state, "direction": e.direction.name.lower(), "status": e.status.value}
+            {
+                "state": e.state,
+                "direction": e.direction.name.lower(),
+                "status": e.status.value,
+                "reason": _json_reason(e, result.options),
+            }
             for e in result.not_identified
         ],
     }
     return json.dumps(doc, indent=2, allow_nan=False) + "\n"
+
+
+def _json_reason(e: StateEstimate, options: IdentifyOptions) -> str | None:
+    """Why the prior was kept (and why a value may be null); None when identified."""
+    if e.status is EstimateStatus.IDENTIFIED:
+        return None
+    if e.status is EstimateStatus.FIXED:
+        return "fixed at 1 by eq. (11): no emitter coefficient"
+    return _reason(e, options)
 
 
 def _finite(value: float) -> float | None:
