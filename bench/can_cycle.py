@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 import os
 import platform
@@ -42,6 +41,7 @@ from lca_sim.canbus.master import GIL_SWITCH_INTERVAL_S, BridgeParams, Cia402Mas
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
 from lca_sim.cia402.device import PowerState
 from lca_sim.cia402.master import bus_load_pct
+from lca_sim.cli.output import strict_json
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.runtime import settle_heap
 
@@ -205,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "cpus": os.cpu_count(),
         "python": platform.python_version(),
     }
-    print(json.dumps(record))
+    print(strict_json(record, indent=None))  # strict: NaN/inf as null, with why
     return 0 if all(r.get("ok") for r in results.values()) else 1
 
 

@@ -34,7 +34,6 @@ script still measures the first two figures and reports null for the MuJoCo ones
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import re
 import statistics
@@ -52,6 +51,7 @@ import numpy.typing as npt
 import pinocchio as pin
 
 from lca_sim import MotionState, Simulator, load_robot
+from lca_sim.cli.output import strict_json
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -500,7 +500,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "pinocchio": pin.__version__,
         "mujoco": mujoco.__version__ if mujoco else None,
     }
-    print(json.dumps(record))
+    print(strict_json(record, indent=None))  # strict: NaN/inf as null, with why
     return 0
 
 

@@ -1136,7 +1136,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "rmw": ros_env(0)["RMW_IMPLEMENTATION"],
         "errors": errors or None,
     }
-    print(json.dumps(record))
+    from lca_sim.cli.output import strict_json  # here: the roles do not load numpy
+
+    print(strict_json(record, indent=None))  # strict: NaN/inf as null, with why
     return 1 if errors else 0
 
 

@@ -1,20 +1,25 @@
-"""Writing the tools' files atomically: any file, CSV tables and matplotlib PNGs (the I/O edge).
+"""Writing the tools' files atomically: any file, CSV tables, strict JSON and matplotlib PNGs.
 
 A file is written to a temporary name in the target folder and renamed into place, so an
-interrupted tool never leaves a half-written file behind. Nothing here needs the model, so
-`lca-plot` (which only reads bags) does not load numba or Pinocchio through it.
+interrupted tool never leaves a half-written file behind. JSON is strict (RFC 8259): a
+non-finite float (NaN, +-Infinity, which Python's `json` would write as the invalid tokens
+`NaN`/`Infinity`) becomes `null`, and the document's top-level `"reasons"` object says why,
+keyed by the value's path (`"summary.transition_time_s"`, `"runs[2].rate"`). Nothing here
+needs the model, so `lca-plot` (which only reads bags) does not load numba or Pinocchio
+through it.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import tempfile
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,6 +27,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 PNG_DPI = 110  # every PNG the tools write
+REASONS_KEY = "reasons"  # where a strict JSON document says why a value is null
 
 
 def number_cell(x: float) -> str:
@@ -65,3 +71,52 @@ def save_png(fig: Figure, path: Path) -> None:
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=PNG_DPI)
+
+
+def _finite_only(value: Any, path: str, nulled: dict[str, str]) -> Any:
+    """`value` with every non-finite float replaced by None; `nulled` gets path -> the value."""
+    if isinstance(value, float | np.floating):
+        if math.isfinite(value):
+            return float(value)
+        nulled[path] = repr(float(value))
+        return None
+    if isinstance(value, Mapping):
+        prefix = f"{path}." if path else ""
+        return {str(k): _finite_only(v, f"{prefix}{k}", nulled) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_only(v, f"{path}[{i}]", nulled) for i, v in enumerate(value)]
+    return value
+
+
+def strict_json(
+    data: Any, reasons: Mapping[str, str] | None = None, *, indent: int | None = 2
+) -> str:
+    """`data` as strict JSON text: non-finite floats as null, with why under "reasons".
+
+    Args:
+        data: JSON-able values (dicts, lists, str, int, float, bool, None; numpy floats too).
+        reasons: why a value may be missing, by its path (`"transition_time_s"`); a nulled
+            value without one is explained as "not a finite number (nan)".
+        indent: as for `json.dumps`; None gives one line (a benchmark's JSON line).
+
+    Returns:
+        The JSON text (no trailing newline). When a value was nulled and `data` is a dict,
+        the document gains a top-level "reasons" object {path: why} (merged with one it has).
+
+    Raises:
+        ValueError: a value JSON cannot hold without NaN or Infinity (never for finite data).
+    """
+    nulled: dict[str, str] = {}
+    clean = _finite_only(data, "", nulled)
+    if nulled and isinstance(clean, dict):
+        why = dict(clean.get(REASONS_KEY) or {})
+        for path, value in nulled.items():
+            why.setdefault(path, (reasons or {}).get(path, f"not a finite number ({value})"))
+        clean[REASONS_KEY] = why
+    return json.dumps(clean, indent=indent, allow_nan=False)
+
+
+def write_json(path: Path, data: Any, reasons: Mapping[str, str] | None = None) -> None:
+    """Write `data` as strict, indented JSON atomically (see `strict_json`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(strict_json(data, reasons) + "\n", encoding="utf-8")

@@ -43,7 +43,7 @@ from lca_sim.analysis.paper import (
     current_step,
     open_loop_phases,
 )
-from lca_sim.cli.output import atomic_path, save_png, write_table
+from lca_sim.cli.output import save_png, write_json, write_table
 from lca_sim.cli.ros_guard import ros_required
 from lca_sim.cli.tune import tune_axis
 from lca_sim.config.loader import load_robot, load_scenario
@@ -379,6 +379,7 @@ def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
     if code != 0:
         raise PaperError(f"the Fig. 15 run failed (exit {code}); logs in {run_dir}")
     summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    summary = {k: math.nan if v is None else v for k, v in summary.items()}  # null: not reached
     data = read_bag(run_dir / "bag")
     joint, motor, drive = data.joints["pivot"], data.motors["pivot"], data.drives["pivot"]
     t = np.asarray(joint.time_s)
@@ -503,8 +504,7 @@ def _run(args: argparse.Namespace) -> int:
             return EXIT_FAILED
         print(f"{PROG}: {name} in {time.perf_counter() - start:.1f} s", flush=True)
     document = {"reproduced": numbers, "paper": PAPER}
-    with atomic_path(out / "numbers.json") as tmp:
-        tmp.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    write_json(out / "numbers.json", document)  # strict: a missing number is null, with why
     for key, value in numbers.items():
         print(f"  {key}: {value}")
     print(f"wrote the figures, their CSVs and numbers.json in {out}")
