@@ -14,6 +14,17 @@ Timing modes:
   the state is published with /clock. Simulated time starts at 0. The first state goes out once
   `lockstep_subscribers` subscribers of joint_states have matched; if no command comes for
   `lockstep_resend_s`, the last state is sent again (a controller ignores stamps it has seen).
+
+The end of a lockstep run: with `lockstep_end_s` > 0 the simulator ends the run itself at that
+simulated time. The command that reaches it advances only up to it (a shorter last period if
+the end is not a whole number of control periods), so the last state published is stamped
+exactly `lockstep_end_s`; after it no state, /clock or re-send goes out and commands are
+ignored (counted as `commands_after_end`). The simulator says so once in its log, publishes
+/diagnostics at once, and from then on its `lca_hil/simulator` status (`SIMULATOR_STATUS`) has
+the message "ended at <t> s" and the value `ended` (`ENDED_KEY`) = "True" in every
+diagnostics period, so an orchestrator that subscribes late still sees it. The process keeps
+running (parameters and services stay available) until it is stopped; raising
+`lockstep_end_s` live resumes the run, and 0 means no end.
 """
 
 from __future__ import annotations
@@ -44,7 +55,9 @@ from lca_sim.ros.node_util import (
 )
 from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
 from lca_sim.ros.simulator_params import (
+    ENDED_KEY,
     SIMULATOR_PARAMETERS,
+    SIMULATOR_STATUS,
     SimulatorNodeParams,
     validate_simulator_params,
 )
@@ -91,6 +104,8 @@ class SimulatorNode(Node):
         self._overrun_steps = 0
         self._published = 0
         self._wrong_interface = 0
+        self._after_end = 0
+        self._end_reported = False
         self._commands_lost = False  # the controller peer, as /diagnostics reports it
         self._command_losses = 0
         self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
@@ -129,6 +144,12 @@ class SimulatorNode(Node):
         """Simulated time of the published states (the /clock value in lockstep)."""
         return self._time_base_s + self._steps_done * self.params.dt_s
 
+    @property
+    def ended(self) -> bool:
+        """A lockstep run has reached `lockstep_end_s`: no further state goes out."""
+        end = self.params.lockstep_end_steps
+        return self._lockstep and end is not None and self._steps_done >= end
+
     def _reset_pose(self) -> None:
         position = dict(zip(self.sim.axis_names, self.params.initial_position, strict=True))
         try:
@@ -155,9 +176,34 @@ class SimulatorNode(Node):
             # In lockstep the loop must go on: the last good command stays in force.
         self._last_command_wall = time.monotonic()
         if self._lockstep and self._started:
-            self.plant.advance(self.params.substeps_per_period)
-            self._steps_done += self.params.substeps_per_period
-            self._publish_state()
+            self._lockstep_step()
+
+    def _lockstep_step(self) -> None:
+        """Advance one control period (or up to the end) and publish; nothing once ended."""
+        if self.ended:
+            self._after_end += 1
+            self._report_end()  # an end set live below the time reached shows here
+            return
+        steps = self.params.substeps_per_period
+        end = self.params.lockstep_end_steps
+        if end is not None:
+            steps = min(steps, end - self._steps_done)
+        self.plant.advance(steps)
+        self._steps_done += steps
+        self._publish_state()
+        if self.ended:
+            self._report_end()
+
+    def _report_end(self) -> None:
+        """Say once that the run has ended: the log, and /diagnostics at once."""
+        if self._end_reported:
+            return
+        self._end_reported = True
+        self.get_logger().info(
+            f"lockstep run ended at {self.sim_time_s:.6f} s of simulated time "
+            f"(lockstep_end_s): {self._published} states published, no more will follow"
+        )
+        self._publish_diagnostics()
 
     def _on_wrong_interface(self, msg: Float64MultiArray) -> None:
         self._wrong_interface += 1
@@ -191,6 +237,8 @@ class SimulatorNode(Node):
 
     def _lockstep_kick(self) -> None:
         p = self.params
+        if self.ended:
+            return
         if not self._started:
             if self._plant.joint_pub.get_subscription_count() >= p.lockstep_subscribers:
                 self._started = True
@@ -300,9 +348,12 @@ class SimulatorNode(Node):
         if counters.rejected or self._wrong_interface:
             level, message = DiagnosticStatus.WARN, "commands rejected"
         command_age_s = time.monotonic() - self._last_command_wall
-        peer = self._command_health(command_age_s)
+        ended = self.ended  # no commands are wanted any more: not a peer problem
+        peer = None if ended else self._command_health(command_age_s)
         if peer is not None:
             level, message = peer
+        if ended:
+            message = f"ended at {self.sim_time_s:g} s"
         values: dict[str, object] = {
             "timing_mode": p.timing_mode,
             "command_interface": p.command_interface,
@@ -314,13 +365,16 @@ class SimulatorNode(Node):
             "command_age_s": command_age_s,
             "commands_wrong_interface": self._wrong_interface,
             "command_losses": self._command_losses,
+            "lockstep_end_s": p.lockstep_end_s,
+            ENDED_KEY: ended,
+            "commands_after_end": self._after_end,
             **counters.as_dict(),
         }
         if not self._lockstep and wall_s > 0.0:
             values["realtime_factor"] = self._steps_done * p.dt_s / wall_s
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
-        array.status.append(status("lca_hil/simulator", level, message, values))
+        array.status.append(status(SIMULATOR_STATUS, level, message, values))
         signals = self.sim.signal_array
         for a, name in enumerate(self.sim.axis_names):
             drive_state = self.sim.state_names[int(self.sim.mode_array[1, a])]
@@ -351,7 +405,7 @@ class SimulatorNode(Node):
         response.message = (
             f"reset to {list(self.params.initial_position)} at {self.sim_time_s:.4f} s"
         )
-        if self._lockstep and self._started:
+        if self._lockstep and self._started and not self.ended:
             self._publish_state()
         return response
 
@@ -396,6 +450,8 @@ class SimulatorNode(Node):
         if new.publish_rate_hz != old.publish_rate_hz and not self._lockstep:
             self.destroy_timer(self._tick_timer)
             self._tick_timer = self.create_timer(1.0 / new.publish_rate_hz, self._realtime_tick)
+        if new.lockstep_end_s != old.lockstep_end_s:
+            self._end_reported = False  # a later end is reported again when it is reached
         if new.diagnostics_period_s != old.diagnostics_period_s:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = self.create_timer(

@@ -18,11 +18,16 @@ from lca_control.parameters import (
     ParameterTable,
     ParamKind,
     ParamSpec,
+    non_negative,
     positive,
 )
 from lca_sim.model.params import AXIS_NAMES
 
 TIMING_MODES = ("realtime", "lockstep")
+# How the simulator's /diagnostics says a lockstep run has reached `lockstep_end_s`: its status
+# SIMULATOR_STATUS carries ENDED_KEY = "True" (from then on, in every diagnostics period).
+SIMULATOR_STATUS = "lca_hil/simulator"
+ENDED_KEY = "ended"
 COMMAND_INTERFACES = ("voltage", "current")
 
 S, D_ARRAY = ParamKind.STRING, ParamKind.DOUBLE_ARRAY
@@ -64,6 +69,9 @@ SIMULATOR_PARAMETERS = ParameterTable(
                   live=False),
         positive("lockstep_resend_s", 1.0,
                  "lockstep: re-publish the last state after this silence, s", high=60.0),
+        non_negative("lockstep_end_s", 0.0,
+                     "lockstep: simulated time of the run's last state, s (a whole multiple of "
+                     "dt_s); no state after it (0: no end)", high=1e6),
         positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
     )
 )  # fmt: skip
@@ -91,12 +99,18 @@ class SimulatorNodeParams:
     enabled: bool
     lockstep_subscribers: int
     lockstep_resend_s: float
+    lockstep_end_s: float
     diagnostics_period_s: float
 
     @property
     def substeps_per_period(self) -> int:
         """Model steps per lockstep control period."""
         return round(self.control_period_s / self.dt_s)
+
+    @property
+    def lockstep_end_steps(self) -> int | None:
+        """Model steps of a lockstep run (`lockstep_end_s`), None for a run without end."""
+        return round(self.lockstep_end_s / self.dt_s) if self.lockstep_end_s > 0.0 else None
 
     @property
     def rigid_body_update_steps(self) -> int:
@@ -131,4 +145,6 @@ def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
         )
     for name in ("control_period_s", "rigid_body_period_s"):
         _whole_multiple(name, v[name], dt_s)
+    if v["lockstep_end_s"] > 0.0:
+        _whole_multiple("lockstep_end_s", v["lockstep_end_s"], dt_s)
     return SimulatorNodeParams(**v)

@@ -101,6 +101,18 @@ def _lockstep_advance_s(sim: SimulatorNode) -> float:
     return sim.sim_time_s - t0
 
 
+def _lockstep_ends_at(sim: SimulatorNode, end_s: float) -> bool:
+    """lockstep_end_s: commands advance to exactly end_s, then publish nothing more."""
+    command = Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0])
+    for _ in range(100_000):
+        if sim.ended:
+            break
+        sim._on_command(command)
+    published = sim._published
+    sim._on_command(command)  # after the end: ignored
+    return sim.ended and abs(sim.sim_time_s - end_s) < 1e-12 and sim._published == published
+
+
 def _timer_period_s(timer: Any) -> float:
     return float(timer.timer_period_ns) * 1e-9
 
@@ -144,6 +156,8 @@ def test_simulator_applies_or_rejects_every_parameter() -> None:
             ),
             "enabled": (False, _disabled_applies_zero_volts),
             "lockstep_resend_s": (2.0, lambda n: n.params.lockstep_resend_s == 2.0),
+            # not a whole number of 8 ms periods: the last period is cut short at the end
+            "lockstep_end_s": (0.0502, lambda n: _lockstep_ends_at(n, 0.0502)),
             "diagnostics_period_s": (0.5, lambda n: _timer_period_s(n._diag_timer) == 0.5),
         }
         _walk(sim, SIMULATOR_PARAMETERS, probes, lambda name: sim.get_parameter(name).value)
