@@ -89,6 +89,7 @@ from lca_sim.model.state_machine import (
     LoadCondition,
     MotionState,
     MotorCondition,
+    load_torque_band_nm,
     match_rule,
 )
 
@@ -402,7 +403,8 @@ def identify(
     y = inertia_nm + tau_fv
 
     rules = robot.state_machine.rules
-    state = classify_samples(rules, direction, tau_m, tau_l, tau_margin_nm)
+    band_nm = load_torque_band_nm(params.motor.stall_torque_nm)
+    state = classify_samples(rules, direction, tau_m, tau_l, tau_margin_nm, band_nm)
     labels = np.where(moving, state, np.where(valid, _STOPPED, _INVALID))
     labels = np.where(end_stop, _END_STOP, labels).astype(np.int64)
     key = np.where(labels >= 0, (direction > 0) * len(rules) + labels, labels)
@@ -639,14 +641,20 @@ def classify_samples(
     tau_m: FloatArray,
     tau_l: FloatArray,
     margin_nm: float,
+    load_band_nm: float = 0.0,
 ) -> IntArray:
     """The moving state of every sample (Fig. 8 and its mirror), -2 where it is ambiguous.
 
     The conditions are those of `kernel.classify`, along the motion direction d: the motor
     drives when d tau_m > 0, the load drives when -d tau_l > 0, the load dominates when
     |tau_m| < |tau_l|. A sample is ambiguous when flipping a condition that lies within
-    `margin_nm` of its boundary would change the state.
+    `margin_nm` of its boundary would change the state. A model load torque within
+    `load_band_nm` (`state_machine.load_torque_band_nm`) is exactly zero, as in the model's own
+    step: Pinocchio's rounding residue on an axis without a gravity load (the L-arm) decides
+    nothing, and such samples are not ambiguous on the load's conditions.
     """
+    zero_load = np.abs(tau_l) <= load_band_nm
+    tau_l = np.where(zero_load, 0.0, tau_l)
     lookup = np.zeros((2, 2, 2), dtype=np.int64)
     motor_words = (MotorCondition.DRIVES, MotorCondition.BRAKES)
     load_words = (LoadCondition.DRIVES, LoadCondition.RESISTS)
@@ -666,8 +674,8 @@ def classify_samples(
     k = np.where(load_dominant, 1, 0)
     state = lookup[i, j, k]
     near_motor = np.abs(tau_m) < margin_nm
-    near_load = np.abs(tau_l) < margin_nm
-    near_dominant = np.abs(np.abs(tau_m) - np.abs(tau_l)) < margin_nm
+    near_load = (np.abs(tau_l) < margin_nm) & ~zero_load
+    near_dominant = (np.abs(np.abs(tau_m) - np.abs(tau_l)) < margin_nm) & ~zero_load
     ambiguous = (
         (near_motor & (lookup[1 - i, j, k] != state))
         | (near_load & (lookup[i, 1 - j, k] != state))
