@@ -19,7 +19,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -32,7 +31,14 @@ from lca_control.controller import (
     JointController,
     validate_controller_params,
 )
-from lca_sim.ros.node_util import LiveParameters, declare_table, from_stamp, run_node, status
+from lca_sim.ros.node_util import (
+    LiveParameters,
+    declare_table,
+    from_stamp,
+    run_node,
+    set_enabled_by_service,
+    status,
+)
 
 
 class ControllerNode(Node):
@@ -161,13 +167,9 @@ class ControllerNode(Node):
     # --- services, parameters, diagnostics -----------------------------------------------
 
     def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        """The `enabled` parameter by service: one path for both, so they never disagree."""
-        result = self.set_parameters([Parameter("enabled", value=bool(request.data))])[0]
-        response.success = result.successful
-        response.message = (
-            result.reason
-            if not result.successful
-            else ("enabled" if request.data else "disabled: zero commands")
+        """The `enabled` parameter by service (`set_enabled_by_service`)."""
+        response.success, response.message = set_enabled_by_service(
+            self, bool(request.data), "disabled: zero commands"
         )
         return response
 

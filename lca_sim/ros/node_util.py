@@ -99,18 +99,16 @@ class LiveParameters(Generic[Validated]):
         return accepted()
 
 
-def declare_parameters(node: Node, table: Mapping[str, tuple[Any, str]]) -> dict[str, Any]:
-    """Declare every parameter of `table` (name -> (default, description)); return the values."""
-    values: dict[str, Any] = {}
-    for name, (default, description) in table.items():
-        param = node.declare_parameter(name, default, ParameterDescriptor(description=description))
-        values[name] = param.value
-    return values
+def set_enabled_by_service(node: Node, enabled: bool, disabled_message: str) -> tuple[bool, str]:
+    """A `~/enable` (SetBool) service as a set of the node's `enabled` parameter.
 
-
-def current_values(node: Node, names: Sequence[str]) -> dict[str, Any]:
-    """The current values of the named parameters."""
-    return {name: node.get_parameter(name).value for name in names}
+    One path for the service and the parameter, so they never disagree. Returns the service
+    response's success and message (the rejection reason if the set was refused).
+    """
+    result = node.set_parameters([Parameter("enabled", value=enabled)])[0]
+    if not result.successful:
+        return False, result.reason
+    return True, "enabled" if enabled else disabled_message
 
 
 def with_changes(base: Mapping[str, Any], changes: Sequence[Parameter]) -> dict[str, Any]:

@@ -36,7 +36,6 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
@@ -51,6 +50,7 @@ from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
     run_node,
+    set_enabled_by_service,
     status,
 )
 from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
@@ -410,13 +410,9 @@ class SimulatorNode(Node):
         return response
 
     def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        """The `enabled` parameter by service: one path for both, so they never disagree."""
-        result = self.set_parameters([Parameter("enabled", value=bool(request.data))])[0]
-        response.success = result.successful
-        response.message = (
-            result.reason
-            if not result.successful
-            else ("enabled" if request.data else "disabled: 0 V on every axis")
+        """The `enabled` parameter by service (`set_enabled_by_service`)."""
+        response.success, response.message = set_enabled_by_service(
+            self, bool(request.data), "disabled: 0 V on every axis"
         )
         return response
 

@@ -11,7 +11,6 @@ runs on the wall clock (about 12 s): CAN has no lockstep.
 from __future__ import annotations
 
 import math
-import threading
 import time
 import warnings
 from array import array
@@ -26,6 +25,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from support import FreezeWatch
 
 from lca_control import contract as ri
 from lca_control.profiles import RampProfile
@@ -70,31 +70,6 @@ class SwapRun:
     ramp: RampProfile
     latched_reason: str
     longest_freeze_ms: int  # the longest this process stood still while tracking
-
-
-class _FreezeWatch(threading.Thread):
-    """How long this process stood still at most: a thread that wakes every 2 ms, and is late.
-
-    A late wake-up means no thread of this process ran Python (a stalled host, or the GIL held
-    by a long garbage collection): the rack, the bridge and the controller stood still too.
-    """
-
-    def __init__(self) -> None:
-        super().__init__(daemon=True)
-        self.longest_s = 0.0
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        last = time.monotonic()
-        while not self._stop_event.wait(0.002):
-            now = time.monotonic()
-            self.longest_s = max(self.longest_s, now - last - 0.002)
-            last = now
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        if self.is_alive():
-            self.join()
 
 
 def _run_swap(tmp_path: Path) -> SwapRun:
@@ -151,7 +126,7 @@ def _run_swap(tmp_path: Path) -> SwapRun:
         for node in (bridge, ctl, probe):
             executor.add_node(node)
         deadline = time.monotonic() + 60.0
-        watch = _FreezeWatch()
+        watch = FreezeWatch()
         try:
             while ctl.core.elapsed_s < 11.5:
                 assert time.monotonic() < deadline, f"only {ctl.core.elapsed_s:.2f} s of the ramp"

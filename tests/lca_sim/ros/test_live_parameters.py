@@ -9,17 +9,13 @@ is also set to a value outside its documented range, which must be refused with 
 
 from __future__ import annotations
 
-import itertools
 import math
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+import support
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray
@@ -29,21 +25,10 @@ from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 from lca_sim.ros.simulator_node import SimulatorNode
 
-_DOMAINS = itertools.count()
 Probe = tuple[Any, Callable[[Any], bool]]  # the new value, and how its effect shows
 
 
-@contextmanager
-def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
-    """A fresh rclpy context on a domain of its own."""
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=150 + next(_DOMAINS) % 20)
-    executor = SingleThreadedExecutor(context=ctx)
-    try:
-        yield ctx, executor
-    finally:
-        executor.shutdown()
-        rclpy.shutdown(context=ctx)
+ros_context = support.domain_contexts(150, 20)
 
 
 def _other_value(spec: ParamSpec) -> Any:

@@ -6,15 +6,12 @@ spinning, and never sleeps a fixed time.
 
 from __future__ import annotations
 
-import itertools
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
+import support
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -28,21 +25,10 @@ from support import spin_until
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.simulator_node import SimulatorNode
 
-_DOMAINS = itertools.count(60)
 PIVOT_START_RAD = math.radians(35.0)
 
 
-@contextmanager
-def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
-    """A fresh rclpy context on its own domain id, torn down afterwards."""
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=60 + next(_DOMAINS) % 40)
-    executor = SingleThreadedExecutor(context=ctx)
-    try:
-        yield ctx, executor
-    finally:
-        executor.shutdown()
-        rclpy.shutdown(context=ctx)
+ros_context = support.domain_contexts(60, 40)
 
 
 def _params(**values: Any) -> list[Parameter]:

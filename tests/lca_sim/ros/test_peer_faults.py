@@ -7,13 +7,10 @@ Every wait polls with a deadline (support.spin_until); nothing sleeps a fixed ti
 
 from __future__ import annotations
 
-import itertools
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
-import rclpy
+import support
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -25,22 +22,11 @@ from support import spin_until
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.simulator_node import SimulatorNode
 
-_DOMAINS = itertools.count()
 SIMULATOR = "lca_hil/simulator"
 CONTROLLER = "lca_hil/controller"
 
 
-@contextmanager
-def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
-    """A fresh rclpy context on its own domain id (180-199), torn down afterwards."""
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=180 + next(_DOMAINS) % 20)
-    executor = SingleThreadedExecutor(context=ctx)
-    try:
-        yield ctx, executor
-    finally:
-        executor.shutdown()
-        rclpy.shutdown(context=ctx)
+ros_context = support.domain_contexts(180, 20)
 
 
 def _params(**values: Any) -> list[Parameter]:

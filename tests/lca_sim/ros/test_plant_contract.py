@@ -23,8 +23,6 @@ The backends:
 from __future__ import annotations
 
 import math
-import threading
-import time
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -41,7 +39,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from support import wait_until
+from support import FreezeWatch, wait_until
 
 from lca_control import contract as pc
 from lca_control.ros.controller_node import ControllerNode
@@ -260,31 +258,6 @@ class _Probe:
                 run.pivot_messages[-1] += 1
 
 
-class _FreezeWatch(threading.Thread):
-    """The longest this process stood still: a thread that wakes every 2 ms, and is late.
-
-    A late wake-up means no thread of this process ran Python (a stalled host, or the GIL held
-    by a long garbage collection): on the wall clock the plant went on meanwhile.
-    """
-
-    def __init__(self) -> None:
-        super().__init__(daemon=True)
-        self.longest_s = 0.0
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        last = time.monotonic()
-        while not self._stop_event.wait(0.002):
-            now = time.monotonic()
-            self.longest_s = max(self.longest_s, now - last - 0.002)
-            last = now
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        if self.is_alive():
-            self.join()
-
-
 def _read_graph(probe: Node, plant: Node, node_name: str, run: ContractRun) -> None:
     """The plant node's topics and types as the graph shows them, and its endpoints' QoS.
 
@@ -334,7 +307,7 @@ def _run_backend(backend: str, tmp_path: Path) -> ContractRun:
         nodes.append(plant)
         for node in nodes:
             executor.add_node(node)
-        watch = _FreezeWatch()
+        watch = FreezeWatch()
 
         def step() -> None:
             executor.spin_once(timeout_sec=0.05)
