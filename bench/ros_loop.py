@@ -67,6 +67,8 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from lca_control.cascade import CONTROL_PERIOD_S
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 BIN_DIR = Path(sys.executable).parent
 SIMULATOR_YAML = REPO_ROOT / "config" / "ros" / "simulator.yaml"
@@ -76,7 +78,6 @@ DOMAIN_LOCKSTEP = 140
 DOMAIN_PINGPONG = 141
 DOMAIN_REALTIME = {250: 142, 1000: 143}
 REALTIME_RATES_HZ = (250, 1000)
-CONTROL_PERIOD_S = 0.004
 INITIAL_POSITION = "[0.0,0.6109,0.0,0.0]"
 TARGET_RATIO_MIN = 0.8
 
