@@ -15,6 +15,14 @@ Timing modes:
   `lockstep_subscribers` subscribers of joint_states have matched; if no command comes for
   `lockstep_resend_s`, the last state is sent again (a controller ignores stamps it has seen).
 
+Faults of the plant itself, on /diagnostics every period:
+
+* per axis, WARN "back-driving: <joint> moving at X rad/s with no command" while an axis moves
+  (its motor faster than the state machine's V_eps) with a zero, timed-out or disabled command:
+  a reversible chain (`irreversible_stop: false`) under load; and WARN "end stop hit at X rad/s"
+  while an axis rests at an end stop, X the joint speed of the last published state before the
+  contact (m/s for the lift).
+
 The end of a lockstep run: with `lockstep_end_s` > 0 the simulator ends the run itself at that
 simulated time. The command that reaches it advances only up to it (a shorter last period if
 the end is not a whole number of control periods), so the last state published is stamped
@@ -64,6 +72,7 @@ from lca_sim.ros.simulator_params import (
 
 MAX_CATCH_UP_PERIODS = 4
 _ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
+_END_STOP = "stop_end_stop"
 
 
 class SimulatorNode(Node):
@@ -109,6 +118,15 @@ class SimulatorNode(Node):
         self._commands_lost = False  # the controller peer, as /diagnostics reports it
         self._command_losses = 0
         self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
+        self._irreversible = robot.state_machine.irreversible_stop
+        self._velocity_eps_rad_s = robot.state_machine.velocity_eps_rad_s  # V_eps, motor side
+        self._end_stop_code = self.sim.state_names.index(_END_STOP)
+        self._position_min = np.array([low for low, _ in self.sim.position_limits])
+        self._position_max = np.array([high for _, high in self.sim.position_limits])
+        n_axes = len(self.sim.axis_names)
+        self._moving_speed = np.zeros(n_axes)  # |joint velocity| when last published moving
+        self._contact_speed = np.zeros(n_axes)  # that speed when the end stop was reached
+        self._at_end_stop = np.zeros(n_axes, dtype=bool)
         self._plant = PlantPublisher(self, self.sim.axis_names, clock=self._lockstep)
         self._bind_snapshot_rows()
         command_qos = qos_profile(ri.COMMAND_QOS)
@@ -221,7 +239,7 @@ class SimulatorNode(Node):
         if silent_s > p.command_timeout_s and np.any(self.plant.target != 0.0):
             self.plant.hold_zero(timed_out=True)
             self.get_logger().warning(
-                f"no command for {p.command_timeout_s:g} s: 0 V, the gear holds the load",
+                f"no command for {p.command_timeout_s:g} s: 0 V, {self._hold_words}",
                 throttle_duration_sec=5.0,
             )
         due = round((time.monotonic() - self._wall_start) / p.dt_s) - self._steps_done
@@ -234,6 +252,13 @@ class SimulatorNode(Node):
             self.plant.advance(due)
             self._steps_done += due
         self._publish_state()
+
+    @property
+    def _hold_words(self) -> str:
+        """What 0 V does to a loaded axis of this robot (its stopped state, Fig. 7)."""
+        if self._irreversible:
+            return "the gear holds the load"
+        return "the gear is reversible: the load may drive the axes"
 
     def _lockstep_kick(self) -> None:
         p = self.params
@@ -303,7 +328,31 @@ class SimulatorNode(Node):
         """
         self._plant.publish(self._snapshot())
         self._published += 1
+        self._track_end_stops()
         self._last_publish_wall = time.monotonic()
+
+    def _track_end_stops(self) -> None:
+        """Keep each axis's last moving speed, and take it as the contact speed at an end stop.
+
+        An axis is at its end stop when the model clamped it there: a load that drove it in
+        leaves the drive state at `stop_hold` (`stop_end_stop` only while the motor pushes).
+        """
+        at_stop = self._at_limit()
+        contact = at_stop & ~self._at_end_stop
+        self._contact_speed[contact] = self._moving_speed[contact]
+        self._at_end_stop[:] = at_stop
+        moving = ~at_stop & (
+            np.abs(self._signal_rows["motor_velocity_rad_s"]) > self._velocity_eps_rad_s
+        )
+        self._moving_speed[moving] = np.abs(self._qdot[moving])
+
+    def _at_limit(self) -> np.ndarray:
+        """Per axis: at an end stop (clamped to a position limit, or the motor pushing into it)."""
+        return (
+            (self._drive == self._end_stop_code)
+            | (self._q <= self._position_min)
+            | (self._q >= self._position_max)
+        )
 
     def _command_health(self, command_age_s: float) -> tuple[bytes, str] | None:
         """The controller peer: a WARN while commands are missing, else None.
@@ -325,11 +374,10 @@ class SimulatorNode(Node):
                 self._commands_lost = False
                 self.get_logger().info(f"commands again; simulated time {self.sim_time_s:.3f} s")
             return None
-        what = (
-            "simulated time paused, the last state is re-sent"
-            if self._lockstep
-            else "holding (0 V)"
-        )
+        if self._lockstep:
+            what = "simulated time paused, the last state is re-sent"
+        else:
+            what = "holding (0 V)" if self._irreversible else "0 V, reversible gear (not held)"
         message = f"no command for {command_age_s:.1f} s: {what}"
         if not self._commands_lost:
             self._commands_lost = True
@@ -375,27 +423,40 @@ class SimulatorNode(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status(SIMULATOR_STATUS, level, message, values))
-        signals = self.sim.signal_array
         for a, name in enumerate(self.sim.axis_names):
-            drive_state = self.sim.state_names[int(self.sim.mode_array[1, a])]
-            axis_level = (
-                DiagnosticStatus.WARN if drive_state == "stop_end_stop" else DiagnosticStatus.OK
-            )
-            array.status.append(
-                status(
-                    f"lca_hil/simulator/{name}",
-                    axis_level,
-                    drive_state,
-                    {
-                        "position": float(self.sim.state_array[0, a]),
-                        "command": float(self.plant.target[a]),
-                        "voltage_v": float(signals[_ROW["voltage_v"], a]),
-                        "current_a": float(self.sim.state_array[2, a]),
-                        "fault": "at end stop" if drive_state == "stop_end_stop" else "none",
-                    },
-                )
-            )
+            array.status.append(self._axis_status(a, name))
         self._plant.publish_diagnostics(array)
+
+    def _axis_status(self, a: int, name: str) -> DiagnosticStatus:
+        """One axis: its drive state, or WARN at an end stop or back-driven without command."""
+        signals = self.sim.signal_array
+        drive_state = self.sim.state_names[int(self.sim.mode_array[1, a])]
+        velocity = float(self.sim.state_array[1, a])
+        unit = "m/s" if self.sim.prismatic[a] else "rad/s"
+        uncommanded = not self.plant.enabled or self.plant.target[a] == 0.0
+        moving = abs(float(signals[_ROW["motor_velocity_rad_s"], a])) > self._velocity_eps_rad_s
+        level, message, fault = DiagnosticStatus.OK, drive_state, "none"
+        if self._at_limit()[a]:
+            level, fault = DiagnosticStatus.WARN, "at end stop"
+            message = f"end stop hit at {self._contact_speed[a]:.3g} {unit}"
+        elif moving and uncommanded:
+            level, fault = DiagnosticStatus.WARN, "back-driving"
+            message = f"back-driving: {name} moving at {abs(velocity):.3g} {unit} with no command"
+        return status(
+            f"lca_hil/simulator/{name}",
+            level,
+            message,
+            {
+                "drive_state": drive_state,
+                "position": float(self.sim.state_array[0, a]),
+                "velocity": velocity,
+                "command": float(self.plant.target[a]),
+                "voltage_v": float(signals[_ROW["voltage_v"], a]),
+                "current_a": float(self.sim.state_array[2, a]),
+                "end_stop_contact_speed": float(self._contact_speed[a]),
+                "fault": fault,
+            },
+        )
 
     # --- services and parameters ---------------------------------------------------------
 
