@@ -8,8 +8,16 @@ A thin shell around `CommandedPlant`: parameters in, commands in, states out. Se
 Timing modes:
 
 * realtime: a wall-clock timer at `publish_rate_hz`; each tick runs as many fixed model steps as
-  wall time has passed (at most four periods' worth, the rest counted as overrun) and publishes.
-  Stamps are the simulated time, which starts at the wall time of start-up.
+  wall time has passed (at most four periods' worth) and publishes. Stamps are the simulated
+  time, which starts at the wall time of start-up.
+
+  After a stall (a CPU hog, SIGSTOP, a long garbage collection) the backlog beyond those four
+  periods is skipped, not simulated: simulated time stays continuous (no jump in the stamps or in
+  the model's dt), so it lags the wall clock from then on by the time skipped. /diagnostics
+  shows it: `skipped_s` (the total, also as `overrun_steps`), `stamp_lag_s` (wall time minus
+  simulated time since start), a `realtime_factor` measured over the last diagnostics period
+  (simulated over wall time, so a stall reads well below 1 for that period), and WARN "stalled:
+  simulated time fell X s behind the wall clock (skipped)" for a period in which time was skipped.
 * lockstep: every accepted command advances exactly `control_period_s` of simulated time, then
   the state is published with /clock. Simulated time starts at 0. The first state goes out once
   `lockstep_subscribers` subscribers of joint_states have matched; if no command comes for
@@ -108,7 +116,11 @@ class SimulatorNode(Node):
         self._started = not self._lockstep
         self._last_command_wall = time.monotonic()
         self._last_publish_wall = time.monotonic()
-        self._wall_start = time.monotonic()
+        self._wall_start = time.monotonic()  # moved on by the time skipped after a stall
+        self._wall_origin = self._wall_start
+        self._window_wall = self._wall_start  # the last diagnostics period: wall, steps, skipped
+        self._window_steps = 0
+        self._window_overrun = 0
         self._steps_done = 0
         self._overrun_steps = 0
         self._published = 0
@@ -385,9 +397,32 @@ class SimulatorNode(Node):
             self.get_logger().warning(f"{message}; is the controller running?")
         return DiagnosticStatus.WARN, message
 
+    def _timing_health(self, values: dict[str, object]) -> tuple[bytes, str] | None:
+        """Realtime: the stamp lag and the time skipped; a WARN for a period with a stall.
+
+        The realtime factor is that of the last diagnostics period (simulated over wall time),
+        so a stall shows in the period it happened instead of vanishing in a run's average.
+        """
+        if self._lockstep:
+            return None
+        dt_s = self.params.dt_s
+        now = time.monotonic()
+        wall_s = now - self._window_wall
+        skipped = self._overrun_steps - self._window_overrun
+        values["stamp_lag_s"] = (now - self._wall_origin) - self._steps_done * dt_s
+        values["skipped_s"] = self._overrun_steps * dt_s
+        if wall_s > 0.0:
+            values["realtime_factor"] = (self._steps_done - self._window_steps) * dt_s / wall_s
+        self._window_wall, self._window_steps = now, self._steps_done
+        self._window_overrun = self._overrun_steps
+        if skipped <= 0:
+            return None
+        return DiagnosticStatus.WARN, (
+            f"stalled: simulated time fell {skipped * dt_s:.3f} s behind the wall clock (skipped)"
+        )
+
     def _publish_diagnostics(self) -> None:
         p = self.params
-        wall_s = time.monotonic() - self._wall_start
         level = DiagnosticStatus.OK
         message = "running" if self.plant.enabled else "disabled"
         if self._command_losses:
@@ -418,8 +453,11 @@ class SimulatorNode(Node):
             "commands_after_end": self._after_end,
             **counters.as_dict(),
         }
-        if not self._lockstep and wall_s > 0.0:
-            values["realtime_factor"] = self._steps_done * p.dt_s / wall_s
+        found = [(level, message)]
+        for health in (self._timing_health(values),):
+            if health is not None:
+                found.append(health)
+        level, message = _worst_first(found)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status(SIMULATOR_STATUS, level, message, values))
@@ -514,6 +552,17 @@ class SimulatorNode(Node):
             self._diag_timer = self.create_timer(
                 new.diagnostics_period_s, self._publish_diagnostics
             )
+
+
+def _worst_first(found: list[tuple[bytes, str]]) -> tuple[bytes, str]:
+    """The worst level and the messages at or above WARN, the worst first (OK: the first one)."""
+    level = max(item[0] for item in found)
+    if level == DiagnosticStatus.OK:
+        return found[0]
+    ranked = sorted(
+        (item for item in found if item[0] != DiagnosticStatus.OK), key=lambda i: -i[0][0]
+    )
+    return level, "; ".join(message for _, message in ranked)
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -7,8 +7,12 @@ Context and domain id; every wait polls with a deadline (support.spin_until).
 
 from __future__ import annotations
 
+import math
+import time
+import types
 from typing import Any
 
+import pytest
 import support
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.context import Context
@@ -17,6 +21,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from support import spin_until
 
+from lca_sim.ros import simulator_node
 from lca_sim.ros.simulator_node import SimulatorNode
 
 SIMULATOR = "lca_hil/simulator"
@@ -107,3 +112,50 @@ def test_a_reversible_robot_without_command_reports_back_driving_and_its_end_sto
             60.0,
         )
         assert float(diagnostics.value(PIVOT, "end_stop_contact_speed")) > 0.0
+
+
+def test_a_stalled_realtime_simulator_reports_the_time_it_skipped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 0.5 s stall of the node's clock: WARN 'stalled', windowed factor < 1, lag reported."""
+    stall = {"s": 0.0}
+    clock = types.SimpleNamespace(monotonic=lambda: time.monotonic() + stall["s"], time=time.time)
+    monkeypatch.setattr(simulator_node, "time", clock)
+    with ros_context() as (ctx, executor):
+        diagnostics = Diagnostics(ctx, executor)
+        # The default (irreversible) robot under load, no command: held, no back-driving.
+        _simulator(ctx, executor, initial_position=[0.0, math.radians(35.0), 0.0, 0.0])
+        spin_until(
+            executor,
+            lambda: (
+                diagnostics.shows(SIMULATOR, DiagnosticStatus.OK, "running")
+                and PIVOT in diagnostics.latest
+            ),
+            "the simulator runs",
+            30.0,
+        )
+        assert diagnostics.latest[PIVOT].level == DiagnosticStatus.OK
+        stall["s"] = 0.5  # wall time went on half a second without a tick
+        diagnostics.clear()
+        spin_until(
+            executor,
+            lambda: diagnostics.shows(
+                SIMULATOR,
+                DiagnosticStatus.WARN,
+                "stalled: simulated time fell",
+            ),
+            "the stall is reported",
+            30.0,
+        )
+        assert diagnostics.latest[SIMULATOR].message.endswith("behind the wall clock (skipped)")
+        assert float(diagnostics.value(SIMULATOR, "realtime_factor")) < 0.8
+        assert float(diagnostics.value(SIMULATOR, "skipped_s")) > 0.4
+        assert float(diagnostics.value(SIMULATOR, "stamp_lag_s")) > 0.4
+        diagnostics.clear()
+        spin_until(
+            executor,
+            lambda: diagnostics.shows(SIMULATOR, DiagnosticStatus.OK, "running"),
+            "OK again in the periods after the stall",
+            30.0,
+        )
+        assert float(diagnostics.value(SIMULATOR, "stamp_lag_s")) > 0.4  # the lag stays
