@@ -30,6 +30,9 @@ Faults of the plant itself, on /diagnostics every period:
   a reversible chain (`irreversible_stop: false`) under load; and WARN "end stop hit at X rad/s"
   while an axis rests at an end stop, X the joint speed of the last published state before the
   contact (m/s for the lift).
+* ERROR "another node publishes joint_states: /other_node" while another node (or a second node
+  of the same name) publishes one of the plant's state topics: two simulators, or a simulator
+  and a bridge, on one ROS domain. Checked in the ROS graph every diagnostics period.
 
 The end of a lockstep run: with `lockstep_end_s` > 0 the simulator ends the run itself at that
 simulated time. The command that reaches it advances only up to it (a shorter last period if
@@ -80,6 +83,8 @@ from lca_sim.ros.simulator_params import (
 
 MAX_CATCH_UP_PERIODS = 4
 _ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
+# The plant's state topics: a second publisher of any of them on the domain is an ERROR.
+STATE_TOPICS = (ri.JOINT_STATES, ri.MOTOR_STATES, ri.DRIVE_CHAIN_STATES)
 _END_STOP = "stop_end_stop"
 
 
@@ -139,6 +144,7 @@ class SimulatorNode(Node):
         self._moving_speed = np.zeros(n_axes)  # |joint velocity| when last published moving
         self._contact_speed = np.zeros(n_axes)  # that speed when the end stop was reached
         self._at_end_stop = np.zeros(n_axes, dtype=bool)
+        self._other_publishers: tuple[str, ...] = ()
         self._plant = PlantPublisher(self, self.sim.axis_names, clock=self._lockstep)
         self._bind_snapshot_rows()
         command_qos = qos_profile(ri.COMMAND_QOS)
@@ -421,6 +427,35 @@ class SimulatorNode(Node):
             f"stalled: simulated time fell {skipped * dt_s:.3f} s behind the wall clock (skipped)"
         )
 
+    def _graph_health(self, values: dict[str, object]) -> tuple[bytes, str] | None:
+        """ERROR while another node publishes one of the plant's state topics.
+
+        Another node of the same name shows as a second publisher of this node's name. The
+        start and the end of it are logged once each.
+        """
+        me = self.get_fully_qualified_name()
+        found: list[str] = []
+        first = ""
+        for topic in STATE_TOPICS:
+            names = [
+                f"{i.node_namespace.rstrip('/')}/{i.node_name}"
+                for i in self.get_publishers_info_by_topic(topic)
+            ]
+            others = sorted({n for n in names if n != me})
+            if names.count(me) > 1:
+                others.append(f"{me} (another node of this name)")
+            if others:
+                found.append(f"{topic}: {', '.join(others)}")
+                first = first or found[-1]
+        if tuple(found) != self._other_publishers:
+            if found:
+                self.get_logger().error(f"another node publishes {'; '.join(found)}")
+            elif self._other_publishers:
+                self.get_logger().info("no other publisher of the plant's states any more")
+            self._other_publishers = tuple(found)
+        values["other_publishers"] = "; ".join(found) or "none"
+        return (DiagnosticStatus.ERROR, f"another node publishes {first}") if first else None
+
     def _publish_diagnostics(self) -> None:
         p = self.params
         level = DiagnosticStatus.OK
@@ -454,7 +489,7 @@ class SimulatorNode(Node):
             **counters.as_dict(),
         }
         found = [(level, message)]
-        for health in (self._timing_health(values),):
+        for health in (self._timing_health(values), self._graph_health(values)):
             if health is not None:
                 found.append(health)
         level, message = _worst_first(found)

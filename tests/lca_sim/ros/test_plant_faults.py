@@ -159,3 +159,30 @@ def test_a_stalled_realtime_simulator_reports_the_time_it_skipped(
             30.0,
         )
         assert float(diagnostics.value(SIMULATOR, "stamp_lag_s")) > 0.4  # the lag stays
+
+
+def test_a_second_publisher_of_the_plant_states_is_an_error() -> None:
+    """Two simulators on one domain: ERROR naming the other; the other gone: no ERROR."""
+    with ros_context() as (ctx, executor):
+        diagnostics = Diagnostics(ctx, executor)
+        _simulator(ctx, executor)
+        other = _simulator(ctx, executor, "simulator_b")
+        spin_until(
+            executor,
+            lambda: diagnostics.shows(
+                SIMULATOR,
+                DiagnosticStatus.ERROR,
+                "another node publishes joint_states: /simulator_b",
+            ),
+            "the first simulator reports the second publisher",
+            30.0,
+        )
+        executor.remove_node(other)
+        other.destroy_node()
+        diagnostics.clear()
+        spin_until(
+            executor,
+            lambda: diagnostics.shows(SIMULATOR, DiagnosticStatus.OK, "running"),
+            "no ERROR once the second simulator is gone",
+            30.0,
+        )
