@@ -6,7 +6,8 @@
 
 The topic's type is read from the ROS graph (waiting up to `--wait-s` for it to appear) and each
 message is printed as YAML with its fields in declaration order, arrays as lists, followed by a
-`---` line. The QoS is keep-last `STATE_QOS_DEPTH`; the reliability matches the publishers by
+`---` line. A DiagnosticStatus level prints as its number and name (`level: 1 (WARN)`, a YAML
+string), a subnormal float as 0.0 (every other float at full precision). The QoS is keep-last `STATE_QOS_DEPTH`; the reliability matches the publishers by
 default (best-effort if any publisher is) or is forced with `--qos-reliability`.
 
 (`rosidl_runtime_py.convert.message_to_yaml` is not part of the PyPI ROS wheels this project
@@ -47,21 +48,52 @@ EXIT_BAD_INPUT = 2
 NODE_NAME = "lca_echo"
 
 # YAML scalars a message field can hold; everything else is converted.
-_PLAIN = (bool, int, float, str)
+_PLAIN = (bool, int, str)
+
+# diagnostic_msgs/DiagnosticStatus level constants, by value.
+DIAGNOSTIC_LEVEL_NAMES = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+_DIAGNOSTIC_STATUS_TYPE = "diagnostic_msgs.msg._diagnostic_status.DiagnosticStatus"
+
+
+def plain_float(value: float) -> float:
+    """`value` without denormal noise: a subnormal (0 < |value| < `sys.float_info.min`) is 0.0.
+
+    Normal values, however tiny (1e-300), are kept at full precision: YAML prints their `repr`,
+    which reads back as the same float. Rounding normal numbers would hide real values; only the
+    subnormal range, reached by underflow in float arithmetic and never a meaningful physical
+    quantity here, is flushed to zero. NaN and infinities are kept.
+    """
+    if value != 0.0 and abs(value) < sys.float_info.min:
+        return 0.0
+    return float(value)  # a plain float also for numpy scalars, which safe_dump cannot write
+
+
+def diagnostic_level_text(level: bytes | int) -> str:
+    """A DiagnosticStatus level as its number and name, e.g. `"1 (WARN)"`.
+
+    A string rather than a number with a YAML comment, since `yaml.safe_dump` cannot write
+    comments; `1 (WARN)` is printed unquoted and still reads back (as that string). A value
+    outside OK..STALE prints as e.g. `"7 (unknown)"`.
+    """
+    number = level[0] if isinstance(level, bytes | bytearray) else int(level)
+    return f"{number} ({DIAGNOSTIC_LEVEL_NAMES.get(number, 'unknown')})"
 
 
 def message_to_plain(msg: Any) -> Any:
     """A ROS message (or field value) as plain dicts, lists and scalars, fields in order.
 
     Nested messages become dicts keyed by field name, sequences and arrays (Python lists,
-    `array.array`, numpy arrays) become lists, `bytes` a list of ints.
+    `array.array`, numpy arrays) become lists, `bytes` a list of ints; a single `octet`/`byte`
+    field (rclpy gives a `bytes` of length 1) becomes its int, and a DiagnosticStatus `level`
+    its number and name (`diagnostic_level_text`). Floats go through `plain_float`: subnormals
+    print as 0.0, every other float at full precision.
     """
     if msg is None or isinstance(msg, _PLAIN):
         return msg
+    if isinstance(msg, float):
+        return plain_float(msg)
     if hasattr(msg, "get_fields_and_field_types"):
-        return {
-            name: message_to_plain(getattr(msg, name)) for name in msg.get_fields_and_field_types()
-        }
+        return _message_fields(msg)
     if isinstance(msg, bytes | bytearray):
         return list(msg)
     if isinstance(msg, array.array | list | tuple):
@@ -69,6 +101,21 @@ def message_to_plain(msg: Any) -> Any:
     if hasattr(msg, "tolist"):  # numpy arrays and scalars
         return message_to_plain(msg.tolist())
     return str(msg)
+
+
+def _message_fields(msg: Any) -> dict[str, Any]:
+    """The fields of a ROS message, in declaration order, as plain values."""
+    is_status = f"{type(msg).__module__}.{type(msg).__name__}" == _DIAGNOSTIC_STATUS_TYPE
+    plain: dict[str, Any] = {}
+    for name, field_type in msg.get_fields_and_field_types().items():
+        value = getattr(msg, name)
+        if is_status and name == "level":
+            plain[name] = diagnostic_level_text(value)
+        elif field_type in ("octet", "byte") and isinstance(value, bytes) and len(value) == 1:
+            plain[name] = value[0]
+        else:
+            plain[name] = message_to_plain(value)
+    return plain
 
 
 def message_to_yaml(msg: Any) -> str:
