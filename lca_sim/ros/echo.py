@@ -7,8 +7,10 @@
 The topic's type is read from the ROS graph (waiting up to `--wait-s` for it to appear) and each
 message is printed as YAML with its fields in declaration order, arrays as lists, followed by a
 `---` line. A DiagnosticStatus level prints as its number and name (`level: 1 (WARN)`, a YAML
-string), a subnormal float as 0.0 (every other float at full precision). The QoS is keep-last `STATE_QOS_DEPTH`; the reliability matches the publishers by
-default (best-effort if any publisher is) or is forced with `--qos-reliability`.
+string), a subnormal float as 0.0 (every other float at full precision).
+
+The QoS is keep-last `STATE_QOS_DEPTH`; the reliability matches the publishers by default
+(best-effort if any publisher is) or is forced with `--qos-reliability`.
 
 (`rosidl_runtime_py.convert.message_to_yaml` is not part of the PyPI ROS wheels this project
 installs, so the conversion below walks the message fields itself.)
