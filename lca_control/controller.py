@@ -234,7 +234,10 @@ class JointController:
         A stamp earlier than the last by more than `PLANT_TIME_TOLERANCE_S` is a restarted
         plant (a simulator or bridge started again, its time from 0): the loops and the
         profiles restart from this state (`plant_restarts` counts it) instead of waiting for
-        the old time, which would never come.
+        the old time, which would never come. So is a stamp later than the last by more than
+        `plant_timeout_s`: a plant stamped with the wall clock (a realtime simulator, the CAN
+        bridge) that was gone or restarted comes back with its time jumped forward, and one
+        control step across the gap would wind the integrators up by the whole gap.
 
         Returns the command array in joint order: volts (voltage interface, needs the
         currents) or amps (current interface).
@@ -243,7 +246,10 @@ class JointController:
         if p.command_interface == "voltage" and currents_a is None:
             return None  # the current loop needs the measured currents
         if self._last_t_s is not None:
-            if t_s < self._last_t_s - PLANT_TIME_TOLERANCE_S:
+            if (
+                t_s < self._last_t_s - PLANT_TIME_TOLERANCE_S
+                or t_s > self._last_t_s + p.plant_timeout_s
+            ):
                 self._restart()
             elif t_s <= self._last_t_s:
                 return None

@@ -131,10 +131,12 @@ class ControllerNode(Node):
         commands = self.core.update(t_s, positions, velocities, currents)
         if self.core.plant_restarts != self._restarts_logged:
             self._restarts_logged = self.core.plant_restarts
+            before_s = self.core.last_restart_from_s
+            how = "went back" if t_s < before_s else "jumped forward"
             self.get_logger().warning(
-                f"plant time went back from {self.core.last_restart_from_s:.4f} s to "
-                f"{t_s:.4f} s: a restarted simulator or bridge; loops and reference restart "
-                f"from this state (restart {self.core.plant_restarts})"
+                f"plant time {how} from {before_s:.4f} s to {t_s:.4f} s: a restarted or "
+                "returning simulator or bridge; loops and reference restart from this state "
+                f"(restart {self.core.plant_restarts})"
             )
         if commands is None:
             self.states_skipped += 1

@@ -78,3 +78,32 @@ def test_a_state_without_currents_on_the_voltage_interface_is_no_restart() -> No
     assert ctl.plant_restarts == 0
     assert ctl.update(0.0, POSITIONS, [0.0] * 4, [0.0] * 4) is not None
     assert ctl.plant_restarts == 1
+
+
+@pytest.mark.parametrize("gap_s", [0.6, 30.0])
+def test_a_forward_jump_beyond_the_plant_timeout_restarts_like_a_new_controller(
+    gap_s: float,
+) -> None:
+    """A wall-clock plant back after a gap: counted once, then exactly a fresh controller.
+
+    Without it, the first step after the gap would integrate the velocity error over the
+    whole gap (dt = gap_s), winding the integrators far past anything a period can.
+    """
+    ctl = _controller()
+    _run(ctl, 100.0, 250)
+    last_s = 100.0 + 249 * DT_S
+    after = _run(ctl, last_s + gap_s, 100)
+    fresh = _run(_controller(), last_s + gap_s, 100)
+    assert after == fresh
+    assert ctl.plant_restarts == 1
+    assert ctl.last_restart_from_s == pytest.approx(last_s)
+
+
+def test_a_gap_within_the_plant_timeout_is_one_long_period_not_a_restart() -> None:
+    """A late state (a gap under plant_timeout_s, 0.5 s by default) is no restart."""
+    ctl = _controller()
+    _run(ctl, 100.0, 250)
+    last_s = 100.0 + 249 * DT_S
+    assert ctl.update(last_s + 0.4, POSITIONS, [0.0] * 4, None) is not None
+    assert ctl.plant_restarts == 0
+    assert ctl.elapsed_s == pytest.approx(249 * DT_S + 0.4)
