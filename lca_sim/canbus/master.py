@@ -708,6 +708,30 @@ class Cia402Master:
         """The latched EMCY code per joint (0: none)."""
         return {a.joint: a.emcy_code for a in self._axes}
 
+    def command_silence(self, now: float) -> tuple[bool, str] | None:
+        """What the controller's silence does to enabled drives: (latched, why), or None.
+
+        None while commands come in time, or while the drives are not wanted enabled (nobody
+        needs to command a disabled drive). `latched` is True after the quick stop, which holds
+        until `enable(True)` is asked again; the halt before it ends by itself when commands
+        return.
+        """
+        with self._lock:
+            if self._want is not Want.ENABLED:
+                return None
+            silent_s = now - self._last_command_t
+            if self._quick_stopped:
+                return True, (
+                    f"quick stop: no command for {silent_s:.1f} s "
+                    f"(over {self.params.command_timeout_s + self.params.quick_stop_after_s:g} "
+                    "s); enable again (~/enable) once the controller runs"
+                )
+            if not self._commanded:
+                return False, "enabled, waiting for the first command: halted, zero torque"
+            if self._silence_halt:
+                return False, f"no command for {silent_s:.1f} s: halted, zero torque"
+        return None
+
     def command_age_s(self, now: float) -> float:
         """Seconds since the last accepted command."""
         return now - self._last_command_t

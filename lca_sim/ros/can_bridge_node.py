@@ -63,7 +63,7 @@ from lca_sim.ros.can_bridge_params import (
     validate_can_bridge_params,
 )
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status
-from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
+from lca_sim.ros.plant_contract import PlantPublisher, qos_profile, worst_first
 from lca_sim.runtime import settle_heap
 
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
@@ -238,6 +238,8 @@ class CanBridgeNode(Node):
         self._state_names = robot.state_machine.state_names
         self._published = 0
         self._wrong_interface = 0
+        self._commands_lost = False  # the controller peer, as /diagnostics reports it
+        self._command_losses = 0
         self._last_diag_t = time.monotonic()
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
         self._init_lock = threading.Lock()
@@ -450,6 +452,26 @@ class CanBridgeNode(Node):
 
     # --- diagnostics ---------------------------------------------------------------------
 
+    def _command_health(self, now: float) -> tuple[bytes, str] | None:
+        """The controller peer: WARN while the drives are halted for want of commands.
+
+        ERROR once the silence has lasted into the quick stop, which holds until ~/enable.
+        Nothing while the drives are not enabled. The loss is logged once when it begins (by
+        the master, with its reaction) and once here when commands return.
+        """
+        silence = self.bridge.command_silence(now)
+        if silence is None:
+            if self._commands_lost:
+                self._commands_lost = False
+                self.get_logger().info("commands again")
+            return None
+        latched, why = silence
+        if not self._commands_lost and self.bridge.counters.commands_accepted:
+            self._commands_lost = True
+            self._command_losses += 1
+            self.get_logger().warning(f"{why}; is the controller running?")
+        return (DiagnosticStatus.ERROR if latched else DiagnosticStatus.WARN), why
+
     def _publish_diagnostics(self) -> None:
         bridge = self.bridge
         c = bridge.counters
@@ -462,10 +484,16 @@ class CanBridgeNode(Node):
         bits_per_s = (bits - last_bits) / span
         self._last_diag_t, self._last_frames_bits = now, (frames, bits)
         latched = bridge.latched_reason()
-        level = DiagnosticStatus.ERROR if latched else DiagnosticStatus.OK
-        message = latched or "running"
-        if not latched and (c.commands_rejected or c.send_failures or self._wrong_interface):
-            level, message = DiagnosticStatus.WARN, "rejected commands or failed sends"
+        found: list[tuple[bytes, str]] = [
+            (DiagnosticStatus.ERROR, latched)
+            if latched
+            else (DiagnosticStatus.OK, "commands again" if self._command_losses else "running")
+        ]
+        if c.commands_rejected or c.send_failures or self._wrong_interface:
+            found.append((DiagnosticStatus.WARN, "rejected commands or failed sends"))
+        peer = self._command_health(now)
+        if peer is not None:
+            found.append(peer)
         values: dict[str, object] = {
             "interface": self.params.interface,
             "channel": self.params.channel,
@@ -475,8 +503,13 @@ class CanBridgeNode(Node):
             "command_age_s": bridge.command_age_s(now),
             "states_published": self._published,
             "commands_wrong_interface": self._wrong_interface,
+            "command_losses": self._command_losses,
             **{k: getattr(c, k) for k in c.__slots__},
         }
+        graph = self._plant.graph_health(values)
+        if graph is not None:
+            found.append(graph)
+        level, message = worst_first(found)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status("lca_hil/can_bridge", level, message, values))

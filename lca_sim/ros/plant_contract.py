@@ -40,6 +40,10 @@ _DRIVE_AT = pc.DRIVE_STATE_KEYS.index("drive_state")
 _NUMBERS_AT = tuple(pc.DRIVE_STATE_KEYS.index(name) for name in pc.DRIVE_NUMBER_KEYS)
 
 
+# The topics only the plant publishes: a second publisher of any of them is a second plant.
+STATE_TOPICS = (pc.JOINT_STATES, pc.MOTOR_STATES, pc.DRIVE_CHAIN_STATES)
+
+
 class SnapshotError(LcaHilError):
     """A snapshot that does not fit the publisher (other joints, or in another order)."""
 
@@ -98,6 +102,9 @@ class PlantPublisher:
 
     def __init__(self, node: Node, joints: Sequence[str], *, clock: bool = False) -> None:
         self.joints = tuple(joints)
+        self._node = node
+        self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
+        self._other_publishers: tuple[str, ...] = ()
         state_qos = qos_profile(pc.STATE_QOS)
         self.joint_pub: Publisher = node.create_publisher(JointState, pc.JOINT_STATES, state_qos)
         self.motor_pub: Publisher = node.create_publisher(JointState, pc.MOTOR_STATES, state_qos)
@@ -152,3 +159,44 @@ class PlantPublisher:
     def publish_diagnostics(self, array: DiagnosticArray) -> None:
         """Publish the node's own /diagnostics (its content is the node's)."""
         self.diagnostics_pub.publish(array)
+
+    def graph_health(self, values: dict[str, object]) -> tuple[bytes, str] | None:
+        """ERROR while another node publishes one of the plant's state topics, else None.
+
+        Read from the ROS graph (`get_publishers_info_by_topic`) each call; both backends call
+        it every diagnostics period. Another node of the same name shows as a second publisher
+        under this node's name. Its start and its end are logged once each, and the publishers
+        found go to `values["other_publishers"]`.
+        """
+        node = self._node
+        me = node.get_fully_qualified_name()
+        found: list[str] = []
+        for topic in STATE_TOPICS:
+            names = [
+                f"{i.node_namespace.rstrip('/')}/{i.node_name}"
+                for i in node.get_publishers_info_by_topic(topic)
+            ]
+            others = sorted({n for n in names if n != me})
+            if names.count(me) > 1:
+                others.append(f"{me} (another node of this name)")
+            if others:
+                found.append(f"{topic}: {', '.join(others)}")
+        if tuple(found) != self._other_publishers:
+            if found:
+                self._log.error(f"another node publishes {'; '.join(found)}")
+            elif self._other_publishers:
+                self._log.info("no other publisher of the plant's states any more")
+            self._other_publishers = tuple(found)
+        values["other_publishers"] = "; ".join(found) or "none"
+        return (DiagnosticStatus.ERROR, f"another node publishes {found[0]}") if found else None
+
+
+def worst_first(found: Sequence[tuple[bytes, str]]) -> tuple[bytes, str]:
+    """The worst level and the messages at or above WARN, the worst first (OK: the first one)."""
+    level = max(item[0] for item in found)
+    if level == DiagnosticStatus.OK:
+        return found[0]
+    ranked = sorted(
+        (item for item in found if item[0] != DiagnosticStatus.OK), key=lambda i: -i[0][0]
+    )
+    return level, "; ".join(message for _, message in ranked)

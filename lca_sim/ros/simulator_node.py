@@ -72,7 +72,7 @@ from lca_sim.ros.node_util import (
     set_enabled_by_service,
     status,
 )
-from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
+from lca_sim.ros.plant_contract import PlantPublisher, qos_profile, worst_first
 from lca_sim.ros.simulator_params import (
     ENDED_KEY,
     SIMULATOR_PARAMETERS,
@@ -84,7 +84,6 @@ from lca_sim.ros.simulator_params import (
 MAX_CATCH_UP_PERIODS = 4
 _ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
 # The plant's state topics: a second publisher of any of them on the domain is an ERROR.
-STATE_TOPICS = (ri.JOINT_STATES, ri.MOTOR_STATES, ri.DRIVE_CHAIN_STATES)
 _END_STOP = "stop_end_stop"
 
 
@@ -144,7 +143,6 @@ class SimulatorNode(Node):
         self._moving_speed = np.zeros(n_axes)  # |joint velocity| when last published moving
         self._contact_speed = np.zeros(n_axes)  # that speed when the end stop was reached
         self._at_end_stop = np.zeros(n_axes, dtype=bool)
-        self._other_publishers: tuple[str, ...] = ()
         self._plant = PlantPublisher(self, self.sim.axis_names, clock=self._lockstep)
         self._bind_snapshot_rows()
         command_qos = qos_profile(ri.COMMAND_QOS)
@@ -427,35 +425,6 @@ class SimulatorNode(Node):
             f"stalled: simulated time fell {skipped * dt_s:.3f} s behind the wall clock (skipped)"
         )
 
-    def _graph_health(self, values: dict[str, object]) -> tuple[bytes, str] | None:
-        """ERROR while another node publishes one of the plant's state topics.
-
-        Another node of the same name shows as a second publisher of this node's name. The
-        start and the end of it are logged once each.
-        """
-        me = self.get_fully_qualified_name()
-        found: list[str] = []
-        first = ""
-        for topic in STATE_TOPICS:
-            names = [
-                f"{i.node_namespace.rstrip('/')}/{i.node_name}"
-                for i in self.get_publishers_info_by_topic(topic)
-            ]
-            others = sorted({n for n in names if n != me})
-            if names.count(me) > 1:
-                others.append(f"{me} (another node of this name)")
-            if others:
-                found.append(f"{topic}: {', '.join(others)}")
-                first = first or found[-1]
-        if tuple(found) != self._other_publishers:
-            if found:
-                self.get_logger().error(f"another node publishes {'; '.join(found)}")
-            elif self._other_publishers:
-                self.get_logger().info("no other publisher of the plant's states any more")
-            self._other_publishers = tuple(found)
-        values["other_publishers"] = "; ".join(found) or "none"
-        return (DiagnosticStatus.ERROR, f"another node publishes {first}") if first else None
-
     def _publish_diagnostics(self) -> None:
         p = self.params
         level = DiagnosticStatus.OK
@@ -489,10 +458,10 @@ class SimulatorNode(Node):
             **counters.as_dict(),
         }
         found = [(level, message)]
-        for health in (self._timing_health(values), self._graph_health(values)):
+        for health in (self._timing_health(values), self._plant.graph_health(values)):
             if health is not None:
                 found.append(health)
-        level, message = _worst_first(found)
+        level, message = worst_first(found)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status(SIMULATOR_STATUS, level, message, values))
@@ -587,17 +556,6 @@ class SimulatorNode(Node):
             self._diag_timer = self.create_timer(
                 new.diagnostics_period_s, self._publish_diagnostics
             )
-
-
-def _worst_first(found: list[tuple[bytes, str]]) -> tuple[bytes, str]:
-    """The worst level and the messages at or above WARN, the worst first (OK: the first one)."""
-    level = max(item[0] for item in found)
-    if level == DiagnosticStatus.OK:
-        return found[0]
-    ranked = sorted(
-        (item for item in found if item[0] != DiagnosticStatus.OK), key=lambda i: -i[0][0]
-    )
-    return level, "; ".join(message for _, message in ranked)
 
 
 def main(args: Sequence[str] | None = None) -> int:

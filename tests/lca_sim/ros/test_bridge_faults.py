@@ -1,0 +1,159 @@
+"""The CAN bridge's own peer faults on /diagnostics: a silent controller, a second plant.
+
+The bridge with its virtual rack in this process (interface virtual), the drives enabled. A
+controller that stops commanding halts the drives (zero torque) after command_timeout_s and
+quick-stops them after quick_stop_after_s more; both must show on the bridge's /diagnostics,
+not only in its log, and the halt must clear by itself when commands return. A second node
+publishing joint_states is a second plant on the domain: ERROR, as on the simulator.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import support
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from support import spin_until
+
+from lca_control import contract as ri
+from lca_sim.cia402.device import PowerState
+from lca_sim.ros.can_bridge_node import CanBridgeNode
+
+BRIDGE = "lca_hil/can_bridge"
+
+ros_context = support.domain_contexts(220, 10)
+
+
+def _bridge(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any) -> CanBridgeNode:
+    values: dict[str, Any] = {
+        "interface": "virtual",
+        "channel": f"test_bridge_faults_{id(ctx)}",
+        "auto_enable": True,
+        "cycle_hz": 250.0,
+        "diagnostics_period_s": 0.1,
+        # Room for this process's GIL (rack, bridge and test in one interpreter), as in
+        # test_can_swap: the drive-side watchdogs are not what these tests are about.
+        "rpdo_deadline_ms": 500,
+        "heartbeat_consumer_ms": 1000,
+        "stale_timeout_s": 0.5,
+    }
+    values.update(overrides)
+    bridge = CanBridgeNode(
+        context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]
+    )
+    executor.add_node(bridge)
+    return bridge
+
+
+class BridgeStatus:
+    """The bridge's latest own /diagnostics status, seen from a node of the test."""
+
+    def __init__(self, ctx: Context, executor: SingleThreadedExecutor) -> None:
+        self.node = Node("test_bridge_diagnostics", context=ctx)
+        self.latest: DiagnosticStatus | None = None
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_array, 50)
+        self.commands = self.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
+        executor.add_node(self.node)
+
+    def _on_array(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == BRIDGE:
+                self.latest = status
+
+    def shows(self, level: bytes, text: str) -> bool:
+        """The latest status has this level and its message contains `text`."""
+        s = self.latest
+        return s is not None and s.level == level and text in s.message
+
+    def value(self, key: str) -> str:
+        """One of the latest status's values ('' before any)."""
+        s = self.latest
+        return next((kv.value for kv in s.values if kv.key == key), "") if s else ""
+
+
+def _enabled(bridge: CanBridgeNode) -> bool:
+    return all(
+        bridge.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
+        for j in bridge.params.joints
+    )
+
+
+def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> None:
+    """WARN "halted" after command_timeout_s, OK again on commands, ERROR at the quick stop."""
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
+        probe = BridgeStatus(ctx, executor)
+        try:
+            spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
+            spin_until(
+                executor,
+                lambda: probe.shows(DiagnosticStatus.WARN, "waiting for the first command"),
+                "WARN: enabled, no command yet",
+            )
+
+            def commanding(until: str, level: bytes) -> None:
+                def step() -> None:
+                    probe.commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+                    executor.spin_once(timeout_sec=0.01)
+
+                support.wait_until(lambda: probe.shows(level, until), until, 30.0, step=step)
+
+            commanding("running", DiagnosticStatus.OK)
+            # The controller stops: halt after 0.2 s, and the bridge reports it.
+            spin_until(
+                executor,
+                lambda: probe.shows(DiagnosticStatus.WARN, "halted, zero torque"),
+                "WARN: no command, halted",
+            )
+            assert probe.value("command_losses") == "1"
+            # Back before the quick stop: the halt clears by itself.
+            commanding("commands again", DiagnosticStatus.OK)
+            assert _enabled(bridge)
+            # Silent past 0.2 + 1.0 s: the quick stop, which holds until ~/enable.
+            spin_until(
+                executor,
+                lambda: probe.shows(DiagnosticStatus.ERROR, "quick stop"),
+                "ERROR: quick stop after the silence",
+            )
+            assert "~/enable" in probe.latest.message if probe.latest else False
+            assert probe.value("command_losses") == "2"
+        finally:
+            bridge.destroy_node()
+            probe.node.destroy_node()
+
+
+def test_a_second_publisher_of_joint_states_is_an_error_on_the_bridge() -> None:
+    """Another node publishing joint_states beside the bridge: ERROR naming it, then clear."""
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, auto_enable=False)
+        probe = BridgeStatus(ctx, executor)
+        other = Node("second_plant", context=ctx)
+        try:
+            spin_until(
+                executor, lambda: probe.shows(DiagnosticStatus.OK, "running"), "bridge OK first"
+            )
+            publisher = other.create_publisher(JointState, ri.JOINT_STATES, 10)
+            spin_until(
+                executor,
+                lambda: probe.shows(
+                    DiagnosticStatus.ERROR, "another node publishes joint_states: /second_plant"
+                ),
+                "ERROR naming /second_plant",
+            )
+            assert "/second_plant" in probe.value("other_publishers")
+            other.destroy_publisher(publisher)
+            spin_until(
+                executor,
+                lambda: probe.shows(DiagnosticStatus.OK, "running"),
+                "OK again once the other publisher is gone",
+            )
+        finally:
+            bridge.destroy_node()
+            other.destroy_node()
+            probe.node.destroy_node()
