@@ -52,6 +52,8 @@ setup(
         "pin>=3.0",
         "python-can>=4.3",
         "canopen>=2.3",
+        # The cross-process CAN transport (lca_sim.canbus.remote) speaks its websocket protocol.
+        "python-can-remote>=0.3,<0.4",
         "PyYAML>=6.0",
         "matplotlib>=3.8",
         # python-control: the Bode diagrams, margins and tuning of `lca-hil paper` / `tune`;
@@ -86,13 +88,17 @@ setup(
             "lca-plot = lca_sim.cli.bagplot:main",
             "lca-virtual-drive = lca_sim.canbus.virtual_rack:main",
             "lca-can-bridge = lca_sim.cli.nodes:can_bridge",
+            "lca-can-server = lca_sim.canbus.remote:main",
             # The names `ros2 run lca_hil <exe>` expects (installed to lib/lca_hil by colcon).
             "simulator = lca_sim.cli.nodes:simulator",
             "controller = lca_sim.cli.nodes:controller",
             "record = lca_sim.cli.nodes:record",
             "virtual_drive = lca_sim.canbus.virtual_rack:main",
             "can_bridge = lca_sim.cli.nodes:can_bridge",
+            "can_server = lca_sim.canbus.remote:main",
         ],
+        # python-can interfaces: can.Bus(interface="lca_remote", channel="ws://127.0.0.1:54701/").
+        "can.interface": ["lca_remote = lca_sim.canbus.remote:RemoteTransportBus"],
     },
     zip_safe=False,
 )
