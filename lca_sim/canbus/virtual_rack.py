@@ -299,6 +299,7 @@ class RackCounters:
     rpdo_timeouts: int = 0
     sync_losses: int = 0
     send_errors: int = 0
+    bus_errors: int = 0  # exceptions of the bus layer's receive (python-can Notifier)
     handler_errors: int = 0
     process_freezes: int = 0
 
@@ -420,10 +421,27 @@ class _Listener(can.Listener):
         self._rack._on_frame(msg)
 
     def on_error(self, exc: Exception) -> None:
-        logger.error("CAN receive error: %s", exc)
+        self._rack._on_bus_error(exc)
 
     def stop(self) -> None:
         """Nothing to release."""
+
+
+class _RackNetwork(canopen.Network):
+    """canopen's Network, minus one trap: a bus error must not poison every later send.
+
+    python-can's Notifier keeps the last exception of its receive thread in
+    `notifier.exception` even when a listener handled it, and `canopen.Network.check()`, called
+    after every send, re-raises it: one malformed datagram from the bus layer would make every
+    later SDO answer, heartbeat and TPDO fail until a restart. The rack's listener counts the
+    error and clears it (`VirtualDriveRack._on_bus_error`); this check only clears one that a
+    send saw before the listener did (both run on different threads).
+    """
+
+    def check(self) -> None:
+        """Never raise: bus errors are counted by the rack's listener, not re-raised here."""
+        if self.notifier is not None:
+            self.notifier.exception = None
 
 
 # --- the rack --------------------------------------------------------------------------------
@@ -476,7 +494,7 @@ class VirtualDriveRack:
         self._signals = self._sim.signal_array
         self._lock = threading.RLock()
         self._counters = RackCounters()
-        self._network = canopen.Network(bus)
+        self._network = _RackNetwork(bus)
         self._network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         # canopen types its listener list narrowly; any can.Listener works there.
         cast("list[can.Listener]", self._network.listeners).append(_Listener(self))
@@ -999,6 +1017,18 @@ class VirtualDriveRack:
         except Exception:
             self._counters.handler_errors += 1
             logger.exception("virtual drive: error handling frame 0x%03X %s", cob, data.hex())
+
+    def _on_bus_error(self, exc: Exception) -> None:
+        """The bus layer raised in the receive thread (a malformed datagram): count it, go on.
+
+        The notifier's thread survives because this listener handles the error; the exception
+        it keeps is cleared so that the next send does not re-raise it (`_RackNetwork`).
+        """
+        self._counters.bus_errors += 1
+        notifier = self._network.notifier
+        if notifier is not None:
+            notifier.exception = None
+        self._warn_once(f"bus-error-{type(exc).__name__}", f"CAN receive error: {exc!r}")
 
     def _on_heartbeat(self, producer: int, data: bytes, now: float) -> None:
         if len(data) != 1:
