@@ -33,7 +33,7 @@ import can
 import canopen
 from canopen.sdo.base import SdoArray, SdoRecord
 
-from lca_sim.cia402 import codec
+from lca_sim.cia402 import codec, emcy
 from lca_sim.cia402 import master as cm
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
@@ -196,7 +196,9 @@ class _Axis:
     command_a: float = 0.0
     last_tpdo_t: float = 0.0
     fresh: int = 0  # bit 0: TPDO with the statusword, bit 1: with the velocity, this cycle
-    emcy_code: int = 0
+    emcy_code: int = 0  # the latched one (a fault reaction), 0: none
+    advisory_code: int = 0  # the last advisory one (`emcy.ADVISORY`), 0: none
+    advisory_count: int = 0
     has_drive_state: bool = False
     decoded: frozenset[str] = frozenset()  # the AxisState fields its TPDOs fill
     rpdo: Any = None  # canopen PdoMap of RPDO1
@@ -448,12 +450,21 @@ class Cia402Master:
 
     def _emcy_callback(self, axis: _Axis) -> Callable[[Any], None]:
         def on_emcy(entry: Any) -> None:
-            if entry.code & 0xFF00 == 0:
+            code = int(entry.code)
+            if code & 0xFF00 == 0:
                 return  # "error reset / no error": nothing to latch
             self.counters.emcy_received += 1
+            if code in emcy.ADVISORY:  # a frame lost or rejected: reported, the axes go on
+                with self._lock:
+                    axis.advisory_code = code
+                    axis.advisory_count += 1
+                log.warning("EMCY from %s: %s", axis.joint, emcy.describe(code))
+                return
             with self._lock:
-                axis.emcy_code = int(entry.code)
-            log.error("EMCY from %s: 0x%04X %s", axis.joint, entry.code, entry.get_desc())
+                axis.emcy_code = code
+            log.error(
+                "EMCY from %s: %s (axes stopped until recover)", axis.joint, emcy.describe(code)
+            )
 
         return on_emcy
 
@@ -508,6 +519,7 @@ class Cia402Master:
         with self._lock:
             for axis in self._axes:
                 axis.emcy_code = 0
+                axis.advisory_code = axis.advisory_count = 0
                 axis.last_tpdo_t = time.monotonic()
             self._stale = []
             self._bus_off = False
@@ -528,9 +540,9 @@ class Cia402Master:
     def _stop_reason(self) -> str:
         """The latches that quick-stop every axis: EMCY, a stale drive, bus-off."""
         reasons = []
-        emcy = [f"{a.joint} 0x{a.emcy_code:04X}" for a in self._axes if a.emcy_code]
-        if emcy:
-            reasons.append("EMCY " + ", ".join(emcy))
+        latched = [f"{a.joint} {emcy.describe(a.emcy_code)}" for a in self._axes if a.emcy_code]
+        if latched:
+            reasons.append("EMCY " + ", ".join(latched))
         if self._stale:
             reasons.append("stale drive " + ", ".join(self._stale))
         if self._bus_off:
@@ -707,6 +719,11 @@ class Cia402Master:
     def emcy_codes(self) -> dict[str, int]:
         """The latched EMCY code per joint (0: none)."""
         return {a.joint: a.emcy_code for a in self._axes}
+
+    def advisory_emcy(self) -> dict[str, tuple[int, int]]:
+        """Per joint, the last advisory EMCY code and how many came (0, 0: none)."""
+        with self._lock:
+            return {a.joint: (a.advisory_code, a.advisory_count) for a in self._axes}
 
     def command_silence(self, now: float) -> tuple[bool, str] | None:
         """What the controller's silence does to enabled drives: (latched, why), or None.

@@ -54,6 +54,7 @@ from lca_sim.canbus.master import (
     Cia402Master,
     Snapshot,
 )
+from lca_sim.cia402 import emcy
 from lca_sim.cia402.master import bus_load_pct
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.errors import ConfigError
@@ -452,6 +453,37 @@ class CanBridgeNode(Node):
 
     # --- diagnostics ---------------------------------------------------------------------
 
+    def _axis_status(self, joint: str, latched: int, advisory: tuple[int, int]) -> DiagnosticStatus:
+        """One drive: ERROR with the latched EMCY's text, WARN for an advisory EMCY, else OK.
+
+        The message is the power state, then the EMCY decoded to text (`emcy.describe`).
+        """
+        s = self.bridge.axis_state(joint)
+        power = s.power_state
+        message = power.name.lower() if power else f"statusword 0x{s.statusword:04X}"
+        level = DiagnosticStatus.OK
+        code, count = advisory
+        if code:
+            level = DiagnosticStatus.WARN
+            message += f"; EMCY {emcy.describe(code)} ({count} received)"
+        if latched:
+            level = DiagnosticStatus.ERROR
+            message += f"; EMCY {emcy.describe(latched)}: stopped until ~/recover"
+        return status(
+            f"lca_hil/can_bridge/{joint}",
+            level,
+            message,
+            {
+                "statusword": f"0x{s.statusword:04X}",
+                "emcy_code": f"0x{latched:04X}",
+                "emcy_text": emcy.describe(latched) if latched else "none",
+                "advisory_emcy": emcy.describe(code) if code else "none",
+                "advisory_emcy_count": count,
+                "position": s.position,
+                "current_a": s.current_a,
+            },
+        )
+
     def _command_health(self, now: float) -> tuple[bytes, str] | None:
         """The controller peer: WARN while the drives are halted for want of commands.
 
@@ -513,24 +545,10 @@ class CanBridgeNode(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status("lca_hil/can_bridge", level, message, values))
-        emcy = bridge.emcy_codes()
+        codes = bridge.emcy_codes()
+        advisory = bridge.advisory_emcy()
         for joint in self.params.joints:
-            s = bridge.axis_state(joint)
-            power = s.power_state
-            axis_level = DiagnosticStatus.ERROR if emcy[joint] else DiagnosticStatus.OK
-            array.status.append(
-                status(
-                    f"lca_hil/can_bridge/{joint}",
-                    axis_level,
-                    power.name.lower() if power else f"statusword 0x{s.statusword:04X}",
-                    {
-                        "statusword": f"0x{s.statusword:04X}",
-                        "emcy_code": f"0x{emcy[joint]:04X}",
-                        "position": s.position,
-                        "current_a": s.current_a,
-                    },
-                )
-            )
+            array.status.append(self._axis_status(joint, codes[joint], advisory[joint]))
         self._plant.publish_diagnostics(array)
 
 

@@ -21,6 +21,7 @@ import pytest
 
 from lca_sim.canbus.master import CAN_ERR_BUSOFF, BridgeParams, Cia402Master, Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.cia402 import device, emcy
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir, load_robot
 
@@ -463,3 +464,34 @@ def test_compiled_tpdo_decoder_agrees_with_the_codec() -> None:
     assert math.isnan(state.load_torque_nm)  # not mapped: unknown
     with pytest.raises(ValueError, match="not AxisState fields"):
         _compile_apply([_Target(("__class__",))], struct.Struct("<H").unpack_from, 1.0)
+
+
+def test_an_advisory_emcy_is_reported_with_its_text_and_the_axes_go_on(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """EMCY 0x8210 (an RPDO of the wrong length, CiA 301) is counted and kept, not latched."""
+    rig = _enabled(rig_factory())
+    frame = can.Message(
+        arbitration_id=0x80 + 2, data=[0x10, 0x82, 0x10, 0, 0, 0, 0, 0], is_extended_id=False
+    )
+    rig.injector.send(frame)
+    rig.injector.send(frame)
+    wait_for(lambda: rig.bridge.advisory_emcy()["pivot"] == (0x8210, 2), 2.0, "two advisories")
+    assert rig.bridge.emcy_codes()["pivot"] == 0
+    assert rig.bridge.latched_reason() == ""
+    n = len(rig.snapshots)
+    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles later")
+    assert rig.all_in(PowerState.OPERATION_ENABLED)
+    assert emcy.describe(0x8210) == "0x8210 PDO not processed due to length error"
+    rig.bridge.recover()
+    assert rig.bridge.advisory_emcy()["pivot"] == (0, 0)
+
+
+def test_a_latched_emcy_is_named_in_words() -> None:
+    """Each code the rack sends has its own text; others fall back to their CiA 301 class."""
+    for name in ("EMCY_HEARTBEAT", "EMCY_RPDO_TIMEOUT", "EMCY_SYNC_LOSS"):
+        code = getattr(device, name)
+        assert code in emcy.SPECIFIC, name
+    assert emcy.describe(0x8130) == "0x8130 life guard or heartbeat error"
+    assert emcy.describe(0x8F01) == "0x8F01 monitoring error"
+    assert emcy.describe(0x2391) == "0x2391 current error"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import can
 import support
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.context import Context
@@ -51,10 +52,14 @@ def _bridge(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any) ->
     return bridge
 
 
-class BridgeStatus:
-    """The bridge's latest own /diagnostics status, seen from a node of the test."""
+class DriveStatus:
+    """The latest /diagnostics status of one name, seen from a node of the test.
 
-    def __init__(self, ctx: Context, executor: SingleThreadedExecutor) -> None:
+    It also publishes current commands, as a controller would.
+    """
+
+    def __init__(self, ctx: Context, executor: SingleThreadedExecutor, name: str = BRIDGE) -> None:
+        self.name = name
         self.node = Node("test_bridge_diagnostics", context=ctx)
         self.latest: DiagnosticStatus | None = None
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_array, 50)
@@ -63,8 +68,12 @@ class BridgeStatus:
 
     def _on_array(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name == BRIDGE:
+            if status.name == self.name:
                 self.latest = status
+
+    def message(self) -> str:
+        """The latest message ('' before any)."""
+        return self.latest.message if self.latest else ""
 
     def shows(self, level: bytes, text: str) -> bool:
         """The latest status has this level and its message contains `text`."""
@@ -88,7 +97,7 @@ def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> 
     """WARN "halted" after command_timeout_s, OK again on commands, ERROR at the quick stop."""
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
-        probe = BridgeStatus(ctx, executor)
+        probe = DriveStatus(ctx, executor)
         try:
             spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
             spin_until(
@@ -121,7 +130,7 @@ def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> 
                 lambda: probe.shows(DiagnosticStatus.ERROR, "quick stop"),
                 "ERROR: quick stop after the silence",
             )
-            assert "~/enable" in probe.latest.message if probe.latest else False
+            assert "~/enable" in probe.message()
             assert probe.value("command_losses") == "2"
         finally:
             bridge.destroy_node()
@@ -132,7 +141,7 @@ def test_a_second_publisher_of_joint_states_is_an_error_on_the_bridge() -> None:
     """Another node publishing joint_states beside the bridge: ERROR naming it, then clear."""
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, auto_enable=False)
-        probe = BridgeStatus(ctx, executor)
+        probe = DriveStatus(ctx, executor)
         other = Node("second_plant", context=ctx)
         try:
             spin_until(
@@ -156,4 +165,36 @@ def test_a_second_publisher_of_joint_states_is_an_error_on_the_bridge() -> None:
         finally:
             bridge.destroy_node()
             other.destroy_node()
+            probe.node.destroy_node()
+
+
+def test_every_emcy_shows_on_the_drive_status_decoded_to_text() -> None:
+    """An advisory EMCY is a WARN with its text and count; a drive fault's is an ERROR."""
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, auto_enable=False)
+        probe = DriveStatus(ctx, executor, "lca_hil/can_bridge/pivot")
+        injector = can.Bus(interface="virtual", channel=bridge.params.channel)
+        try:
+            spin_until(executor, lambda: probe.latest is not None, "a pivot status")
+
+            def emcy(code: int) -> None:
+                data = [code & 0xFF, code >> 8, 0x10, 0, 0, 0, 0, 0]
+                injector.send(can.Message(arbitration_id=0x82, data=data, is_extended_id=False))
+
+            emcy(0x8220)
+            spin_until(
+                executor,
+                lambda: probe.shows(DiagnosticStatus.WARN, "EMCY 0x8220 PDO length exceeded"),
+                "WARN with the advisory EMCY's text",
+            )
+            assert "(1 received)" in probe.message()
+            emcy(0x2310)
+            spin_until(
+                executor,
+                lambda: probe.shows(DiagnosticStatus.ERROR, "EMCY 0x2310 continuous over-current"),
+                "ERROR with the latched EMCY's text",
+            )
+        finally:
+            injector.shutdown()
+            bridge.destroy_node()
             probe.node.destroy_node()
