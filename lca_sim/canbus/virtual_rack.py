@@ -103,6 +103,7 @@ logger = logging.getLogger(__name__)
 SYNC_COB_ID = 0x080
 NMT_COB_ID = 0x000
 HEARTBEAT_COB_BASE = 0x700
+SDO_REQUEST_COB_BASE = 0x600  # CiA 301 pre-defined connection set: client -> server
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
@@ -294,6 +295,10 @@ class RackCounters:
     rpdo_values_rejected: int = 0
     tpdos_sent: int = 0
     bad_frames: int = 0
+    extended_frames: int = 0  # 29-bit identifiers: not for these 11-bit nodes, ignored
+    fd_frames: int = 0  # CAN FD frames: ignored likewise
+    remote_frames: int = 0  # RTR frames: no object of these nodes answers one
+    error_frames: int = 0
     emcy_sent: int = 0
     heartbeat_losses: int = 0
     rpdo_timeouts: int = 0
@@ -412,13 +417,17 @@ class _Axis:
 
 
 class _Listener(can.Listener):
-    """Feeds every frame the notifier reads to the rack (after canopen's own listener)."""
+    """The rack's only listener: filters every frame, then feeds canopen's services and the rack.
+
+    It replaces canopen's own `MessageListener`, which hands any frame to the SDO server and
+    the NMT slave, 29-bit and CAN FD ones included (`VirtualDriveRack._on_message`).
+    """
 
     def __init__(self, rack: VirtualDriveRack) -> None:
         self._rack = rack
 
     def on_message_received(self, msg: can.Message) -> None:
-        self._rack._on_frame(msg)
+        self._rack._on_message(msg)
 
     def on_error(self, exc: Exception) -> None:
         self._rack._on_bus_error(exc)
@@ -497,10 +506,11 @@ class VirtualDriveRack:
         self._network = _RackNetwork(bus)
         self._network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         # canopen types its listener list narrowly; any can.Listener works there.
-        cast("list[can.Listener]", self._network.listeners).append(_Listener(self))
+        cast("list[can.Listener]", self._network.listeners)[:] = [_Listener(self)]
         self._axes: list[_Axis] = []
         self._by_name: dict[str, _Axis] = {}
         self._rpdo_table: dict[int, list[tuple[_Axis, _Pdo]]] = {}
+        self._sdo_servers: dict[int, _Axis] = {}  # SDO request COB-ID (0x600 + id) -> its node
         self._last_sync_rx_s: float | None = None
         self._last_sync_done_s = -math.inf
         self._step_budget_s = 0.0
@@ -531,6 +541,7 @@ class VirtualDriveRack:
             self._network.add_node(node)
             self._axes.append(axis)
             self._by_name[axis_config.name] = axis
+            self._sdo_servers[SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
         self._stop_event = threading.Event()
         self._monitor_thread: threading.Thread | None = None
         self._started = False
@@ -991,10 +1002,47 @@ class VirtualDriveRack:
 
     # --- frames ----------------------------------------------------------------------------
 
-    def _on_frame(self, msg: can.Message) -> None:
-        """Dispatch one received frame; never raises (the receive thread must survive)."""
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+    def _on_message(self, msg: can.Message) -> None:
+        """Every frame the notifier reads: filter it, then canopen's services, then `_on_frame`.
+
+        Never raises: the receive thread must survive whatever arrives.
+        The nodes are classical CANopen nodes with 11-bit identifiers (CiA 301 uses CAN base
+        frames; a 29-bit or a CAN FD frame is not CANopen CC traffic even when its identifier
+        looks like an SDO or NMT one): those, remote frames (no object of these nodes answers
+        RTR: TPDO COB-IDs carry bit 30) and error frames are counted and go no further.
+        """
+        counters = self._counters
+        if msg.is_error_frame:
+            counters.error_frames += 1
             return
+        if msg.is_fd:
+            counters.fd_frames += 1
+            return
+        if msg.is_extended_id:
+            counters.extended_frames += 1
+            return
+        if msg.is_remote_frame:
+            counters.remote_frames += 1
+            return
+        cob = msg.arbitration_id
+        if len(msg.data) > 8:
+            counters.bad_frames += 1
+            return
+        if cob in self._sdo_servers and len(msg.data) != 8:
+            counters.bad_frames += 1  # CiA 301: an SDO request is 8 bytes; ignored otherwise
+            return
+        # An NMT frame of the wrong length goes to `_on_frame` (which counts it) only: canopen's
+        # NMT slave would act on the first two bytes of a longer one.
+        if cob != NMT_COB_ID or len(msg.data) == 2:
+            try:
+                self._network.notify(cob, msg.data, msg.timestamp)
+            except Exception:
+                counters.handler_errors += 1
+                logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
+        self._on_frame(msg)
+
+    def _on_frame(self, msg: can.Message) -> None:
+        """Dispatch one received (filtered) frame; never raises."""
         cob = msg.arbitration_id
         data = bytes(msg.data)
         try:

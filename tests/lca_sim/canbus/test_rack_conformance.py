@@ -118,3 +118,31 @@ def test_item_01_a_bus_receive_error_does_not_break_the_rack(
     assert [a[0] for a in answers] == [0x4B, 0x43], answers  # no abort (0x80) after an answer
     assert rack.counters.send_errors == 0
     assert rack.counters.bus_errors == 1
+
+
+def test_item_02_extended_and_fd_frames_are_ignored_and_counted(
+    rack: VirtualDriveRack, probe: Probe
+) -> None:
+    """A 29-bit or CAN FD frame with an SDO, NMT or SYNC identifier does nothing; counted."""
+    mark = probe.mark()
+    foreign = [
+        can.Message(arbitration_id=0x602, data=sdo_upload_request(0x1000), is_extended_id=True),
+        can.Message(arbitration_id=0x000, data=[0x01, PIVOT], is_extended_id=True),
+        can.Message(arbitration_id=0x080, data=b"", is_extended_id=True),
+        can.Message(
+            arbitration_id=0x602, data=sdo_upload_request(0x1000), is_extended_id=False, is_fd=True
+        ),
+        can.Message(arbitration_id=0x000, data=[0x01, 0], is_extended_id=False, is_fd=True),
+        can.Message(arbitration_id=0x080, data=b"", is_extended_id=False, is_fd=True),
+    ]
+    for msg in foreign:
+        probe.bus.send(msg)
+    probe.send(0x601, sdo_upload_request(0x1000))  # handled after the six above
+    probe.wait(0x581, mark)
+    assert probe.seen(0x582, mark) == []
+    assert rack.counters.extended_frames == 3
+    assert rack.counters.fd_frames == 3
+    assert rack.counters.syncs == 0
+    assert rack.nmt_state("pivot") == "PRE-OPERATIONAL"
+    next_heartbeat = probe.mark()  # canopen's NMT slave did not see the start either
+    assert probe.wait(0x702, next_heartbeat) == b"\x7f"
