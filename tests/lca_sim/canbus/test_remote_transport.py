@@ -1,0 +1,423 @@
+"""The cross-process CAN transport (`lca_sim.canbus.remote`): relay, interface, codec.
+
+The end-to-end test runs what a user runs in three terminals, on 127.0.0.1: `lca-can-server`
+and `lca-virtual-drive --interface lca_remote` as separate processes, the bridge's master
+(`Cia402Master`) in this one. It boots, enables and moves the pivot with a current command, and
+watches the drives' heartbeats across NMT commands (python-can-remote 0.3.0's own client lost
+them at the first NMT state change). Nothing sleeps a fixed time: conditions are polled up to a
+deadline, and every process started is stopped in the fixture's finally.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lca_sim.canbus import remote
+from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
+from lca_sim.cia402.device import PowerState
+from lca_sim.config.loader import config_dir, load_robot
+
+BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
+EDS = config_dir() / "can" / "lca_drive.eds"
+JOINTS = ("l_arm", "pivot", "c_arc", "lift")
+NODE_IDS = (1, 2, 3, 4)
+START_TIMEOUT_S = 120.0  # a cold rack (numba, pinocchio) on a shared, loaded 2-core machine
+NMT_PRE_OPERATIONAL_STATE = 0x7F
+NMT_OPERATIONAL_STATE = 0x05
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+    """Poll `condition` until it holds; fail with `what` after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"not within {timeout_s} s: {what}")
+        time.sleep(0.005)
+
+
+def _stop_process(proc: subprocess.Popen[str], timeout_s: float = 20.0) -> int:
+    """SIGTERM, then SIGKILL after `timeout_s`; the exit code."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            return proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return proc.wait(timeout_s)
+
+
+def _read_line(proc: subprocess.Popen[str], pattern: str, timeout_s: float) -> re.Match[str]:
+    """The first line of the process's stderr matching `pattern`, within `timeout_s`."""
+    assert proc.stderr is not None
+    deadline = time.monotonic() + timeout_s
+    seen: list[str] = []
+    while (left := deadline - time.monotonic()) > 0:
+        ready, _, _ = select.select([proc.stderr], [], [], left)
+        if not ready:
+            break
+        line = proc.stderr.readline()
+        if not line:
+            break
+        seen.append(line)
+        if match := re.search(pattern, line):
+            return match
+    pytest.fail(f"no line matching {pattern!r} within {timeout_s} s: {''.join(seen)[-2000:]}")
+
+
+@pytest.fixture
+def relay() -> Iterator[str]:
+    """A `lca-can-server` process on 127.0.0.1, any free port: its channel URL."""
+    proc = subprocess.Popen(
+        [str(BIN / "lca-can-server"), "--port", "0"], stderr=subprocess.PIPE, text=True
+    )
+    try:
+        yield _read_line(proc, r"ws://127\.0\.0\.1:\d+/", 30.0).group(0)
+    finally:
+        assert _stop_process(proc) == 0
+
+
+@pytest.fixture
+def in_process_relay() -> Iterator[remote.RelayServer]:
+    """A relay on a thread of this process (for the codec tests: cheap to start)."""
+    server = remote.RelayServer(port=0)
+    thread = threading.Thread(target=server.serve, kwargs={"poll_s": 0.02}, daemon=True)
+    thread.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+        thread.join(5.0)
+
+
+@dataclass
+class Heartbeats:
+    """Every heartbeat seen on the bus: (time.monotonic(), node id, NMT state)."""
+
+    seen: list[tuple[float, int, int]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_message(self, msg: can.Message) -> None:
+        """A Notifier listener: keep heartbeats (0x700 + id, one byte) of the rack's nodes."""
+        node = msg.arbitration_id - 0x700
+        if not msg.is_extended_id and node in NODE_IDS and len(msg.data) == 1:
+            with self.lock:
+                self.seen.append((time.monotonic(), node, msg.data[0] & 0x7F))
+
+    def count(self, since: float, state: int) -> dict[int, int]:
+        """Heartbeats per node after `since` reporting `state`."""
+        with self.lock:
+            counts = dict.fromkeys(NODE_IDS, 0)
+            for t, node, s in self.seen:
+                if t > since and s == state:
+                    counts[node] += 1
+            return counts
+
+    def each_at_least(self, n: int, since: float, state: int) -> Callable[[], bool]:
+        """A condition: every node sent at least `n` heartbeats in `state` after `since`."""
+        return lambda: min(self.count(since, state).values()) >= n
+
+
+def _params() -> BridgeParams:
+    robot = load_robot("default")
+    axes = {a.name: a for a in robot.axes}
+    return BridgeParams(
+        joints=JOINTS,
+        node_ids=NODE_IDS,
+        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
+        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
+        drive_state_names=robot.state_machine.state_names,
+        cycle_hz=250.0,
+        # Room for a shared 2-core machine's stalls, as in test_can_bridge.
+        rpdo_deadline_ms=500,
+        heartbeat_consumer_ms=1000,
+        stale_timeout_s=0.5,
+    )
+
+
+def test_rack_and_master_in_separate_processes(relay: str) -> None:
+    """Boot, enable, move the pivot both ways, stop; heartbeats survive NMT commands."""
+    monitor = can.Bus(interface="lca_remote", channel=relay)
+    heartbeats = Heartbeats()
+    notifier = can.Notifier(monitor, [heartbeats.on_message])
+    rack = subprocess.Popen(
+        [str(BIN / "lca-virtual-drive"), "--interface", "lca_remote", "--channel", relay],
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    network: canopen.Network | None = None
+    bridge: Cia402Master | None = None
+    try:
+        t_boot = time.monotonic() - START_TIMEOUT_S
+        wait_for(
+            heartbeats.each_at_least(2, t_boot, NMT_PRE_OPERATIONAL_STATE),
+            START_TIMEOUT_S,
+            "every drive's heartbeat in PRE-OPERATIONAL over the relay",
+        )
+        network = canopen.Network(can.Bus(interface="lca_remote", channel=relay))
+        network.connect()
+        currents = [0.0] * 4
+        snapshots: list[Snapshot] = []
+
+        def on_state(snapshot: Snapshot) -> None:
+            snapshots.append(snapshot)
+            assert bridge is not None
+            bridge.set_currents(currents)
+
+        bridge = Cia402Master(network, _params(), EDS, on_state=on_state)
+        bridge.init()  # SDO configuration, then NMT start: every drive OPERATIONAL
+        t_started = time.monotonic()
+        bridge.start()
+        # The heartbeat keeps coming after the NMT start (0x05 = OPERATIONAL), at its period.
+        wait_for(
+            heartbeats.each_at_least(10, t_started, NMT_OPERATIONAL_STATE),
+            30.0,
+            "10 OPERATIONAL heartbeats from every drive after NMT start",
+        )
+        assert time.monotonic() - t_started > 0.8  # 0x1017 = 100 ms: not a burst
+
+        assert bridge.enable(True) == "enabling"
+        wait_for(
+            lambda: all(
+                bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED for j in JOINTS
+            ),
+            30.0,
+            "every drive OPERATION ENABLED",
+        )
+        for j in JOINTS:
+            assert bridge.axis_state(j).statusword & 0x6F == 0x27  # CiA 402: operation enabled
+
+        pivot = bridge.axis_state("pivot")
+        p0 = pivot.position
+        currents[1] = 3.0
+        wait_for(
+            lambda: bridge.axis_state("pivot").position > p0 + 0.01,
+            30.0,
+            "the pivot moving forward under +3 A",
+        )
+        assert abs(bridge.axis_state("pivot").current_a - 3.0) < 0.3
+        p1 = bridge.axis_state("pivot").position
+        currents[1] = -3.0
+        wait_for(
+            lambda: bridge.axis_state("pivot").position < p1 - 0.01,
+            30.0,
+            "the pivot moving back under -3 A",
+        )
+        assert abs(bridge.axis_state("pivot").current_a + 3.0) < 0.3
+        for j in ("l_arm", "c_arc", "lift"):  # nothing commanded there
+            assert abs(bridge.axis_state(j).current_a) < 0.05
+
+        currents[1] = 0.0
+        assert bridge.enable(False) == "disabling"
+        wait_for(
+            lambda: all(
+                bridge.axis_state(j).power_state
+                in (PowerState.READY_TO_SWITCH_ON, PowerState.SWITCH_ON_DISABLED)
+                for j in JOINTS
+            ),
+            30.0,
+            "every drive disabled",
+        )
+        assert abs(bridge.axis_state("pivot").current_a) < 0.05
+        assert len(snapshots) > 50
+        assert bridge.latched_reason() == ""
+        bridge.stop()
+
+        # NMT pre-operational and start again, broadcast: the heartbeat follows each state.
+        t_pre = time.monotonic()
+        monitor.send(can.Message(arbitration_id=0, is_extended_id=False, data=b"\x80\x00"))
+        wait_for(
+            heartbeats.each_at_least(5, t_pre, NMT_PRE_OPERATIONAL_STATE),
+            30.0,
+            "5 PRE-OPERATIONAL heartbeats from every drive after NMT enter pre-operational",
+        )
+        t_op = time.monotonic()
+        monitor.send(can.Message(arbitration_id=0, is_extended_id=False, data=b"\x01\x00"))
+        wait_for(
+            heartbeats.each_at_least(5, t_op, NMT_OPERATIONAL_STATE),
+            30.0,
+            "5 OPERATIONAL heartbeats from every drive after NMT start",
+        )
+        assert rack.poll() is None, "the rack died"
+    finally:
+        if bridge is not None:
+            bridge.stop()
+        if network is not None:
+            network.disconnect()
+        notifier.stop()
+        monitor.shutdown()
+        code = _stop_process(rack)
+        assert rack.stderr is not None
+        rack_log = rack.stderr.read()
+        rack.stderr.close()
+    assert code == 0, rack_log[-3000:]
+
+
+# --- frames cross unchanged --------------------------------------------------------------------
+
+SPECIAL_FRAMES = [
+    can.Message(arbitration_id=0x1ABCDEF0, is_extended_id=True, data=b"\x01\x02\x03"),
+    can.Message(arbitration_id=0x123, is_extended_id=False, is_remote_frame=True, dlc=4),
+    can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, is_remote_frame=True, dlc=0),
+    can.Message(
+        arbitration_id=0x7FF,
+        is_extended_id=False,
+        is_fd=True,
+        bitrate_switch=True,
+        error_state_indicator=True,
+        data=bytes(range(64)),
+    ),
+    can.Message(arbitration_id=0x000, is_extended_id=False, data=b""),
+    can.Message(arbitration_id=0x040, is_extended_id=False, is_error_frame=True, data=bytes(8)),
+]
+
+frames = st.builds(
+    lambda ext, rtr, fd, brs, esi, ident, data, dlc: can.Message(
+        arbitration_id=ident & (0x1FFFFFFF if ext else 0x7FF),
+        is_extended_id=ext,
+        is_remote_frame=rtr and not fd,
+        is_fd=fd,
+        bitrate_switch=brs and fd,
+        error_state_indicator=esi and fd,
+        dlc=dlc if rtr and not fd else len(data),
+        data=b"" if rtr and not fd else data,
+    ),
+    st.booleans(),
+    st.booleans(),
+    st.booleans(),
+    st.booleans(),
+    st.booleans(),
+    st.integers(0, 0x1FFFFFFF),
+    st.sampled_from([0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64]).flatmap(
+        lambda n: st.binary(min_size=n, max_size=n)
+    ),
+    st.integers(0, 8),
+)
+
+
+def _same(a: can.Message, b: can.Message) -> bool:
+    return bool(a.equals(b, timestamp_delta=None, check_channel=False, check_direction=False))
+
+
+@settings(max_examples=300, deadline=None)
+@given(frames)
+def test_codec_round_trip(msg: can.Message) -> None:
+    """Every frame python-can can hold comes back from the payload unchanged."""
+    back = remote.decode_message(remote.encode_message(msg), 12.5)
+    assert _same(back, msg), (msg, back)
+    assert back.timestamp == 12.5  # the receiver's clock, not the sender's
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(frames, min_size=1, max_size=20), st.integers(1, 50), st.booleans())
+def test_websocket_framing_survives_any_split(
+    msgs: list[can.Message], chunk: int, masked: bool
+) -> None:
+    """Frames parsed from a stream cut at any points come out whole, masked or not."""
+    stream = b"".join(remote.ws_frame(2, remote.encode_message(m), mask=masked) for m in msgs)
+    buf = bytearray()
+    got: list[tuple[int, bytes]] = []
+    for i in range(0, len(stream), chunk):
+        buf += stream[i : i + chunk]
+        got += remote.parse_frames(buf)
+    assert not buf
+    assert [op for op, _ in got] == [2] * len(msgs)
+    for (_, payload), msg in zip(got, msgs, strict=True):
+        assert _same(remote.decode_message(payload, 0.0), msg)
+
+
+def test_special_frames_cross_the_relay(in_process_relay: remote.RelayServer) -> None:
+    """29-bit, RTR, FD, error and 0-byte frames arrive unchanged and in order at the others."""
+    url = in_process_relay.url
+    with (
+        can.Bus(interface="lca_remote", channel=url) as a,
+        can.Bus(interface="lca_remote", channel=url) as b,
+        can.Bus(interface="lca_remote", channel=url, receive_own_messages=True) as c,
+    ):
+        for msg in SPECIAL_FRAMES:
+            a.send(msg)
+        for bus in (b, c):
+            for msg in SPECIAL_FRAMES:
+                got = bus.recv(10.0)
+                assert got is not None and _same(got, msg), (msg, got)
+        c.send(SPECIAL_FRAMES[0])
+        for bus in (a, b, c):  # c asked for its own frames back
+            got = bus.recv(10.0)
+            assert got is not None and _same(got, SPECIAL_FRAMES[0])
+        assert a.recv(0.05) is None  # a did not: nothing else queued
+
+
+def test_filters_and_periodic_send(in_process_relay: remote.RelayServer) -> None:
+    """python-can's own filters and software periodic send, with a data change mid-way."""
+    url = in_process_relay.url
+    with (
+        can.Bus(interface="lca_remote", channel=url) as a,
+        can.Bus(
+            interface="lca_remote",
+            channel=url,
+            can_filters=[{"can_id": 0x701, "can_mask": 0x7FF, "extended": False}],
+        ) as b,
+    ):
+        task = a.send_periodic(
+            can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x7f"), 0.01
+        )
+        a.send(can.Message(arbitration_id=0x702, is_extended_id=False, data=b"\x7f"))
+        first = b.recv(10.0)
+        assert first is not None and first.arbitration_id == 0x701
+        assert isinstance(task, can.ModifiableCyclicTaskABC)
+        task.modify_data(can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05"))
+        deadline = time.monotonic() + 10.0
+        seen: list[can.Message] = []
+        while len([m for m in seen if m.data == b"\x05"]) < 5 and time.monotonic() < deadline:
+            if (msg := b.recv(1.0)) is not None:
+                seen.append(msg)
+        assert len([m for m in seen if m.data == b"\x05"]) >= 5, seen
+        assert all(m.arbitration_id == 0x701 for m in seen)  # 0x702 filtered out
+        task.stop()
+
+
+def test_stock_python_can_remote_client_joins(in_process_relay: remote.RelayServer) -> None:
+    """python-can-remote's own `remote` interface sends and receives through the relay."""
+    url = in_process_relay.url
+    with (
+        can.Bus(interface="remote", channel=url) as stock,
+        can.Bus(interface="lca_remote", channel=url) as ours,
+    ):
+        stock.send(SPECIAL_FRAMES[0])
+        got = ours.recv(10.0)
+        assert got is not None and _same(got, SPECIAL_FRAMES[0])
+        ours.send(SPECIAL_FRAMES[3])
+        got = stock.recv(10.0)
+        assert got is not None and _same(got, SPECIAL_FRAMES[3])
+
+
+def test_no_server_is_an_init_error() -> None:
+    server = remote.RelayServer(port=0)  # bound, so the port is free of anyone else's server
+    port = server.port
+    server.stop()
+    server.serve()  # returns at once and closes the listener
+    with pytest.raises(can.CanInitializationError):
+        can.Bus(interface="lca_remote", channel=f"127.0.0.1:{port}")
+
+
+def test_binds_loopback_by_default() -> None:
+    assert remote.DEFAULT_HOST == "127.0.0.1"
+    args = remote._parse_args([])
+    assert args.host == "127.0.0.1"
+    assert remote.channel_url("127.0.0.1") == ("127.0.0.1", 54701, "ws://127.0.0.1:54701/")
