@@ -335,6 +335,7 @@ class _Pdo:
     last_data: bytes | None = None  # the TPDO last sent
     last_sent_s: float = -math.inf
     sync_count: int = 0
+    length_error: int = 0  # RPDO: the EMCY code of the current run of wrong-length frames
 
     @property
     def size_bytes(self) -> int:
@@ -513,6 +514,7 @@ class VirtualDriveRack:
         self._sdo_servers: dict[int, _Axis] = {}  # SDO request COB-ID (0x600 + id) -> its node
         self._last_sync_rx_s: float | None = None
         self._last_sync_done_s = -math.inf
+        self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
         eds = str(eds_path())
@@ -1093,13 +1095,25 @@ class VirtualDriveRack:
             self._counters.pdos_ignored_not_operational += 1
             return
         if len(data) != pdo.size_bytes:
+            # CiA 301 EMCY error codes: 0x8210 "PDO not processed due to length error", 0x8220
+            # "PDO length exceeded". The frame is not applied; one EMCY per run of wrong frames
+            # (each is counted), so that a flood of them does not flood the bus with EMCYs.
             self._counters.bad_frames += 1
+            code = (
+                cia402.EMCY_PDO_LENGTH
+                if len(data) < pdo.size_bytes
+                else cia402.EMCY_PDO_LENGTH_EXCEEDED
+            )
+            if pdo.length_error != code:
+                pdo.length_error = code
+                self._emcy(axis, code)
             self._warn_once(
                 f"rpdo-length-{axis.config.node_id}-{pdo.number}",
                 f"node {axis.config.node_id} RPDO{pdo.number}: {len(data)} bytes, "
                 f"mapping has {pdo.size_bytes}; dropped",
             )
             return
+        pdo.length_error = 0
         pdo.last_rx_s = now
         if pdo.transmission_type <= cia402.SYNC_TRANSMISSION_MAX:
             pdo.latched = data
@@ -1117,8 +1131,15 @@ class VirtualDriveRack:
     def _on_sync(self, data: bytes, now: float) -> None:
         """Apply the latched RPDOs, send the synchronous TPDOs, advance the plant one cycle."""
         if len(data) > 1:
+            # CiA 301: a SYNC carries no data, or the 1-byte counter; anything else is EMCY
+            # 0x8240 "unexpected SYNC data length" from each consumer (once per run).
             self._counters.bad_frames += 1
+            if not self._sync_length_error:
+                self._sync_length_error = True
+                for axis in self._axes:
+                    self._emcy(axis, cia402.EMCY_SYNC_LENGTH)
             return
+        self._sync_length_error = False
         self._counters.syncs += 1
         operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL]
         for axis in operational:

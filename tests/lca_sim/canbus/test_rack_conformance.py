@@ -19,10 +19,11 @@ import can
 import canopen
 import pytest
 from can.interfaces.virtual import VirtualBus
-from test_virtual_drive import Probe, nmt, remote, sync, wait_until
+from test_virtual_drive import Probe, emcy_code, nmt, remote, sync, wait_until
 
 from lca_sim import RobotParams
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.cia402.device import PowerState
 
 PIVOT = 2
 L_ARM = 1
@@ -146,3 +147,29 @@ def test_item_02_extended_and_fd_frames_are_ignored_and_counted(
     assert rack.nmt_state("pivot") == "PRE-OPERATIONAL"
     next_heartbeat = probe.mark()  # canopen's NMT slave did not see the start either
     assert probe.wait(0x702, next_heartbeat) == b"\x7f"
+
+
+def test_item_03_rpdo_of_the_wrong_length_sends_emcy_and_is_not_applied(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """RPDO1 (4 bytes) with 3 bytes: EMCY 0x8210; with 6: EMCY 0x8220; neither applied."""
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    bad_before = rack.counters.bad_frames
+    mark = probe.mark()
+    probe.send(0x202, struct.pack("<Hb", 0x06, 100))  # too short
+    wait_until(lambda: len(probe.seen(0x82, mark)) == 1, "EMCY for the short RPDO")
+    probe.send(0x202, struct.pack("<Hb", 0x06, 100))  # the same run: counted, no second EMCY
+    probe.send(0x202, struct.pack("<Hhh", 0x06, 100, 0))  # too long
+    wait_until(lambda: len(probe.seen(0x82, mark)) == 2, "EMCY for the long RPDO")
+    sync(rack, probe)
+    assert [emcy_code(d)[0] for d in probe.seen(0x82, mark)] == [0x8210, 0x8220]
+    assert rack.counters.bad_frames == bad_before + 3
+    assert rack.counters.rpdos_applied == 0
+    node = remote(master, PIVOT)
+    assert node.sdo[0x6071].raw == 0
+    assert rack.power_state("pivot") is PowerState.SWITCH_ON_DISABLED  # 0x06 not applied
+    probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # a right one is applied
+    wait_until(lambda: rack.counters.rpdos_received == 4, "the right RPDO")
+    sync(rack, probe)
+    assert rack.power_state("pivot") is PowerState.READY_TO_SWITCH_ON
+    assert len(probe.seen(0x82, mark)) == 2
