@@ -292,6 +292,7 @@ class RackCounters:
     rpdos_received: int = 0
     rpdos_applied: int = 0
     pdos_ignored_not_operational: int = 0
+    sdo_ignored_stopped: int = 0  # SDO requests to a node in NMT STOPPED (not answered)
     rpdo_values_rejected: int = 0
     tpdos_sent: int = 0
     bad_frames: int = 0
@@ -1014,25 +1015,22 @@ class VirtualDriveRack:
         RTR: TPDO COB-IDs carry bit 30) and error frames are counted and go no further.
         """
         counters = self._counters
-        if msg.is_error_frame:
-            counters.error_frames += 1
-            return
-        if msg.is_fd:
-            counters.fd_frames += 1
-            return
-        if msg.is_extended_id:
-            counters.extended_frames += 1
-            return
-        if msg.is_remote_frame:
-            counters.remote_frames += 1
+        if not self._is_classical_data_frame(msg):
             return
         cob = msg.arbitration_id
         if len(msg.data) > 8:
             counters.bad_frames += 1
             return
-        if cob in self._sdo_servers and len(msg.data) != 8:
-            counters.bad_frames += 1  # CiA 301: an SDO request is 8 bytes; ignored otherwise
-            return
+        sdo_server = self._sdo_servers.get(cob)
+        if sdo_server is not None:
+            if len(msg.data) != 8:
+                counters.bad_frames += 1  # CiA 301: an SDO request is 8 bytes; ignored otherwise
+                return
+            if sdo_server.nmt == NMT_STOPPED:
+                # CiA 301 7.3.2.2 (NMT state machine, table of services per state): in STOPPED
+                # only NMT and node guarding / heartbeat are active, so SDO is not answered.
+                counters.sdo_ignored_stopped += 1
+                return
         # An NMT frame of the wrong length goes to `_on_frame` (which counts it) only: canopen's
         # NMT slave would act on the first two bytes of a longer one.
         if cob != NMT_COB_ID or len(msg.data) == 2:
@@ -1042,6 +1040,21 @@ class VirtualDriveRack:
                 counters.handler_errors += 1
                 logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
         self._on_frame(msg)
+
+    def _is_classical_data_frame(self, msg: can.Message) -> bool:
+        """An 11-bit classical CAN data frame; anything else is counted by its kind."""
+        counters = self._counters
+        if msg.is_error_frame:
+            counters.error_frames += 1
+        elif msg.is_fd:
+            counters.fd_frames += 1
+        elif msg.is_extended_id:
+            counters.extended_frames += 1
+        elif msg.is_remote_frame:
+            counters.remote_frames += 1
+        else:
+            return True
+        return False
 
     def _on_frame(self, msg: can.Message) -> None:
         """Dispatch one received (filtered) frame; never raises."""

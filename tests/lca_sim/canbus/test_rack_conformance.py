@@ -173,3 +173,17 @@ def test_item_03_rpdo_of_the_wrong_length_sends_emcy_and_is_not_applied(
     sync(rack, probe)
     assert rack.power_state("pivot") is PowerState.READY_TO_SWITCH_ON
     assert len(probe.seen(0x82, mark)) == 2
+
+
+def test_item_04_sdo_is_not_answered_in_stopped(rack: VirtualDriveRack, probe: Probe) -> None:
+    """A node in NMT STOPPED ignores SDO requests (counted); back in PRE-OPERATIONAL it answers."""
+    nmt(rack, probe, 0x02, PIVOT, "STOPPED")
+    mark = probe.mark()
+    probe.send(0x602, sdo_upload_request(0x1000))
+    probe.send(0x601, sdo_upload_request(0x1000))  # l_arm is not stopped: handled after
+    probe.wait(0x581, mark)
+    assert probe.seen(0x582, mark) == []
+    assert rack.counters.sdo_ignored_stopped == 1
+    nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
+    probe.send(0x602, sdo_upload_request(0x1000))
+    assert probe.wait(0x582, mark)[0] == 0x43
