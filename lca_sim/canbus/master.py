@@ -57,6 +57,15 @@ CAN_ERR_CRTL = 0x00000004
 REQUIRED_TPDO_OBJECTS = frozenset(
     {od.STATUSWORD, od.POSITION_ACTUAL, od.VELOCITY_ACTUAL, od.CURRENT_ACTUAL}
 )
+# What a complete cycle needs from every drive: the velocity loop's input, sent each SYNC.
+CYCLIC_TPDO_OBJECTS = frozenset({od.POSITION_ACTUAL, od.VELOCITY_ACTUAL})
+# CiA 301 0x1800 sub 2, transmission type 1: the TPDO goes out after every SYNC. Types 2..240
+# go out after every n-th SYNC, 254/255 on an event; they are decoded, but a cycle is complete
+# without them.
+EVERY_SYNC = 1
+# A controlword in an RPDO of its own is sent when it changes and at least this often, so a
+# drive that restarted (or a frame lost on a real bus) has it again within 0.1 s at 1 kHz.
+CONTROLWORD_REFRESH_CYCLES = 100
 
 
 class BridgeError(RuntimeError):
@@ -195,13 +204,17 @@ class _Axis:
     controlword: int = 0
     command_a: float = 0.0
     last_tpdo_t: float = 0.0
-    fresh: int = 0  # bit 0: TPDO with the statusword, bit 1: with the velocity, this cycle
+    fresh: int = 0  # a bit per every-SYNC TPDO that arrived this cycle
+    sync_mask: int = 0  # the bits of all its every-SYNC TPDOs: the cycle's complete at this
     emcy_code: int = 0  # the latched one (a fault reaction), 0: none
     advisory_code: int = 0  # the last advisory one (`emcy.ADVISORY`), 0: none
     advisory_count: int = 0
     has_drive_state: bool = False
     decoded: frozenset[str] = frozenset()  # the AxisState fields its TPDOs fill
-    rpdo: Any = None  # canopen PdoMap of RPDO1
+    rpdo: Any = None  # canopen PdoMap of the RPDO with the target torque, sent each cycle
+    cw_rpdo: Any = None  # the one with the controlword when it is another RPDO, else None
+    cw_sent: int = -1  # the controlword last sent in `cw_rpdo`
+    cw_age: int = 0  # cycles since `cw_rpdo` was last sent
     cw_var: Any = None
     torque_var: Any = None
 
@@ -326,23 +339,54 @@ class Cia402Master:
         self._initialized = True
 
     def _bind_pdos(self, axis: _Axis) -> None:
-        rpdo = axis.node.rpdo[1]
-        try:
-            axis.cw_var = rpdo[od.CONTROLWORD]
-            axis.torque_var = rpdo[od.TARGET_TORQUE]
-        except KeyError as exc:
+        """Bind the RPDO(s) the cycle writes and a decoder to each enabled TPDO.
+
+        The target torque may share an RPDO with the controlword (RPDO1 of CiA 402's
+        default mapping) or have one of its own, with the controlword in another RPDO that is
+        sent only when it changes (and every `CONTROLWORD_REFRESH_CYCLES`): that keeps a
+        4-axis 1 kHz cycle inside a 1 Mbit/s bus (docs/can.md). The TPDOs sent after every SYNC
+        must carry position and velocity; they make a cycle complete.
+        """
+        self._bind_rpdos(axis)
+        self._bind_tpdos(axis)
+
+    def _bind_rpdos(self, axis: _Axis) -> None:
+        cw = torque = None
+        for number in axis.node.rpdo:
+            rpdo = axis.node.rpdo[number]
+            if not rpdo.enabled:
+                continue
+            indices = {int(var.index) for var in rpdo}
+            if od.TARGET_TORQUE in indices and torque is None:
+                torque, axis.torque_var = rpdo, rpdo[od.TARGET_TORQUE]
+            if od.CONTROLWORD in indices and cw is None:
+                cw, axis.cw_var = rpdo, rpdo[od.CONTROLWORD]
+        if cw is None or torque is None:
             raise BridgeError(
-                f"drive {axis.joint}: RPDO1 must map the controlword and target torque: {exc}"
-            ) from exc
-        axis.rpdo = rpdo
+                f"drive {axis.joint}: no enabled RPDO maps the "
+                f"{'controlword' if cw is None else 'target torque'}"
+            )
+        axis.rpdo = torque
+        axis.cw_rpdo = None if cw is torque else cw
+        axis.cw_sent, axis.cw_age = -1, 0
+
+    def _bind_tpdos(self, axis: _Axis) -> None:
         mapped: set[int] = set()
+        cyclic: set[int] = set()
         decoded: set[str] = set()
+        axis.sync_mask = 0
         for number in axis.node.tpdo:
             tpdo = axis.node.tpdo[number]
             if not tpdo.enabled:
                 continue
-            mapped |= {var.index for var in tpdo}
-            callback, fields = self._tpdo_callback(axis, tpdo)
+            indices = {int(var.index) for var in tpdo}
+            mapped |= indices
+            bit = 0
+            if tpdo.trans_type == EVERY_SYNC:
+                bit = 1 << number
+                axis.sync_mask |= bit
+                cyclic |= indices
+            callback, fields = self._tpdo_callback(axis, tpdo, bit)
             decoded |= fields
             # canopen's PdoMap subscribed itself when read; decode the raw frames instead.
             self.network.unsubscribe(tpdo.cob_id, tpdo.on_message)
@@ -350,13 +394,19 @@ class Cia402Master:
         if not REQUIRED_TPDO_OBJECTS.issubset(mapped):
             missing = ", ".join(f"0x{i:04X}" for i in sorted(REQUIRED_TPDO_OBJECTS - mapped))
             raise BridgeError(f"drive {axis.joint}: TPDOs do not map {missing}")
+        if not CYCLIC_TPDO_OBJECTS.issubset(cyclic):
+            missing = ", ".join(f"0x{i:04X}" for i in sorted(CYCLIC_TPDO_OBJECTS - cyclic))
+            raise BridgeError(
+                f"drive {axis.joint}: no TPDO sent after every SYNC (transmission type 1) "
+                f"maps {missing}"
+            )
         axis.has_drive_state = "drive_state" in decoded
         axis.decoded = frozenset(decoded)
 
     # --- PDO and EMCY reception (notifier thread) ----------------------------------------
 
     def _tpdo_callback(
-        self, axis: _Axis, tpdo: Any
+        self, axis: _Axis, tpdo: Any, sync_bit: int
     ) -> tuple[Callable[[int, bytearray, float], None], frozenset[str]]:
         """A raw-frame decoder for one TPDO, compiled once from its mapping (read over SDO).
 
@@ -365,12 +415,16 @@ class Cia402Master:
         (`_compile_apply`): no lookups per frame. At 500 Hz x 8 TPDOs this runs on the notifier
         thread that every frame of the bus shares.
 
+        Args:
+            axis: the drive.
+            tpdo: its canopen PdoMap, read from the drive.
+            sync_bit: the TPDO's bit in `_Axis.sync_mask` (sent each SYNC), or 0.
+
         Returns:
             The callback, and the `AxisState` fields it fills.
         """
         fmt, end = "<", 0
         targets: list[_Target] = []
-        indices: set[int] = set()
         for var in tpdo:
             if var.offset % 8 or var.length % 8:
                 raise BridgeError(
@@ -384,12 +438,8 @@ class Cia402Master:
                 continue  # an object the bridge has no use for: its bytes are skipped
             fmt += f"{offset - struct.calcsize(fmt)}x" + od.DataType(var.od.data_type).struct_format
             targets.append(target)
-            indices.add(int(var.index))
         apply = _compile_apply(targets, struct.Struct(fmt).unpack_from, axis.gear)
         size = end  # the whole mapping: a shorter frame is not this PDO
-        sync_bit = (1 if od.STATUSWORD in indices else 0) | (
-            2 if od.VELOCITY_ACTUAL in indices else 0
-        )
 
         def on_tpdo(_can_id: int, data: bytearray, _timestamp: float) -> None:
             now = time.monotonic()
@@ -434,7 +484,7 @@ class Cia402Master:
         snapshot = None
         with self._lock:
             axis.fresh |= bit
-            if all(a.fresh == 3 for a in self._axes):
+            if all(a.fresh == a.sync_mask for a in self._axes):
                 for a in self._axes:
                     a.fresh = 0
                 self.counters.complete_cycles += 1
@@ -600,7 +650,7 @@ class Cia402Master:
             want = self._want
             if want is Want.ENABLED and (self._quick_stopped or self._stop_reason()):
                 want = Want.QUICK_STOP
-            frames = [self._rpdo_frame(axis, want) for axis in self._axes]
+            frames = [f for axis in self._axes for f in self._rpdo_frames(axis, want)]
             if self._want is Want.FAULT_RESET and all(
                 a.state.power_state is not PowerState.FAULT for a in self._axes
             ):
@@ -657,7 +707,8 @@ class Cia402Master:
                     self._stale.append(axis.joint)
                     log.error("drive %s is stale: no TPDO for %.3f s", axis.joint, silent_s)
 
-    def _rpdo_frame(self, axis: _Axis, want: Want) -> tuple[int, bytes]:
+    def _rpdo_frames(self, axis: _Axis, want: Want) -> list[tuple[int, bytes]]:
+        """The RPDO frame(s) of one drive: the torque's, and the controlword's if due."""
         state = axis.state.power_state
         controlword = cm.next_controlword(state, want, axis.controlword)
         torque = 0
@@ -670,7 +721,15 @@ class Cia402Master:
         axis.controlword = controlword
         axis.cw_var.raw = controlword
         axis.torque_var.raw = torque
-        return int(axis.rpdo.cob_id), bytes(axis.rpdo.data)
+        frames = []
+        cw_rpdo = axis.cw_rpdo
+        if cw_rpdo is not None:
+            axis.cw_age += 1
+            if controlword != axis.cw_sent or axis.cw_age >= CONTROLWORD_REFRESH_CYCLES:
+                axis.cw_sent, axis.cw_age = controlword, 0
+                frames.append((int(cw_rpdo.cob_id), bytes(cw_rpdo.data)))
+        frames.append((int(axis.rpdo.cob_id), bytes(axis.rpdo.data)))
+        return frames
 
     def _send(self, cob_id: int, data: bytes) -> None:
         try:

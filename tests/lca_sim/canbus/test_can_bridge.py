@@ -48,6 +48,7 @@ class Rig:
     bridge: Cia402Master
     network: canopen.Network
     injector: can.BusABC
+    channel: str
     snapshots: list[Snapshot] = field(default_factory=list)
     feeding: threading.Event = field(default_factory=threading.Event)
     currents_a: list[float] = field(default_factory=lambda: [0.0] * 4)
@@ -112,7 +113,7 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
 
         bridge = Cia402Master(network, _params(**overrides), EDS, on_state=on_state)
         cleanups.append(bridge.stop)
-        rig = Rig(rack, bridge, network, injector)
+        rig = Rig(rack, bridge, network, injector, channel)
         rig_holder.append(rig)
         bridge.init()
         bridge.start()
@@ -495,3 +496,69 @@ def test_a_latched_emcy_is_named_in_words() -> None:
     assert emcy.describe(0x8130) == "0x8130 life guard or heartbeat error"
     assert emcy.describe(0x8F01) == "0x8F01 monitoring error"
     assert emcy.describe(0x2391) == "0x2391 current error"
+
+
+def _map_for_1khz(channel: str) -> None:
+    """Remap every drive over SDO (CiA 301 7.5.2.35-38: disable, sub 0 to 0, entries, enable).
+
+    RPDO1 the target torque alone (each cycle), RPDO2 the controlword; TPDO1 position and
+    velocity after every SYNC, TPDO2 the statusword and current on change (type 255).
+    """
+    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
+    network.connect()
+
+    def remap(node: canopen.RemoteNode, comm: int, cob_id: int, entries: list[int]) -> None:
+        node.sdo[comm][1].raw = cob_id | 0x80000000
+        mapping = node.sdo[comm + 0x200]
+        mapping[0].raw = 0
+        for k, entry in enumerate(entries, start=1):
+            mapping[k].raw = entry
+        mapping[0].raw = len(entries)
+        node.sdo[comm][1].raw = cob_id
+
+    try:
+        for node_id in NODE_IDS:
+            node = canopen.RemoteNode(node_id, str(EDS))
+            network.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            remap(node, 0x1400, 0x200 + node_id, [0x60710010])
+            remap(node, 0x1401, 0x300 + node_id, [0x60400010])
+            remap(node, 0x1800, 0x40000180 + node_id, [0x60640020, 0x606C0020])
+            node.sdo[0x1801][1].raw = 0xC0000280 + node_id
+            node.sdo[0x1801][2].raw = 255
+            remap(node, 0x1801, 0x40000280 + node_id, [0x60410010, 0x60780010])
+    finally:
+        network.disconnect()
+
+
+def test_a_drive_with_the_controlword_in_its_own_rpdo_runs_and_gets_it_on_change(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """Torque each cycle, controlword when it changes (and every 100 cycles); TPDO1 completes."""
+    seen: list[int] = []
+    rig = rig_factory(before_init=_map_for_1khz)
+    n = len(rig.snapshots)
+    _enabled(rig)
+    rig.currents_a = [0.0, 2.0, 0.0, 0.0]
+    wait_for(
+        lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05,
+        5.0,
+        "pivot current at 2 A through the torque-only RPDO1",
+    )
+    watcher = can.Bus(interface="virtual", channel=rig.channel)  # from here on
+    try:
+        cycles = rig.bridge.counters.cycles
+        deadline = time.monotonic() + 10.0
+        while rig.bridge.counters.cycles < cycles + 200 and time.monotonic() < deadline:
+            msg = watcher.recv(0.01)
+            if msg is not None and msg.arbitration_id == 0x300 + 2:
+                seen.append(int.from_bytes(msg.data[:2], "little"))
+        sent = rig.bridge.counters.cycles - cycles
+        assert sent >= 200
+        # Enabled: the controlword stands still, so only the refresh every 100 cycles goes out.
+        assert 1 <= len(seen) <= sent // 100 + 1, (len(seen), sent)
+        assert all(cw & 0x000F == 0x000F for cw in seen)  # operation enabled, not halted
+        assert len(rig.snapshots) - n > 100  # complete cycles from TPDO1 alone
+        assert rig.bridge.counters.bad_pdos == 0
+    finally:
+        watcher.shutdown()
