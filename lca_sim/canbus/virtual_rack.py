@@ -779,7 +779,7 @@ class VirtualDriveRack:
             if is_mapping:
                 self._write_mapping(axis, pdo, subindex, value)
             else:
-                self._write_communication(pdo, subindex, value)
+                value = self._write_communication(pdo, subindex, value)
         if index == od.HEARTBEAT_CONSUMER:
             axis.heartbeat_last_rx_s = None
         axis.values[(index, subindex)] = value
@@ -896,7 +896,8 @@ class VirtualDriveRack:
         pdo.map(objects, self._getters(axis, objects, receive))
         return pdo
 
-    def _write_communication(self, pdo: _Pdo, subindex: int, value: int) -> None:
+    def _write_communication(self, pdo: _Pdo, subindex: int, value: int) -> int:
+        """Apply a write to a PDO communication object; returns the value to store."""
         if subindex == 1:
             if value & cia402.PDO_COB_ID_EXTENDED or value & 0x1FFFFFFF > 0x7FF:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
@@ -908,6 +909,11 @@ class VirtualDriveRack:
             pdo.latched, pdo.last_rx_s, pdo.last_data = None, None, None
             if pdo.receive:
                 self._rebuild_rpdo_table()
+            else:
+                # CiA 301 0x1800 sub 1 bit 30: these drives never answer a remote frame, so a
+                # TPDO's COB-ID keeps "no RTR allowed" whatever a master writes (masters that
+                # write only bit 31 and the id, as many do, are not refused for it).
+                value |= cia402.PDO_COB_ID_NO_RTR
         elif subindex == 2:
             if not cia402.is_valid_transmission_type(value):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
@@ -916,6 +922,7 @@ class VirtualDriveRack:
             pdo.inhibit_100us = value
         elif subindex == 5:
             pdo.event_timer_ms = value
+        return value
 
     def _write_mapping(self, axis: _Axis, pdo: _Pdo, subindex: int, value: int) -> None:
         if pdo.valid:

@@ -321,6 +321,8 @@ DEFAULT_PDOS: tuple[PdoDefault, ...] = (
 )
 
 PDO_MAPPING_SLOTS = 8  # sub 1-8 of each mapping object
+PDO_COB_ID_INVALID = 1 << 31  # CiA 301 PDO communication sub 1: the PDO does not exist
+PDO_COB_ID_NO_RTR = 1 << 30  # CiA 301 TPDO communication sub 1: no RTR allowed
 
 
 # --- the variables ------------------------------------------------------------------------------
@@ -416,14 +418,17 @@ def _pdo_objects(pdo: PdoDefault) -> tuple[ObjectEntry, ...]:
     com = (RPDO_COMMUNICATION if pdo.receive else TPDO_COMMUNICATION) + pdo.number - 1
     mapping = (RPDO_MAPPING if pdo.receive else TPDO_MAPPING) + pdo.number - 1
     com_ref, map_ref = _cia301(com), _cia301(mapping)
-    invalid = 0 if pdo.valid else 1 << 31
+    invalid = 0 if pdo.valid else PDO_COB_ID_INVALID
+    # CiA 301 0x1800-0x19FF sub 1 bit 30: 1 = no RTR allowed on this PDO. These drives do not
+    # answer remote frames, so every TPDO says so (bit 30 is reserved in an RPDO's COB-ID).
+    no_rtr = 0 if pdo.receive else PDO_COB_ID_NO_RTR
     # Sub 3 (inhibit time) is a TPDO's only; sub 5 is the TPDO event timer or RPDO deadline.
     subs = (0, 1, 2, 5) if pdo.receive else (0, 1, 2, 3, 5)
     entries = [
         ObjectEntry(com, 0, "Highest sub-index supported", _U8, _RO, False, com_ref,
                     default=5),
         ObjectEntry(com, 1, f"COB-ID used by {kind}", _U32, _RW, False, com_ref,
-                    default=invalid | pdo.cob_id, default_plus_node_id=True),
+                    default=invalid | no_rtr | pdo.cob_id, default_plus_node_id=True),
         ObjectEntry(com, 2, "Transmission type", _U8, _RW, False, com_ref,
                     default=pdo.transmission_type),
     ]  # fmt: skip

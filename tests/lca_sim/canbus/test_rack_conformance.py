@@ -187,3 +187,23 @@ def test_item_04_sdo_is_not_answered_in_stopped(rack: VirtualDriveRack, probe: P
     nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
     probe.send(0x602, sdo_upload_request(0x1000))
     assert probe.wait(0x582, mark)[0] == 0x43
+
+
+def test_item_06_tpdo_cob_ids_say_no_rtr_and_remote_frames_get_no_answer(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """0x1800-0x1803 sub 1 have bit 30 set, keep it through a rewrite; an RTR is not answered."""
+    node = remote(master, PIVOT)
+    for number, base in enumerate((0x180, 0x280, 0x380, 0x480)):
+        assert node.sdo[0x1800 + number][1].raw == (1 << 30) | base | PIVOT
+    node.sdo[0x1800][1].raw = 0x80000182  # disable, as a master writes it (bit 30 clear)
+    assert node.sdo[0x1800][1].raw == 0xC0000182
+    node.sdo[0x1800][1].raw = 0x00000182
+    assert node.sdo[0x1800][1].raw == 0x40000182
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    mark = probe.mark()
+    probe.bus.send(can.Message(arbitration_id=0x182, is_remote_frame=True, is_extended_id=False))
+    probe.send(0x602, sdo_upload_request(0x1000))  # handled after the remote frame
+    probe.wait(0x582, mark)
+    assert probe.seen(0x182, mark) == []
+    assert rack.counters.remote_frames == 1
