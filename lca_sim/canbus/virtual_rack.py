@@ -828,20 +828,37 @@ class VirtualDriveRack:
             axis.values[(od.ERROR_CODE, 0)] = 0
             self._emcy(axis, cia402.EMCY_ERROR_RESET)
 
+    def _set_error(self, axis: _Axis, code: int) -> None:
+        """A communication error: 0x603F, 0x1001 (generic + communication), then its EMCY."""
+        axis.values[(od.ERROR_CODE, 0)] = code
+        axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | (
+            cia402.ERROR_REGISTER_GENERIC | cia402.ERROR_REGISTER_COMMUNICATION
+        )
+        self._emcy(axis, code)  # not in STOPPED
+
     def _connection_lost(self, axis: _Axis, code: int | None, now: float) -> None:
         """A watchdog fired (or NMT stop): error code, EMCY, then the 0x6007 reaction."""
         if code is not None:
-            axis.values[(od.ERROR_CODE, 0)] = code
-            axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | (
-                cia402.ERROR_REGISTER_GENERIC | cia402.ERROR_REGISTER_COMMUNICATION
-            )
-            self._emcy(axis, code)
+            self._set_error(axis, code)
         state = cia402.abort_connection(
             axis.drive,
             axis.value(od.ABORT_CONNECTION_OPTION),
             self._quick_stop_option(axis),
         )
         self._set_drive(axis, state, now)
+
+    def _nmt_reaction(self, axis: _Axis, now: float) -> None:
+        """The master took the node out of OPERATIONAL, stopped or reset it: the 0x6007 reaction.
+
+        CiA 402-2 0x6007 (abort connection option code) covers the NMT master stopping the
+        node as well as a lost connection. Where the reaction acted (the drive could produce
+        torque), 0x603F and 0x1001 say so with `EMCY_LEFT_OPERATIONAL`, and the EMCY goes
+        out unless the node is now STOPPED (CiA 301: no EMCY there).
+        """
+        before = axis.drive.power
+        self._connection_lost(axis, None, now)
+        if axis.drive.power is not before:
+            self._set_error(axis, cia402.EMCY_LEFT_OPERATIONAL)
 
     # --- PDO configuration -----------------------------------------------------------------
 
@@ -999,14 +1016,14 @@ class VirtualDriveRack:
             elif command == _NMT_STOP and axis.nmt != NMT_STOPPED:
                 self._leave_operational(axis)
                 axis.nmt = NMT_STOPPED
-                self._connection_lost(axis, None, now)
+                self._nmt_reaction(axis, now)
             elif command == _NMT_PRE_OPERATIONAL:
                 self._leave_operational(axis)
                 axis.nmt = NMT_PRE_OPERATIONAL
             elif command in (_NMT_RESET_NODE, _NMT_RESET_COMMUNICATION):
                 communication_only = command == _NMT_RESET_COMMUNICATION
                 if communication_only:
-                    self._connection_lost(axis, None, now)
+                    self._nmt_reaction(axis, now)
                 self._reset(axis, communication_only, now)
                 self._boot(axis)
 

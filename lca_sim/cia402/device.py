@@ -87,6 +87,10 @@ EMCY_RPDO_TIMEOUT = 0x8250
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error (shorter than its mapping)
 EMCY_PDO_LENGTH_EXCEEDED = 0x8220  # PDO length exceeded (longer than its mapping)
 EMCY_SYNC_LENGTH = 0x8240  # unexpected SYNC data length
+# Device specific (CiA 301: 0xFF00-0xFFFF), documented in docs/can.md: the node left NMT
+# OPERATIONAL (NMT stop, enter pre-operational, reset communication) while its drive could
+# produce torque, and the 0x6007 reaction acted. CiA 301 / 402 define no code for it.
+EMCY_LEFT_OPERATIONAL = 0xFF01
 EMCY_SYNC_LOSS = 0x8700  # sync controller error (no SYNC within the watch time)
 ERROR_REGISTER_GENERIC = 1 << 0
 ERROR_REGISTER_COMMUNICATION = 1 << 4

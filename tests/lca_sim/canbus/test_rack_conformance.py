@@ -19,7 +19,7 @@ import can
 import canopen
 import pytest
 from can.interfaces.virtual import VirtualBus
-from test_virtual_drive import Probe, emcy_code, nmt, remote, sync, wait_until
+from test_virtual_drive import Probe, emcy_code, enable, nmt, remote, sync, wait_until
 
 from lca_sim import RobotParams
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
@@ -207,3 +207,20 @@ def test_item_06_tpdo_cob_ids_say_no_rtr_and_remote_frames_get_no_answer(
     probe.wait(0x582, mark)
     assert probe.seen(0x182, mark) == []
     assert rack.counters.remote_frames == 1
+
+
+def test_item_09_a_fault_entered_through_nmt_stop_sets_the_error_code(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """NMT stop of an enabled drive: FAULT (0x6007 = 1) with 0x603F = 0xFF01, 0x1001 = 0x11."""
+    node = remote(master, PIVOT)
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    enable(node)
+    nmt(rack, probe, 0x02, PIVOT, "STOPPED")
+    assert rack.power_state("pivot") is PowerState.FAULT
+    assert rack.faults["pivot"] == 0xFF01
+    nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")  # SDO again
+    assert node.sdo[0x603F].raw == 0xFF01
+    assert node.sdo[0x1001].raw == 0x11
+    nmt(rack, probe, 0x02, L_ARM, "STOPPED")  # a drive that produced no torque: no error
+    assert rack.faults["l_arm"] == 0
