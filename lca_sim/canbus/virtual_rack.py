@@ -1004,28 +1004,42 @@ class VirtualDriveRack:
             self._counters.bad_frames += 1
             return
         command, node_id = data[0], data[1]
+        states = {
+            _NMT_START: NMT_OPERATIONAL,
+            _NMT_STOP: NMT_STOPPED,
+            _NMT_PRE_OPERATIONAL: NMT_PRE_OPERATIONAL,
+        }
         for axis in self._axes:
             if node_id not in (0, axis.config.node_id):
                 continue
-            if command == _NMT_START and axis.nmt != NMT_OPERATIONAL:
-                axis.nmt = NMT_OPERATIONAL
-                axis.sync_armed_s = now
-                axis.sync_loss_reported = False
-                for pdo in axis.tpdos:
-                    pdo.last_data, pdo.sync_count = None, 0
-            elif command == _NMT_STOP and axis.nmt != NMT_STOPPED:
-                self._leave_operational(axis)
-                axis.nmt = NMT_STOPPED
-                self._nmt_reaction(axis, now)
-            elif command == _NMT_PRE_OPERATIONAL:
-                self._leave_operational(axis)
-                axis.nmt = NMT_PRE_OPERATIONAL
+            if command in states:
+                self._enter_nmt(axis, states[command], now)
             elif command in (_NMT_RESET_NODE, _NMT_RESET_COMMUNICATION):
                 communication_only = command == _NMT_RESET_COMMUNICATION
                 if communication_only:
                     self._nmt_reaction(axis, now)
                 self._reset(axis, communication_only, now)
                 self._boot(axis)
+
+    def _enter_nmt(self, axis: _Axis, state: str, now: float) -> None:
+        """Move a node to an NMT state (its canopen NmtSlave is set by the caller).
+
+        Leaving OPERATIONAL (no more PDOs: the last target must not stay applied) and entering
+        STOPPED (no more SDO either) apply the 0x6007 reaction (`_nmt_reaction`).
+        """
+        previous = axis.nmt
+        if state == previous:
+            return
+        axis.nmt = state
+        if state == NMT_OPERATIONAL:
+            axis.sync_armed_s = now
+            axis.sync_loss_reported = False
+            for pdo in axis.tpdos:
+                pdo.last_data, pdo.sync_count = None, 0
+            return
+        self._leave_operational(axis)
+        if previous == NMT_OPERATIONAL or state == NMT_STOPPED:
+            self._nmt_reaction(axis, now)
 
     # --- frames ----------------------------------------------------------------------------
 

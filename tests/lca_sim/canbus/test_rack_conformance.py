@@ -224,3 +224,25 @@ def test_item_09_a_fault_entered_through_nmt_stop_sets_the_error_code(
     assert node.sdo[0x1001].raw == 0x11
     nmt(rack, probe, 0x02, L_ARM, "STOPPED")  # a drive that produced no torque: no error
     assert rack.faults["l_arm"] == 0
+
+
+def test_item_05_leaving_operational_applies_the_communication_error_reaction(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """Enabled with a torque in OPERATIONAL, then NMT pre-operational: EMCY, FAULT, 0 A."""
+    node = remote(master, PIVOT)
+    node.sdo[0x1006].raw = 2000
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    for controlword in (0x06, 0x07, 0x0F):
+        probe.send(0x202, struct.pack("<Hh", controlword, 0))
+        sync(rack, probe)
+    assert rack.power_state("pivot") is PowerState.OPERATION_ENABLED
+    probe.send(0x202, struct.pack("<Hh", 0x0F, 500))
+    sync(rack, probe, 20)
+    assert rack.plant_state().current_a[1] > 1.0
+    mark = probe.mark()
+    nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
+    assert emcy_code(probe.wait(0x82, mark)) == (0xFF01, 0x11)
+    assert rack.power_state("pivot") is PowerState.FAULT
+    sync(rack, probe, 20)
+    assert abs(rack.plant_state().current_a[1]) < 0.05
