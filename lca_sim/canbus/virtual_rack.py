@@ -123,6 +123,14 @@ ABORT_PDO_LENGTH = 0x06040042
 ABORT_DEVICE_STATE = 0x08000022
 
 
+# Option codes: the values a write may set (others are refused with ABORT_VALUE_RANGE).
+_OPTION_VALUES: dict[tuple[int, int], frozenset[int]] = {
+    (od.ABORT_CONNECTION_OPTION, 0): cia402.ABORT_OPTIONS,
+    (od.QUICK_STOP_OPTION, 0): cia402.QUICK_STOP_OPTIONS,
+    (od.ERROR_BEHAVIOUR, 1): od.ERROR_BEHAVIOURS,
+}
+
+
 def eds_path() -> Path:
     """The shipped electronic data sheet of the drive (config/can/lca_drive.eds)."""
     return config_dir() / "can" / "lca_drive.eds"
@@ -769,9 +777,8 @@ class VirtualDriveRack:
             return
         if index == od.MAX_TORQUE and value > axis.config.max_torque_permille:
             raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
-        if index == od.ABORT_CONNECTION_OPTION and value not in cia402.ABORT_OPTIONS:
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
-        if index == od.QUICK_STOP_OPTION and value not in cia402.QUICK_STOP_OPTIONS:
+        allowed = _OPTION_VALUES.get((index, subindex))
+        if allowed is not None and value not in allowed:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
         located = self._pdo_of(axis, index)
         if located is not None:
@@ -846,6 +853,21 @@ class VirtualDriveRack:
             self._quick_stop_option(axis),
         )
         self._set_drive(axis, state, now)
+
+    def _communication_error(self, axis: _Axis, code: int, now: float) -> None:
+        """A watchdog fired: 0x603F, 0x1001, EMCY, the 0x6007 reaction, then 0x1029's NMT change.
+
+        CiA 301 7.5.2.32 (0x1029 error behaviour, sub 1 communication error): 0 to
+        PRE-OPERATIONAL if the node is OPERATIONAL, 1 no change, 2 to STOPPED.
+        """
+        self._connection_lost(axis, code, now)
+        behaviour = axis.value(od.ERROR_BEHAVIOUR, 1)
+        if behaviour == od.ERROR_BEHAVIOUR_PRE_OPERATIONAL and axis.nmt == NMT_OPERATIONAL:
+            axis.node.nmt.send_command(_NMT_PRE_OPERATIONAL)  # the heartbeat says so too
+            self._enter_nmt(axis, NMT_PRE_OPERATIONAL, now)
+        elif behaviour == od.ERROR_BEHAVIOUR_STOPPED and axis.nmt != NMT_STOPPED:
+            axis.node.nmt.send_command(_NMT_STOP)
+            self._enter_nmt(axis, NMT_STOPPED, now)
 
     def _nmt_reaction(self, axis: _Axis, now: float) -> None:
         """The master took the node out of OPERATIONAL, stopped or reset it: the 0x6007 reaction.
@@ -1362,7 +1384,7 @@ class VirtualDriveRack:
             if time_ms and last is not None and now - last > time_ms * 1e-3:
                 axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
                 self._counters.heartbeat_losses += 1
-                self._connection_lost(axis, cia402.EMCY_HEARTBEAT, now)
+                self._communication_error(axis, cia402.EMCY_HEARTBEAT, now)
             if axis.nmt != NMT_OPERATIONAL:
                 continue
             for pdo in axis.rpdos:
@@ -1374,7 +1396,7 @@ class VirtualDriveRack:
                 ):
                     pdo.last_rx_s = None  # re-armed by the next reception
                     self._counters.rpdo_timeouts += 1
-                    self._connection_lost(axis, cia402.EMCY_RPDO_TIMEOUT, now)
+                    self._communication_error(axis, cia402.EMCY_RPDO_TIMEOUT, now)
             period_s = axis.value(od.CYCLE_PERIOD) * 1e-6
             if (
                 period_s > 0.0
@@ -1385,7 +1407,7 @@ class VirtualDriveRack:
             ):
                 axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
                 self._counters.sync_losses += 1
-                self._connection_lost(axis, cia402.EMCY_SYNC_LOSS, now)
+                self._communication_error(axis, cia402.EMCY_SYNC_LOSS, now)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:

@@ -37,6 +37,7 @@ COB_ID_EMCY = 0x1014
 HEARTBEAT_CONSUMER = 0x1016
 HEARTBEAT_PRODUCER = 0x1017  # ms
 IDENTITY = 0x1018
+ERROR_BEHAVIOUR = 0x1029  # sub 1: communication error -> NMT state (ERROR_BEHAVIOUR_*)
 RPDO_COMMUNICATION = 0x1400  # + PDO number - 1
 RPDO_MAPPING = 0x1600
 TPDO_COMMUNICATION = 0x1800
@@ -67,6 +68,14 @@ TORQUE_ACTUAL = 0x6077  # per mille of rated torque
 CURRENT_ACTUAL = 0x6078  # per mille of rated current
 POSITION_ENCODER_RESOLUTION = 0x608F
 SUPPORTED_DRIVE_MODES = 0x6502
+
+# CiA 301 0x1029 sub 1 (7.5.2.32): what a communication error does to the NMT state.
+ERROR_BEHAVIOUR_PRE_OPERATIONAL = 0  # CiA 301's default: to PRE-OPERATIONAL, if OPERATIONAL
+ERROR_BEHAVIOUR_NO_CHANGE = 1  # lca_hil's default (docs/can.md: the bridge's recovery needs it)
+ERROR_BEHAVIOUR_STOPPED = 2
+ERROR_BEHAVIOURS = frozenset(
+    {ERROR_BEHAVIOUR_PRE_OPERATIONAL, ERROR_BEHAVIOUR_NO_CHANGE, ERROR_BEHAVIOUR_STOPPED}
+)
 
 MANUFACTURER_AREA = range(0x2000, 0x6000)  # CiA 301: manufacturer-specific profile area
 EFFICIENCY_UNDEFINED = 0xFFFF  # 0x2012 / 0x2013 while the axis is stopped (eq. 10 idle)
@@ -354,6 +363,12 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     ObjectEntry(IDENTITY, 3, "Revision number", _U32, _RO, False, _cia301(IDENTITY),
                 default=0x00010000),
     ObjectEntry(IDENTITY, 4, "Serial number", _U32, _RO, False, _cia301(IDENTITY), default=0),
+    ObjectEntry(ERROR_BEHAVIOUR, 0, "Highest sub-index supported", _U8, _RO, False,
+                _cia301(ERROR_BEHAVIOUR), default=1),
+    # 1 = no change: CiA 301's default is 0, but a master then has to start the node again
+    # after a fault reset, which the lca_hil bridge does not (docs/can.md).
+    ObjectEntry(ERROR_BEHAVIOUR, 1, "Communication error", _U8, _RW, False,
+                _cia301(ERROR_BEHAVIOUR), default=ERROR_BEHAVIOUR_NO_CHANGE),
     # lca_hil: the drive chain of the lca_sim plant (the paper's state machine, eq. 8-10)
     ObjectEntry(DRIVE_STATE, 0, "Gear functional state", _U8, _RO, True, "lca_hil",
                 default=0),  # index into the robot's drive-state names

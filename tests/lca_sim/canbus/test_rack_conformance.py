@@ -246,3 +246,31 @@ def test_item_05_leaving_operational_applies_the_communication_error_reaction(
     assert rack.power_state("pivot") is PowerState.FAULT
     sync(rack, probe, 20)
     assert abs(rack.plant_state().current_a[1]) < 0.05
+
+
+@pytest.mark.parametrize(
+    ("behaviour", "state"), [(0, "PRE-OPERATIONAL"), (1, "OPERATIONAL"), (2, "STOPPED")]
+)
+def test_error_behaviour_0x1029_sets_the_nmt_state_after_a_communication_error(
+    rack: VirtualDriveRack,
+    probe: Probe,
+    master: canopen.Network,
+    behaviour: int,
+    state: str,
+) -> None:
+    """CiA 301 0x1029 sub 1: an RPDO deadline miss leaves the node per 0 / 1 / 2."""
+    node = remote(master, PIVOT)
+    assert node.sdo[0x1029][1].raw == 1  # lca_hil's default: no change
+    with pytest.raises(canopen.SdoAbortedError):
+        node.sdo[0x1029][1].raw = 3
+    node.sdo[0x1029][1].raw = behaviour
+    node.sdo[0x1400][5].raw = 30  # RPDO1 deadline, ms
+    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    mark = probe.mark()
+    probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # arms the deadline, then silence
+    assert emcy_code(probe.wait(0x82, mark)) == (0x8250, 0x11)
+    wait_until(lambda: rack.nmt_state("pivot") == state, f"pivot {state}")
+    heartbeat = {"PRE-OPERATIONAL": b"\x7f", "OPERATIONAL": b"\x05", "STOPPED": b"\x04"}[state]
+    after = probe.mark()
+    assert probe.wait(0x702, after) == heartbeat
+    assert rack.counters.rpdo_timeouts == 1
