@@ -1,26 +1,40 @@
-"""Shared test support: repository paths and the one polling helper.
+"""Shared test support: repository paths, the one polling helper, and what several modules use.
 
 tests/ is on sys.path through its conftest, so every test module imports this as `support`.
+ROS 2 is imported only inside the helpers that need it, so modules without ROS import this too.
 """
 
 from __future__ import annotations
 
 import itertools
+import json
+import math
+import os
+import subprocess
+import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from lca_control.contract import JOINT_STATE_TYPE, JOINT_STATES
+
 if TYPE_CHECKING:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from rclpy.context import Context
     from rclpy.executors import Executor, SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from lca_sim.ros.simulator_node import SimulatorNode
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config"
+BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
 
 
 def wait_until(
@@ -67,34 +81,202 @@ def spin_until(
     wait_until(condition, what, timeout_s, step=lambda: executor.spin_once(timeout_sec=0.05))
 
 
+@contextmanager
+def ros_context_on(domain_id: int) -> Iterator[tuple[Context, SingleThreadedExecutor]]:
+    """A fresh rclpy Context and executor on `domain_id` (loopback only: conftest), torn down."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    executor = SingleThreadedExecutor(context=ctx)
+    try:
+        yield ctx, executor
+    finally:
+        executor.shutdown()
+        rclpy.shutdown(context=ctx)
+
+
 def domain_contexts(
     first_domain_id: int, span: int
 ) -> Callable[[], AbstractContextManager[tuple[Context, SingleThreadedExecutor]]]:
     """A `ros_context()` for one test module, on its own range of domain ids.
 
-    Each call gives a fresh rclpy Context and executor on the next domain id of
-    `first_domain_id .. first_domain_id + span - 1`, torn down afterwards. Each module takes
+    Each call gives a fresh rclpy Context and executor (`ros_context_on`) on the next domain id
+    of `first_domain_id .. first_domain_id + span - 1`, torn down afterwards. Each module takes
     its own range, so modules that run one after another never see each
     other's late DDS traffic.
     """
     domains = itertools.count()
 
-    @contextmanager
-    def ros_context() -> Iterator[tuple[Context, SingleThreadedExecutor]]:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-
-        ctx = Context()
-        rclpy.init(context=ctx, domain_id=first_domain_id + next(domains) % span)
-        executor = SingleThreadedExecutor(context=ctx)
-        try:
-            yield ctx, executor
-        finally:
-            executor.shutdown()
-            rclpy.shutdown(context=ctx)
+    def ros_context() -> AbstractContextManager[tuple[Context, SingleThreadedExecutor]]:
+        return ros_context_on(first_domain_id + next(domains) % span)
 
     return ros_context
+
+
+def ros_env(domain_id: int | None = None) -> dict[str, str]:
+    """The environment of a ROS 2 subprocess: loopback-only DDS, on `domain_id` if given."""
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    return env
+
+
+def run_tool(
+    script: str, *args: str, domain_id: int | None = None, timeout_s: float = 300.0
+) -> subprocess.CompletedProcess[str]:
+    """Run an installed console script to its end (`timeout_s` its deadline); its output."""
+    return subprocess.run(
+        [str(BIN / script), *args],
+        env=ros_env(domain_id),
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+    )
+
+
+def _refuse_constant(name: str) -> float:
+    """parse_constant for json.loads: NaN, Infinity and -Infinity are not JSON."""
+    raise ValueError(f"not strict JSON: {name}")
+
+
+def strict_loads(text: str) -> object:
+    """json.loads that fails on the non-standard NaN / Infinity tokens."""
+    return json.loads(text, parse_constant=_refuse_constant)
+
+
+# --- lca-record: numbered joint states ------------------------------------------------------
+
+RECORDED_TOPIC = f"/{JOINT_STATES}"
+
+
+def numbered_joint_state(seq: int) -> Any:
+    """A JointState whose stamp carries the sequence number `seq`."""
+    from sensor_msgs.msg import JointState
+
+    msg = JointState()
+    msg.header.stamp.nanosec = seq
+    msg.name = ["l_arm", "pivot", "c_arc", "lift"]
+    msg.position = [float(seq), 0.5, -0.25, 0.1]
+    msg.velocity = [0.0, 1.0, 0.0, 0.0]
+    msg.effort = [0.0, 2.0, 0.0, 0.0]
+    return msg
+
+
+def recorded_sequences(bag: Path) -> list[int]:
+    """The sequence numbers of the bag's /joint_states (`numbered_joint_state`), via rosbags."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == RECORDED_TOPIC]
+        assert [c.msgtype for c in conns] == [JOINT_STATE_TYPE]
+        msgs: list[Any] = [
+            typestore.deserialize_cdr(raw, JOINT_STATE_TYPE)
+            for _, _, raw in reader.messages(connections=conns)
+        ]
+    return [int(msg.header.stamp.nanosec) for msg in msgs]
+
+
+# --- lca-hil identify: a record into an end stop ---------------------------------------------
+
+# From -69 deg the pivot runs down at -30 V into its lower end stop (-2 rad), is pushed against
+# it for 2 s, then driven back up. Just before the impact the load's torque falls and the pivot
+# passes through the reverse motor-dominant state (eta_l = 0.06): 186 samples, the last ones
+# within the differentiator's window of the impact.
+INTO_END_STOP: dict[str, Any] = {
+    "duration_s": 7.5,
+    "dt_s": 1.0e-4,
+    "record_period_s": 0.001,
+    "initial": {"position": {"pivot": -1.2}},
+    "inputs": {
+        "pivot": {
+            "time_s": [0.0, 0.2, 0.7, 4.0, 4.5, 7.0, 7.5],
+            "voltage_v": [0.0, 0.0, -30.0, -30.0, 30.0, 30.0, 0.0],
+        }
+    },
+}
+
+
+# --- nodes in-process ------------------------------------------------------------------------
+
+SIMULATOR_STATUS = "lca_hil/simulator"
+CONTROLLER_STATUS = "lca_hil/controller"
+
+# A lockstep simulator paced by one controller on current commands, the pivot at 35 deg under
+# load, quick to notice a missing peer: the runs in which a peer goes away or restarts.
+LOCKSTEP_SIMULATOR: dict[str, Any] = {
+    "timing_mode": "lockstep",
+    "command_interface": "current",
+    "initial_position": [0.0, math.radians(35.0), 0.0, 0.0],
+    "lockstep_subscribers": 1,  # the controller
+    "lockstep_resend_s": 0.3,
+    "diagnostics_period_s": 0.2,
+}
+
+
+def parameters(**values: Any) -> list[Parameter]:
+    """Parameter overrides of a node, one per keyword."""
+    from rclpy.parameter import Parameter
+
+    # rclpy leaves Parameter's constructor unannotated
+    return [Parameter(name, value=value) for name, value in values.items()]  # type: ignore[no-untyped-call]
+
+
+def start_simulator(
+    ctx: Context,
+    executor: SingleThreadedExecutor,
+    base: Mapping[str, Any],
+    name: str = "simulator",
+    **overrides: Any,
+) -> SimulatorNode:
+    """A simulator node on `ctx` with `base` and then `overrides` as parameters, in `executor`."""
+    from lca_sim.ros.simulator_node import SimulatorNode
+
+    sim = SimulatorNode(name, context=ctx, parameter_overrides=parameters(**{**base, **overrides}))
+    executor.add_node(sim)
+    return sim
+
+
+def kill(executor: SingleThreadedExecutor, node: Node) -> None:
+    """A node "killed": out of the executor and destroyed (its peers see it gone)."""
+    executor.remove_node(node)
+    node.destroy_node()  # type: ignore[no-untyped-call]  # rclpy leaves it unannotated
+
+
+class Diagnostics:
+    """The latest /diagnostics status of each name, seen from a node of the test."""
+
+    def __init__(self, ctx: Context, executor: SingleThreadedExecutor) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.node import Node
+
+        self.node = Node("test_diagnostics", context=ctx)
+        self.latest: dict[str, DiagnosticStatus] = {}
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_array, 50)
+        executor.add_node(self.node)
+
+    def _on_array(self, msg: DiagnosticArray) -> None:
+        for item in msg.status:
+            self.latest[item.name] = item
+
+    def clear(self) -> None:
+        """Forget what was seen, so a wait sees only reports from now on."""
+        self.latest.clear()
+
+    def shows(self, name: str, level: bytes, text: str) -> bool:
+        """Whether the latest status of `name` has this level and its message contains `text`."""
+        item = self.latest.get(name)
+        return item is not None and item.level == level and text in item.message
+
+    def value(self, name: str, key: str) -> str:
+        """A value of the latest status of `name`."""
+        values: dict[str, str] = {kv.key: kv.value for kv in self.latest[name].values}
+        return values[key]
 
 
 class FreezeWatch(threading.Thread):
