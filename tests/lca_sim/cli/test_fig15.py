@@ -1,41 +1,25 @@
 """`lca-hil fig15` ends where the simulator ends the run, and every JSON the tools write is strict.
 
-The end-to-end tests start the three ROS 2 processes through the console script, on loopback
-DDS (`scripts/env.sh`; ROS_DOMAIN_ID from the environment, 73 if unset), beside a CPU hog: the
-old orchestrator stopped on its own /clock samples and recorded past the end (3.072 s for a
-3 s run on a quiet machine, 38-40 s for 13 s on a loaded one) and wrote NaN into
-summary.json.
+The end-to-end test here starts the three ROS 2 processes through the console script, on
+loopback DDS (`scripts/env.sh`; ROS_DOMAIN_ID from the environment). The run beside a CPU hog
+that must end exactly at its duration with a strict summary.json is item 7 of the fault matrix,
+tests/test_fault_matrix.py: the old orchestrator stopped on its own /clock samples and recorded
+past the end (3.072 s for a 3 s run on a quiet machine, 38-40 s for 13 s on a loaded one) and
+wrote NaN into summary.json.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
-import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
+import support
+from support import strict_loads
 
 from lca_sim.cli.output import REASONS_KEY, strict_json, write_json
-
-DURATION_S = 3.0
-RUN_TIMEOUT_S = 300.0  # a deadline for the whole run, far beyond its ~15 s
-
-
-def _refuse_constant(name: str) -> float:
-    """parse_constant for json.loads: NaN, Infinity and -Infinity are not JSON."""
-    raise ValueError(f"not strict JSON: {name}")
-
-
-def strict_loads(text: str) -> object:
-    """json.loads that fails on the non-standard NaN / Infinity tokens."""
-    return json.loads(text, parse_constant=_refuse_constant)
-
 
 # --- the strict JSON helper ------------------------------------------------------------------
 
@@ -105,68 +89,13 @@ def test_progress_sees_the_simulators_end() -> None:
 # --- the run over ROS 2 ----------------------------------------------------------------------
 
 
-def _ros_env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.setdefault("ROS_DOMAIN_ID", "73")
-    return env
-
-
-@contextmanager
-def cpu_hog() -> Iterator[None]:
-    """One process spinning a busy loop for the block's duration (a loaded machine)."""
-    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-    try:
-        yield
-    finally:
-        hog.kill()
-        hog.wait()
-
-
-def _lca_hil(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [str(Path(sys.executable).with_name("lca-hil")), *args],
-        env=_ros_env(),
-        capture_output=True,
-        text=True,
-        timeout=RUN_TIMEOUT_S,
-        check=False,
-    )
-
-
-@pytest.mark.slow
-def test_fig15_ends_exactly_at_the_duration_under_load(tmp_path: Path) -> None:
-    """The bag's last joint state is stamped the duration; summary.json is strict JSON."""
-    pytest.importorskip("rclpy")
-    from lca_sim.cli.bagplot import read_bag
-
-    out = tmp_path / "run"
-    with cpu_hog():
-        result = _lca_hil("fig15", "--duration-s", f"{DURATION_S:g}", "--out", str(out))
-    assert result.returncode == 0, result.stdout + result.stderr
-    data = read_bag(out / "bag")
-    assert data.time_base == "header"
-    for joint, series in data.joints.items():
-        assert series.time_s[0] == 0.0, joint
-        assert abs(series.time_s[-1] - DURATION_S) < 1e-9, (joint, series.time_s[-1])
-    steps = round(DURATION_S / 0.004) + 1  # t = 0 and every 4 ms control period to the end
-    assert len(data.joints["pivot"].time_s) == steps
-    summary = strict_loads((out / "summary.json").read_text(encoding="utf-8"))
-    assert isinstance(summary, dict)
-    assert summary["last_state_s"] == DURATION_S
-    assert summary["states_recorded"] == steps
-    # 3 s is too short for the pivot to leave motor driving (that comes near 10 s)
-    assert summary["transition_time_s"] is None
-    assert "motor driving" in summary[REASONS_KEY]["transition_time_s"]
-
-
 @pytest.mark.slow
 def test_fig15_names_the_simulator_when_it_dies(tmp_path: Path) -> None:
     """A simulator that refuses its parameters: a one-line error naming it and its log."""
     pytest.importorskip("rclpy")
     out = tmp_path / "run"
     # not a whole multiple of the model step: the simulator refuses lockstep_end_s and exits
-    result = _lca_hil("fig15", "--duration-s", "1.00005", "--out", str(out))
+    result = support.run_tool("lca-hil", "fig15", "--duration-s", "1.00005", "--out", str(out))
     assert result.returncode != 0
     assert "the simulator exited" in result.stderr
     assert str(out / "simulator.log") in result.stderr
