@@ -34,6 +34,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from support import (
     BIN,
     CONTROLLER_STATUS,
@@ -48,12 +49,14 @@ from support import (
     strict_loads,
 )
 
-from lca_control.contract import JOINT_STATES, STATE_QOS_DEPTH
+from lca_control.contract import JOINT_STATES, STATE_QOS_DEPTH, VOLTAGE_COMMANDS
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.cli.output import REASONS_KEY
 from lca_sim.cli.ros_guard import ROS_MODULES
+from lca_sim.config.loader import load_robot
+from lca_sim.model.state_machine import MotionState
 from lca_sim.ros import simulator_node
 from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
 from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
@@ -139,6 +142,61 @@ def _estimate(doc: dict[str, Any], state: str, direction: str) -> dict[str, Any]
         e for e in doc["estimates"] if (e["state"], e["direction"]) == (state, direction)
     )
     return entry
+
+
+# --- 1 ----------------------------------------------------------------------------------------
+
+
+def test_item_01_a_disabled_simulator_applies_zero_volts_from_the_next_step() -> None:
+    """Item 1: "A live `enabled := false` on the simulator was accepted and ignored"."""
+    with ros_context(1) as (ctx, executor):
+        diagnostics = Diagnostics(ctx, executor)
+        start_simulator(
+            ctx,
+            executor,
+            REALTIME_SIMULATOR,
+            command_interface="voltage",
+            initial_position=LOADED_PIVOT,
+        )
+        operator = Node("test_operator", context=ctx)
+        executor.add_node(operator)
+        states: list[JointState] = []
+        operator.create_subscription(JointState, JOINT_STATES, states.append, STATE_QOS_DEPTH)
+        pub = operator.create_publisher(Float64MultiArray, VOLTAGE_COMMANDS, 10)
+        drive = Float64MultiArray(data=[0.0, 30.0, 0.0, 0.0])  # the pivot up at 30 V
+        operator.create_timer(0.02, lambda: pub.publish(drive))
+        spin_until(
+            executor,
+            lambda: bool(states) and states[-1].velocity[PIVOT] > 0.05,
+            "the pivot moves at 30 V",
+            30.0,
+        )
+        result = _set_parameter(executor, operator, "simulator", "enabled", False)
+        assert result.successful, result.reason
+        moved_from = states[-1].position[PIVOT]
+        answered = len(states)
+        diagnostics.clear()
+        spin_until(
+            executor,
+            lambda: (
+                diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.OK, "disabled")
+                and PIVOT_STATUS in diagnostics.latest
+                and float(diagnostics.value(PIVOT_STATUS, "command")) == 30.0
+                and float(diagnostics.value(PIVOT_STATUS, "velocity")) == 0.0
+            ),
+            "'disabled', and the pivot stopped while 30 V is still commanded",
+            30.0,
+        )
+        assert diagnostics.value(SIMULATOR_STATUS, "enabled") == "False"
+        assert float(diagnostics.value(PIVOT_STATUS, "voltage_v")) == 0.0
+        spin_until(
+            executor, lambda: len(states) >= answered + 250, "1 s of states once disabled", 30.0
+        )
+        # The coast-down of the irreversible gear (about 0.3 deg); 30 V on would go on for good.
+        drift_deg = math.degrees(abs(states[-1].position[PIVOT] - moved_from))
+        assert drift_deg < 1.0, f"the disabled pivot moved {drift_deg:.3f} deg"
+        held = {state.position[PIVOT] for state in states[-100:]}
+        assert len(held) == 1 and states[-1].velocity[PIVOT] == 0.0, "not held at 0 V"
 
 
 # --- 2 ----------------------------------------------------------------------------------------
@@ -601,3 +659,97 @@ def test_item_09_every_console_script_answers_help_without_starting_ros() -> Non
         for problem in _help_problems(script, target, flag)
     ]
     assert not problems, "\n".join(problems)
+
+
+# --- 10 ---------------------------------------------------------------------------------------
+
+
+def test_item_10_a_bad_value_of_an_idle_profile_is_refused_by_the_live_controller() -> None:
+    """Item 10: "accepted invalid values for profile parameters of a profile it was not running"."""
+    with ros_context(10) as (ctx, executor):
+        ctl = _controller(ctx, executor, reference_source="hold", use_sim_time=False)
+        operator = Node("test_operator", context=ctx)
+        executor.add_node(operator)
+        for name in ("trapezoid_accel_s", "ramp_duration_s"):  # neither profile runs
+            before = ctl.get_parameter(name).value
+            result = _set_parameter(executor, operator, "controller", name, 0.0)
+            assert not result.successful, f"{name} := 0.0 accepted (idle profile; it was {before})"
+            assert result.reason.startswith(f"{name}: expected a number in (0, inf), got 0.0")
+            assert ctl.get_parameter(name).value == before
+        result = _set_parameter(executor, operator, "controller", "trapezoid_accel_s", 0.5)
+        assert result.successful, result.reason  # a valid value of the idle profile is taken
+        switched = _set_parameter(executor, operator, "controller", "reference_source", "trapezoid")
+        assert switched.successful, switched.reason
+        assert ctl.core.params.profile is not None
+
+
+# --- 11 ---------------------------------------------------------------------------------------
+
+# The L-arm alone at 12 V from 1 s on, at a pose where its load torque is Pinocchio's rounding
+# residue (~1e-19 N m): 5 s of steady motion (0.09 rad/s).
+L_ARM_RUN: dict[str, Any] = {
+    "duration_s": 6.0,
+    "dt_s": 1.0e-4,
+    "record_period_s": 1.0e-3,
+    "initial": {"position": {"pivot": 0.44, "lift": 0.17}},
+    "inputs": {"l_arm": {"time_s": [0.0, 0.5, 1.0, 6.0], "voltage_v": [0.0, 0.0, 12.0, 12.0]}},
+}
+
+
+def test_item_11_the_unloaded_l_arm_keeps_its_drive_state_and_is_identified(
+    tmp_path: Path,
+) -> None:
+    """Item 11: "the drive-state machine flipped on floating-point noise: 20,500 state changes"."""
+    import numpy as np
+
+    csv_path = _scenario_result(L_ARM_RUN, tmp_path)
+    header = csv_path.read_text(encoding="utf-8").partition("\n")[0].split(",")
+    drive = np.loadtxt(
+        csv_path, delimiter=",", skiprows=1, usecols=header.index("l_arm_drive_state"), dtype=str
+    )
+    load_nm = np.loadtxt(
+        csv_path, delimiter=",", skiprows=1, usecols=header.index("l_arm_load_torque_nm")
+    )
+    assert np.abs(load_nm).max() < 1e-14 and np.any(load_nm != 0.0)  # noise, to flip on
+    changes = np.flatnonzero(drive[1:] != drive[:-1]) + 1
+    visited = [str(drive[0]), *(str(drive[k]) for k in changes)]
+    assert visited == ["stop_hold", "stop_motor_direct", "motor_driving"], (
+        f"{len(changes)} drive-state changes in {L_ARM_RUN['duration_s']} s"
+    )
+    report, doc = _identify(csv_path, "l_arm")
+    motor = _estimate(doc, "motor_driving", "direct")
+    assert motor["status"] == "identified", motor
+    assert motor["n_samples"] > 1000, motor
+    assert abs(motor["estimate"] - motor["prior"]["eta_m"]) < 0.02, motor
+    row = next(line for line in report.splitlines() if line.startswith("motor_driving "))
+    assert "not visited" not in row, row
+
+
+# --- 12 ---------------------------------------------------------------------------------------
+
+
+def test_item_12_identify_leaves_out_end_stop_samples_and_keeps_the_prior(
+    tmp_path: Path,
+) -> None:
+    """Item 12: "on a record in which the axis hit its end stop returned a confident estimate"."""
+    csv_path = _scenario_result(support.INTO_END_STOP, tmp_path)
+    report, doc = _identify(csv_path, "pivot")
+    assert doc["n_end_stop"] > 1000 and doc["position_limits"] == pytest.approx([-2.0, 2.0])
+    assert f"  {doc['n_end_stop']} samples left out at or near an end stop (within 3 deg" in report
+    # Before: identified at 0.290, CI [0.142, 0.438] from 186 samples; the truth is 0.06.
+    end_stop_state = _estimate(doc, MOTOR_DOMINANT, "reverse")
+    assert end_stop_state["status"] == "too_few_samples", end_stop_state
+    assert end_stop_state["prior_kept"] is True
+    assert end_stop_state["identified"] == end_stop_state["prior"] == {"eta_m": 1.0, "eta_l": 0.06}
+    written = load_robot(str(tmp_path / "identified.yaml")).axes[PIVOT].efficiency
+    assert written[(MotionState.REVERSE, MOTOR_DOMINANT)].eta_l == 0.06  # the prior, exactly
+    truth = load_robot("default").axes[PIVOT].efficiency
+    identified = [e for e in doc["estimates"] if e["status"] == "identified"]
+    assert len(identified) >= 2
+    for e in identified:  # each within its bound, and right: relative 2 %, absolute 0.01
+        assert e["ci_width"] <= e["ci_width_bound"], e
+        row = truth[(MotionState[e["direction"].upper()], e["state"])]
+        true = getattr(row, e["coefficient"])
+        relative = e["criterion"] == "relative"
+        error = abs(e["estimate"] / true - 1.0) if relative else abs(e["estimate"] - true)
+        assert error < (0.02 if relative else 0.01), (e, true)

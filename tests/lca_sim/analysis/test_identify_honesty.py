@@ -3,7 +3,9 @@
 End-stop samples are left out and counted, an interval wider than the documented bound makes a
 state "not identifiable" (the prior is kept in identified.yaml), and small efficiencies are judged
 on the absolute width of their interval. Each case is a simulated record; the numbers the code
-before this fix gave are in the docstrings.
+before this fix gave are in the docstrings. The tools' own run on a record into an end stop
+(`lca-sim run`, then `lca-hil identify`: the report's count and the prior kept in the written
+robot file) is item 12 of the fault matrix, tests/test_fault_matrix.py.
 """
 
 from __future__ import annotations
@@ -11,11 +13,11 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 import yaml
+from support import INTO_END_STOP
 
 from lca_sim.analysis.identify import (
     Criterion,
@@ -43,22 +45,6 @@ MOTOR_DOMINANT = "motor_and_load_driving_motor_dominant"
 RELATIVE_TOLERANCE = 0.02
 ABSOLUTE_TOLERANCE = RELATIVE_TOLERANCE * 0.5
 
-# From -69 deg the pivot runs down at -30 V into its lower end stop (-2 rad), is pushed against
-# it for 2 s, then driven back up. Just before the impact the load's torque falls and the pivot
-# passes through the reverse motor-dominant state (eta_l = 0.06): 186 samples, the last ones
-# within the differentiator's window of the impact.
-INTO_END_STOP: dict[str, Any] = {
-    "duration_s": 7.5,
-    "dt_s": 1.0e-4,
-    "record_period_s": 0.001,
-    "initial": {"position": {"pivot": -1.2}},
-    "inputs": {
-        "pivot": {
-            "time_s": [0.0, 0.2, 0.7, 4.0, 4.5, 7.0, 7.5],
-            "voltage_v": [0.0, 0.0, -30.0, -30.0, 30.0, 30.0, 0.0],
-        }
-    },
-}
 # Current noise that leaves the short direct motor-dominant state (about 370 samples) with a
 # 95 % interval wider than its bound (0.12 > 0.1 at NOISY_SEED), the other states within theirs.
 HEAVY_CURRENT_NOISE_A = 0.6
@@ -162,19 +148,6 @@ def test_end_stop_samples_are_excluded_and_counted(
         EstimateStatus.IDENTIFIED
     )
     _assert_honest(result, default_robot)
-
-
-def test_end_stop_count_is_reported(
-    end_stop_run: ScenarioResult, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    """The printed report and identification.json give the end-stop count."""
-    csv_path = tmp_path / "result.csv"
-    write_csv(end_stop_run, csv_path)
-    assert main(["identify", str(csv_path), "--out", str(tmp_path)]) == 0
-    stdout = capsys.readouterr().out
-    doc = json.loads((tmp_path / "identification.json").read_text(encoding="utf-8"))
-    assert doc["n_end_stop"] > 1000 and doc["position_limits"] == pytest.approx([-2.0, 2.0])
-    assert f"  {doc['n_end_stop']} samples left out at or near an end stop (within 3 deg" in stdout
 
 
 def test_end_stop_margin_is_an_option(default_robot: RobotParams) -> None:
