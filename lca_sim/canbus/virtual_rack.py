@@ -297,6 +297,7 @@ class RackCounters:
     """What the rack received, sent, refused and detected (for diagnostics and tests)."""
 
     syncs: int = 0
+    syncs_too_fast: int = 0  # SYNCs beyond 0x1006's rate: not advancing the plant (EMCY 0x8100)
     rpdos_received: int = 0
     rpdos_applied: int = 0
     pdos_ignored_not_operational: int = 0
@@ -524,6 +525,12 @@ class VirtualDriveRack:
         self._last_sync_rx_s: float | None = None
         self._last_sync_done_s = -math.inf
         self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
+        # The SYNC rate check (`_sync_in_time`): the period it runs for, its credit, the bus
+        # stamp of the previous SYNC, and whether this episode of early SYNCs is reported.
+        self._sync_period_s = 0.0
+        self._sync_credit_s = 0.0
+        self._last_sync_stamp_s: float | None = None
+        self._sync_too_fast_reported = False
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
         eds = str(eds_path())
@@ -1123,8 +1130,11 @@ class VirtualDriveRack:
         try:
             now = time.monotonic()
             if cob == SYNC_COB_ID:
+                # The bus's reception stamp, not `now`: SYNCs queued while this process stood
+                # still keep their spacing for the SYNC rate check (`_sync_in_time`).
+                stamp_s = msg.timestamp if msg.timestamp > 0.0 else time.time()
                 with self._lock:
-                    self._on_sync(data, now)
+                    self._on_sync(data, now, stamp_s)
             elif cob == NMT_COB_ID:
                 with self._lock:
                     self._on_nmt(data, now)
@@ -1201,7 +1211,7 @@ class VirtualDriveRack:
                 self._counters.rpdo_values_rejected += 1
         self._counters.rpdos_applied += 1
 
-    def _on_sync(self, data: bytes, now: float) -> None:
+    def _on_sync(self, data: bytes, now: float, stamp_s: float) -> None:
         """Apply the latched RPDOs, send the synchronous TPDOs, advance the plant one cycle."""
         if len(data) > 1:
             # CiA 301: a SYNC carries no data, or the 1-byte counter; anything else is EMCY
@@ -1228,7 +1238,7 @@ class VirtualDriveRack:
         # A real drive's TPDOs leave in hardware while its CPU goes on; here the master reads
         # them on a thread of this process, so let it before the plant's period is computed.
         yield_gil()
-        self._advance(now)
+        self._advance(now, stamp_s)
         for axis in self._axes:
             self._set_drive(axis, axis.drive, now)
         done = time.monotonic()
@@ -1253,11 +1263,45 @@ class VirtualDriveRack:
     def _cycle_period_s(self) -> float:
         return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
 
-    def _advance(self, now: float) -> None:
+    def _sync_in_time(self, period_s: float, stamp_s: float) -> bool:
+        """Whether this SYNC may advance the plant a period (0x1006 > 0), or comes too early.
+
+        CiA 301 gives a network one SYNC producer. SYNCs faster than 0x1006 (a second
+        producer, a master whose cycle does not match what it wrote to 0x1006) would run the
+        plant faster than the wall clock: beyond a burst allowance (`cia402.admit_sync`) the
+        excess SYNCs are handled as any SYNC (RPDOs applied, TPDOs sent) but do not advance
+        the plant; each is counted (`syncs_too_fast`), and every node sends EMCY 0x8100 once
+        per episode (re-armed once the SYNCs have kept the rate for a burst allowance).
+        """
+        if period_s != self._sync_period_s or self._last_sync_stamp_s is None:
+            self._sync_period_s = period_s
+            self._sync_credit_s = cia402.sync_credit_cap_s(period_s)
+            elapsed_s = 0.0
+        else:
+            elapsed_s = stamp_s - self._last_sync_stamp_s
+        self._last_sync_stamp_s = stamp_s
+        self._sync_credit_s, admitted = cia402.admit_sync(self._sync_credit_s, elapsed_s, period_s)
+        if admitted:
+            if self._sync_credit_s >= cia402.sync_credit_cap_s(period_s) - period_s * 1.000001:
+                self._sync_too_fast_reported = False  # a full allowance again: re-armed
+            return True
+        self._counters.syncs_too_fast += 1
+        if not self._sync_too_fast_reported:
+            self._sync_too_fast_reported = True
+            self._warn_once(
+                "sync-too-fast",
+                f"SYNCs faster than 0x1006 ({period_s * 1e6:.0f} us), a second SYNC producer? "
+                "The excess ones do not advance the plant",
+            )
+            for axis in self._axes:
+                self._emcy(axis, cia402.EMCY_SYNC_TOO_FAST)
+        return False
+
+    def _advance(self, now: float, stamp_s: float) -> None:
         """Command the torque demands and run the plant one cycle (see the module docstring)."""
         period_s = self._cycle_period_s()
         if period_s > 0.0:
-            span_s = period_s
+            span_s = period_s if self._sync_in_time(period_s, stamp_s) else 0.0
         elif self._last_sync_rx_s is None:
             span_s = 0.0
         else:

@@ -13,6 +13,7 @@ import itertools
 import os
 import struct
 import threading
+import time
 from collections.abc import Iterator
 
 import can
@@ -274,3 +275,23 @@ def test_error_behaviour_0x1029_sets_the_nmt_state_after_a_communication_error(
     after = probe.mark()
     assert probe.wait(0x702, after) == heartbeat
     assert rack.counters.rpdo_timeouts == 1
+
+
+def test_item_08_a_second_sync_producer_is_reported_and_does_not_speed_the_plant_up(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """0x1006 = 10 ms, SYNCs as fast as the bus takes them: EMCY 0x8100, plant at wall time."""
+    node = remote(master, PIVOT)
+    node.sdo[0x1006].raw = 10_000
+    mark = probe.mark()
+    start_s = rack.plant_state().time_s
+    wall_start_s = time.monotonic()
+    sync(rack, probe, 100)  # 1 s of plant time, sent within far less than 1 s
+    wall_s = time.monotonic() - wall_start_s
+    advanced_s = rack.plant_state().time_s - start_s
+    # at most the burst allowance (10 periods) ahead of the wall clock (+2 % tolerance)
+    assert advanced_s <= 1.02 * wall_s + 0.1 + 0.01, (advanced_s, wall_s)
+    assert rack.counters.syncs_too_fast > 0
+    assert rack.counters.syncs_too_fast + round(advanced_s / 0.01) == 100
+    for node_id in (1, 2, 3, 4):  # each SYNC consumer reports it, once
+        assert [emcy_code(d)[0] for d in probe.seen(0x80 + node_id, mark)] == [0x8100]
