@@ -124,18 +124,26 @@ def ros_env(domain_id: int | None = None) -> dict[str, str]:
     return env
 
 
-def run_tool(
-    script: str, *args: str, domain_id: int | None = None, timeout_s: float = 300.0
+def run_command(
+    argv: list[str], *, domain_id: int | None = None, timeout_s: float = 300.0, cwd: Path = ROOT
 ) -> subprocess.CompletedProcess[str]:
-    """Run an installed console script to its end (`timeout_s` its deadline); its output."""
+    """Run a command to its end (`timeout_s` its deadline) in `ros_env`; its output."""
     return subprocess.run(
-        [str(BIN / script), *args],
+        argv,
+        cwd=cwd,
         env=ros_env(domain_id),
         capture_output=True,
         text=True,
         timeout=timeout_s,
         check=False,
     )
+
+
+def run_tool(
+    script: str, *args: str, domain_id: int | None = None, timeout_s: float = 300.0
+) -> subprocess.CompletedProcess[str]:
+    """Run an installed console script to its end (`run_command`); its output."""
+    return run_command([str(BIN / script), *args], domain_id=domain_id, timeout_s=timeout_s)
 
 
 def _refuse_constant(name: str) -> float:
@@ -258,6 +266,7 @@ class Diagnostics:
         self.node = Node("test_diagnostics", context=ctx)
         self.latest: dict[str, DiagnosticStatus] = {}
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_array, 50)
+        self.executor = executor
         executor.add_node(self.node)
 
     def _on_array(self, msg: DiagnosticArray) -> None:
@@ -272,6 +281,14 @@ class Diagnostics:
         """Whether the latest status of `name` has this level and its message contains `text`."""
         item = self.latest.get(name)
         return item is not None and item.level == level and text in item.message
+
+    def wait_for(
+        self, name: str, level: bytes, text: str, timeout_s: float = 30.0
+    ) -> DiagnosticStatus:
+        """Spin until the latest status of `name` `shows` `level` and `text`; that status."""
+        what = f"{name} at level {ord(level)} with {text!r} in its message"
+        spin_until(self.executor, lambda: self.shows(name, level, text), what, timeout_s)
+        return self.latest[name]
 
     def value(self, name: str, key: str) -> str:
         """A value of the latest status of `name`."""

@@ -59,13 +59,15 @@ from lca_sim.config.loader import load_robot
 from lca_sim.model.state_machine import MotionState
 from lca_sim.ros import simulator_node
 from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
+from lca_sim.ros.simulator_node import SimulatorNode
 from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S
 
 FIRST_DOMAIN_ID = 220  # item N runs on FIRST_DOMAIN_ID + N - 1
 PIVOT_STATUS = f"{SIMULATOR_STATUS}/pivot"
 PIVOT = 1  # the pivot's index in the joint arrays
-# A realtime simulator without a controller (no command-loss WARN), quick to report.
+# A realtime simulator on voltage commands (the default) without a controller: no command-loss
+# WARN; quick to report.
 REALTIME_SIMULATOR: dict[str, Any] = {
     "timing_mode": "realtime",
     "command_timeout_s": 60.0,
@@ -96,6 +98,16 @@ def _controller(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any
     ctl = ControllerNode(context=ctx, parameter_overrides=support.parameters(**values))
     executor.add_node(ctl)
     return ctl
+
+
+def _lockstep_loop(
+    ctx: Context, executor: SingleThreadedExecutor, run_s: float
+) -> tuple[SimulatorNode, ControllerNode]:
+    """A lockstep simulator and its controller, once the loop has run `run_s` simulated."""
+    sim = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR)
+    ctl = _controller(ctx, executor)
+    spin_until(executor, lambda: sim.sim_time_s >= run_s, "the lockstep loop runs", 60.0)
+    return sim, ctl
 
 
 def _set_parameter(
@@ -151,13 +163,7 @@ def test_item_01_a_disabled_simulator_applies_zero_volts_from_the_next_step() ->
     """Item 1: "A live `enabled := false` on the simulator was accepted and ignored"."""
     with ros_context(1) as (ctx, executor):
         diagnostics = Diagnostics(ctx, executor)
-        start_simulator(
-            ctx,
-            executor,
-            REALTIME_SIMULATOR,
-            command_interface="voltage",
-            initial_position=LOADED_PIVOT,
-        )
+        start_simulator(ctx, executor, REALTIME_SIMULATOR, initial_position=LOADED_PIVOT)
         operator = Node("test_operator", context=ctx)
         executor.add_node(operator)
         states: list[JointState] = []
@@ -216,28 +222,14 @@ def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end
             command_timeout_s=0.2,
             initial_position=[0.0, 1.99, 0.0, 0.0],
         )
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(
-                PIVOT_STATUS, DiagnosticStatus.WARN, "back-driving: pivot moving at"
-            ),
-            "the back-driven pivot is reported",
-            30.0,
-        )
+        # the back-driven pivot is reported
+        diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "back-driving: pivot moving at")
         assert diagnostics.latest[PIVOT_STATUS].message.endswith("rad/s with no command")
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for"),
-            "the command silence is reported",
-            30.0,
-        )
+        # the command silence is reported
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for")
         assert "holding" not in diagnostics.latest[SIMULATOR_STATUS].message  # not held
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(PIVOT_STATUS, DiagnosticStatus.WARN, "end stop hit at"),
-            "the end-stop contact is reported with its speed",
-            60.0,
-        )
+        # the end-stop contact is reported with its speed
+        diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "end stop hit at", 60.0)
         assert float(diagnostics.value(PIVOT_STATUS, "end_stop_contact_speed")) > 0.0
 
 
@@ -248,9 +240,7 @@ def test_item_03_a_restarted_simulator_is_picked_up_and_counted() -> None:
     """Item 3: "A simulator restarted during a lockstep run: its stamps started again at 0"."""
     with ros_context(3) as (ctx, executor):
         diagnostics = Diagnostics(ctx, executor)
-        sim = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR)
-        ctl = _controller(ctx, executor)
-        spin_until(executor, lambda: sim.sim_time_s >= 0.4, "the lockstep loop runs", 60.0)
+        sim, ctl = _lockstep_loop(ctx, executor, 0.4)
         kill(executor, sim)
         restarted = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR)
         spin_until(
@@ -298,13 +288,9 @@ def test_item_04_a_stalled_realtime_simulator_reports_the_time_it_skipped(
         assert diagnostics.latest[PIVOT_STATUS].level == DiagnosticStatus.OK
         stall["s"] = 0.5  # wall time went on half a second without a tick
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(
-                SIMULATOR_STATUS, DiagnosticStatus.WARN, "stalled: simulated time fell"
-            ),
-            "the stall is reported",
-            30.0,
+        # the stall is reported
+        diagnostics.wait_for(
+            SIMULATOR_STATUS, DiagnosticStatus.WARN, "stalled: simulated time fell"
         )
         message = diagnostics.latest[SIMULATOR_STATUS].message
         assert message.endswith("behind the wall clock (skipped)")
@@ -312,12 +298,8 @@ def test_item_04_a_stalled_realtime_simulator_reports_the_time_it_skipped(
         assert float(diagnostics.value(SIMULATOR_STATUS, "skipped_s")) > 0.4
         assert float(diagnostics.value(SIMULATOR_STATUS, "stamp_lag_s")) > 0.4
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.OK, "running"),
-            "OK again in the periods after the stall",
-            30.0,
-        )
+        # OK again in the periods after the stall
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
         assert float(diagnostics.value(SIMULATOR_STATUS, "stamp_lag_s")) > 0.4  # the lag stays
 
 
@@ -328,9 +310,7 @@ def test_item_05_a_lost_peer_is_reported_by_the_node_left_behind() -> None:
     """Item 5: "A controller whose simulator went away kept reporting OK; so did a simulator"."""
     with ros_context(5) as (ctx, executor):
         diagnostics = Diagnostics(ctx, executor)
-        sim = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR)
-        ctl = _controller(ctx, executor)
-        spin_until(executor, lambda: sim.sim_time_s >= 0.2, "the lockstep loop runs", 60.0)
+        sim, ctl = _lockstep_loop(ctx, executor, 0.2)
         spin_until(
             executor,
             lambda: (
@@ -341,32 +321,18 @@ def test_item_05_a_lost_peer_is_reported_by_the_node_left_behind() -> None:
         )
         # The simulator goes away: the controller says so, and OK again once states return.
         kill(executor, sim)
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(
-                CONTROLLER_STATUS, DiagnosticStatus.WARN, "no plant state for"
-            ),
-            "the controller reports the lost simulator",
-            15.0,
-        )
+        # the controller reports the lost simulator
+        diagnostics.wait_for(CONTROLLER_STATUS, DiagnosticStatus.WARN, "no plant state for", 15.0)
         assert diagnostics.value(CONTROLLER_STATUS, "plant_losses") == "1"
         sim = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR)
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(CONTROLLER_STATUS, DiagnosticStatus.OK, "plant states again"),
-            "the controller reports OK once states return",
-            30.0,
-        )
+        # the controller reports OK once states return
+        diagnostics.wait_for(CONTROLLER_STATUS, DiagnosticStatus.OK, "plant states again")
         # The controller goes away: the simulator says so; a new controller picks up the loop.
         kill(executor, ctl)
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for"),
-            "the simulator reports the lost controller",
-            15.0,
-        )
+        # the simulator reports the lost controller
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for", 15.0)
         message = diagnostics.latest[SIMULATOR_STATUS].message
         assert message.endswith("simulated time paused, the last state is re-sent"), message
         stopped_s = sim.sim_time_s
@@ -379,12 +345,8 @@ def test_item_05_a_lost_peer_is_reported_by_the_node_left_behind() -> None:
         )
         assert ctl.core.plant_restarts == 0  # a new controller's first state is no restart
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.OK, "commands again"),
-            "the simulator reports OK once commands return",
-            15.0,
-        )
+        # the simulator reports OK once commands return
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "commands again", 15.0)
 
 
 # --- 6 ----------------------------------------------------------------------------------------
@@ -396,24 +358,16 @@ def test_item_06_a_second_publisher_of_the_plant_states_is_an_error() -> None:
         diagnostics = Diagnostics(ctx, executor)
         start_simulator(ctx, executor, REALTIME_SIMULATOR)
         other = start_simulator(ctx, executor, REALTIME_SIMULATOR, "simulator_b")
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(
-                SIMULATOR_STATUS,
-                DiagnosticStatus.ERROR,
-                "another node publishes joint_states: /simulator_b",
-            ),
-            "the first simulator reports the second publisher",
-            30.0,
+        # the first simulator reports the second publisher
+        diagnostics.wait_for(
+            SIMULATOR_STATUS,
+            DiagnosticStatus.ERROR,
+            "another node publishes joint_states: /simulator_b",
         )
         kill(executor, other)
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.OK, "running"),
-            "no ERROR once the second simulator is gone",
-            30.0,
-        )
+        # no ERROR once the second simulator is gone
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
 
 
 # --- 7 ----------------------------------------------------------------------------------------
@@ -605,14 +559,7 @@ def run_help(script: str, flag: str) -> subprocess.CompletedProcess[str]:
         runpy.run_path(sys.argv[0], run_name="__main__")
         """
     )
-    return subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=HELP_TIMEOUT_S,
-        check=False,
-    )
+    return support.run_command([sys.executable, "-c", code], timeout_s=HELP_TIMEOUT_S)
 
 
 def _shown(value: object) -> str:

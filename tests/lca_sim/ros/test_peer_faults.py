@@ -11,7 +11,7 @@ import support
 from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
-from support import LOCKSTEP_SIMULATOR, SIMULATOR_STATUS, Diagnostics, spin_until, start_simulator
+from support import LOCKSTEP_SIMULATOR, SIMULATOR_STATUS, Diagnostics, start_simulator
 
 ros_context = support.domain_contexts(180, 20)
 
@@ -21,12 +21,8 @@ def test_a_lockstep_simulator_waiting_for_subscribers_says_so() -> None:
     with ros_context() as (ctx, executor):
         diagnostics = Diagnostics(ctx, executor)
         start_simulator(ctx, executor, LOCKSTEP_SIMULATOR, lockstep_subscribers=3)
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.WARN, "waiting for 3"),
-            "the simulator reports its wait for subscribers",
-            15.0,
-        )
+        # the simulator reports its wait for subscribers
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "waiting for 3", 15.0)
         assert diagnostics.latest[SIMULATOR_STATUS].message.startswith("waiting for 3")
 
 
@@ -37,12 +33,8 @@ def test_a_realtime_simulator_reports_command_silence_and_recovery() -> None:
         start_simulator(
             ctx, executor, LOCKSTEP_SIMULATOR, timing_mode="realtime", command_timeout_s=0.2
         )
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for"),
-            "the simulator reports command silence",
-            15.0,
-        )
+        # the simulator reports command silence
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for", 15.0)
         message = diagnostics.latest[SIMULATOR_STATUS].message
         assert message.startswith("no command for") and message.endswith("holding (0 V)")
         driver = Node("driver", context=ctx)
@@ -50,9 +42,5 @@ def test_a_realtime_simulator_reports_command_silence_and_recovery() -> None:
         driver.create_timer(0.02, lambda: pub.publish(Float64MultiArray(data=[0.0] * 4)))
         executor.add_node(driver)
         diagnostics.clear()
-        spin_until(
-            executor,
-            lambda: diagnostics.shows(SIMULATOR_STATUS, DiagnosticStatus.OK, "commands again"),
-            "the simulator reports OK once commands return",
-            15.0,
-        )
+        # the simulator reports OK once commands return
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "commands again", 15.0)
