@@ -107,6 +107,10 @@ SDO_REQUEST_COB_BASE = 0x600  # CiA 301 pre-defined connection set: client -> se
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
+# The most of one stall of this process the watchdogs discount (rack.yaml
+# max_stall_discount_s): above the 0.3 s stalls a shared CI machine showed, and short enough
+# that a master silent for longer than it plus a deadline is still caught.
+DEFAULT_MAX_STALL_DISCOUNT_S = 0.5
 
 NMT_OPERATIONAL = "OPERATIONAL"
 NMT_PRE_OPERATIONAL = "PRE-OPERATIONAL"
@@ -174,6 +178,7 @@ class RackConfig:
         heartbeat_producer_ms: 0x1017 after boot-up.
         encoder_increments_per_rev: 0x608F sub 1, motor side.
         sync_loss_periods: SYNC loss after this many 0x1006 periods without a SYNC.
+        max_stall_discount_s: the most of one stall of this process the watchdogs discount.
         axes: the drives, in the robot's axis order.
         source: the file it came from (for messages).
     """
@@ -186,6 +191,7 @@ class RackConfig:
     encoder_increments_per_rev: int
     sync_loss_periods: float
     axes: tuple[AxisConfig, ...]
+    max_stall_discount_s: float = DEFAULT_MAX_STALL_DISCOUNT_S
     source: str = ""
 
     @property
@@ -234,6 +240,9 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
     heartbeat_ms = _integer(top, "heartbeat_producer_ms", 0, 0xFFFF)
     increments = _integer(top, "encoder_increments_per_rev", 1, 0xFFFFFFFF)
     sync_loss = top.number("sync_loss_periods", default=3.0, min_value=1.0)
+    max_stall_discount_s = top.number(
+        "max_stall_discount_s", default=DEFAULT_MAX_STALL_DISCOUNT_S, min_value=0.0, max_value=60.0
+    )
     axes_reader = top.sub("axes")
     axes: list[AxisConfig] = []
     names = axes_reader.key_names()
@@ -273,6 +282,7 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         encoder_increments_per_rev=increments,
         sync_loss_periods=sync_loss,
         axes=tuple(order),
+        max_stall_discount_s=max_stall_discount_s,
         source=source,
     )
 
@@ -316,7 +326,8 @@ class RackCounters:
     send_errors: int = 0
     bus_errors: int = 0  # exceptions of the bus layer's receive (python-can Notifier)
     handler_errors: int = 0
-    process_freezes: int = 0
+    process_freezes: int = 0  # stalls of this process (also 0x2020), each discounted ...
+    stalls_beyond_discount: int = 0  # ... up to max_stall_discount_s; these longer (EMCY 0xFF02)
 
     def as_dict(self) -> dict[str, int]:
         """The counters by name."""
@@ -531,6 +542,7 @@ class VirtualDriveRack:
         self._sync_credit_s = 0.0
         self._last_sync_stamp_s: float | None = None
         self._sync_too_fast_reported = False
+        self._longest_stall_s = 0.0  # 0x2021
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
         eds = str(eds_path())
@@ -710,6 +722,7 @@ class VirtualDriveRack:
         encode_position = codec.position(axis.units).encode
         encode_velocity = codec.velocity(axis.units).encode
         encode_current = codec.current(axis.units).encode
+        encode_stall = codec.codec_for(od.entry(od.LONGEST_STALL)).encode
         live: dict[tuple[int, int], Callable[[], int]] = {
             (od.STATUSWORD, 0): lambda: self._statusword(axis),
             (od.CONTROLWORD, 0): lambda: axis.drive.controlword,
@@ -721,6 +734,8 @@ class VirtualDriveRack:
             (od.CURRENT_ACTUAL, 0): lambda: encode_current(float(state[2, a])),
             (od.DRIVE_STATE, 0): lambda: int(modes[1, a]),
             (od.MOTION_STATE, 0): lambda: int(modes[0, a]),
+            (od.PROCESS_STALLS, 0): lambda: min(self._counters.process_freezes, 0xFFFFFFFF),
+            (od.LONGEST_STALL, 0): lambda: encode_stall(self._longest_stall_s),
         }
         for name, obj in od.SIGNAL_OBJECTS.items():  # eta_m, eta_l, load torque, ...
             live[obj.key] = _signal_getter(
@@ -1349,12 +1364,13 @@ class VirtualDriveRack:
             self._counters.tpdos_sent += 1
         pdo.last_data, pdo.last_sent_s = frame, now
 
-    def _emcy(self, axis: _Axis, code: int) -> None:
+    def _emcy(self, axis: _Axis, code: int, data: bytes = b"") -> None:
+        """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes."""
         if axis.nmt == NMT_STOPPED:
             return  # no EMCY in STOPPED (CiA 301)
         register = axis.value(od.ERROR_REGISTER)
         try:
-            axis.node.emcy.send(code, register)
+            axis.node.emcy.send(code, register, data)
         except (can.CanError, OSError, RuntimeError) as exc:
             self._counters.send_errors += 1
             self._warn_once("emcy", f"EMCY send failed: {exc}")
@@ -1398,7 +1414,13 @@ class VirtualDriveRack:
         """Move every armed deadline on by `frozen_s`: this process, not the master, stood still.
 
         No further than `now`: a frame the receive thread took after the freeze, before this
-        tick, has already stamped its deadline afresh.
+        tick, has already stamped its deadline afresh. And no more than `max_stall_discount_s`
+        (rack.yaml): a longer stall is the drive standing still for longer than a master can
+        be expected to tolerate, so the rest counts against the deadlines as it would on a
+        drive that froze, and each node sends EMCY 0xFF02 with the stall in ms.
+
+        Every stall is counted (`process_freezes`, object 0x2020) and the longest is kept
+        (0x2021, ms), so a master learns that the drive stood still even when nothing faulted.
 
         A real drive's watchdog runs on its own hardware. This one shares an interpreter with
         its receive thread (and, with interface virtual, with the master): while the process is
@@ -1407,11 +1429,19 @@ class VirtualDriveRack:
         still caught on time.
         """
         self._counters.process_freezes += 1
+        self._longest_stall_s = max(self._longest_stall_s, frozen_s)
         self._warn_once(
             "freeze",
             f"this process stood still for {frozen_s * 1e3:.0f} ms; the watchdogs do not count "
-            "such time against the master",
+            f"up to {self.config.max_stall_discount_s * 1e3:.0f} ms of such time against the "
+            "master (objects 0x2020 / 0x2021 count the stalls)",
         )
+        if frozen_s > self.config.max_stall_discount_s:
+            self._counters.stalls_beyond_discount += 1
+            stall_ms = struct.pack("<H", min(round(frozen_s * 1e3), 0xFFFF))
+            for axis in self._axes:
+                self._emcy(axis, cia402.EMCY_PROCESS_STALL, stall_ms)
+            frozen_s = self.config.max_stall_discount_s
         for axis in self._axes:
             if axis.heartbeat_last_rx_s is not None:
                 axis.heartbeat_last_rx_s = discounted(axis.heartbeat_last_rx_s, frozen_s, now)

@@ -94,6 +94,9 @@ EMCY_SYNC_TOO_FAST = 0x8100
 # OPERATIONAL (NMT stop, enter pre-operational, reset communication) while its drive could
 # produce torque, and the 0x6007 reaction acted. CiA 301 / 402 define no code for it.
 EMCY_LEFT_OPERATIONAL = 0xFF01
+# Device specific: the drive's process stood still longer than the watchdogs may discount
+# (the virtual rack's `max_stall_discount_s`); bytes 3-4 of the EMCY: the stall in ms.
+EMCY_PROCESS_STALL = 0xFF02
 EMCY_SYNC_LOSS = 0x8700  # sync controller error (no SYNC within the watch time)
 ERROR_REGISTER_GENERIC = 1 << 0
 ERROR_REGISTER_COMMUNICATION = 1 << 4

@@ -50,6 +50,8 @@ ETA_L = 0x2013
 LOAD_TORQUE = 0x2014  # motor side, per mille of 0x6076
 FRICTION_TORQUE = 0x2015  # motor side, per mille of 0x6076
 VOLTAGE = 0x2016  # amplifier output voltage, 10 mV
+PROCESS_STALLS = 0x2020  # how often the virtual drive's process stood still (count)
+LONGEST_STALL = 0x2021  # the longest such stall, ms
 # CiA 402-2 drive profile area
 ABORT_CONNECTION_OPTION = 0x6007
 ERROR_CODE = 0x603F
@@ -387,6 +389,12 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
                 signal="friction_torque_nm"),
     ObjectEntry(VOLTAGE, 0, "Amplifier voltage", _I16, _RO, True, "lca_hil", "V",
                 Scaling.CENTI, _SAT, default=0, signal="voltage_v"),
+    # lca_hil: the virtual drive's own health. Its watchdogs do not count time its process
+    # stood still (a monitor tick later than lca_sim.runtime.FREEZE_THRESHOLD_S) against the
+    # master; these say how often that happened and the longest stall, so a master can know.
+    ObjectEntry(PROCESS_STALLS, 0, "Process stalls", _U32, _RO, True, "lca_hil", default=0),
+    ObjectEntry(LONGEST_STALL, 0, "Longest process stall", _U16, _RO, True, "lca_hil", "s",
+                Scaling.MILLI, _SAT, default=0),
     # CiA 402-2 drive profile
     ObjectEntry(ABORT_CONNECTION_OPTION, 0, "Abort connection option code", _I16, _RW, False,
                 _cia402(ABORT_CONNECTION_OPTION), default=1),

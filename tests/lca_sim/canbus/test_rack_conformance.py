@@ -15,6 +15,7 @@ import struct
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 
 import can
 import canopen
@@ -295,3 +296,44 @@ def test_item_08_a_second_sync_producer_is_reported_and_does_not_speed_the_plant
     assert rack.counters.syncs_too_fast + round(advanced_s / 0.01) == 100
     for node_id in (1, 2, 3, 4):  # each SYNC consumer reports it, once
         assert [emcy_code(d)[0] for d in probe.seen(0x80 + node_id, mark)] == [0x8100]
+
+
+def test_item_07_a_stall_is_counted_reported_and_its_discount_bounded(
+    channel: str, probe: Probe, default_robot: RobotParams
+) -> None:
+    """A 0.3 s stall, 0.05 s bound: 0x2020 / 0x2021, EMCY 0xFF02, a silent master caught.
+
+    The master is silent throughout (RPDO deadline 0.2 s), and is caught on the first tick after
+    the stall: only 0.05 s of it were discounted.
+    """
+    config = replace(load_rack_config(None), max_stall_discount_s=0.05)
+    bus = can.Bus(interface="virtual", channel=channel)
+    rack = VirtualDriveRack(bus, config, robot=default_robot)
+    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
+    network.NOTIFIER_CYCLE = 0.05
+    try:
+        rack.start()
+        network.connect()
+        node = remote(network, PIVOT)
+        node.sdo[0x1400][5].raw = 200  # RPDO1 deadline, ms
+        nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+        probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # arms the deadline; then silence
+        wait_until(lambda: rack.counters.rpdos_received == 1, "the RPDO received")
+        mark = probe.mark()
+        with rack._lock:  # what a held GIL or a paused host does to the rack's threads
+            time.sleep(0.3)  # the stall under test: a stimulus, not a wait for a condition
+        wait_until(lambda: rack.counters.process_freezes == 1, "the stall counted")
+        # the same monitor tick judged the deadline with 0.25 s of the silence counted
+        assert rack.counters.rpdo_timeouts == 1
+        assert rack.counters.stalls_beyond_discount == 1
+        wait_until(lambda: len(probe.seen(0x82, mark)) == 2, "two EMCYs from the pivot")
+        stall, timeout = probe.seen(0x82, mark)
+        assert emcy_code(timeout)[0] == 0x8250
+        assert emcy_code(stall)[0] == 0xFF02
+        assert struct.unpack_from("<H", stall, 3)[0] >= 290  # the stall, ms
+        assert node.sdo[0x2020].raw == 1
+        assert 290 <= node.sdo[0x2021].raw < 2000
+    finally:
+        network.disconnect()
+        rack.stop()
+        bus.shutdown()
