@@ -1,7 +1,7 @@
 """The fault matrix of issue 14 ("No silent faults"): one case per numbered item, 1 to 12.
 
 Each case starts the real nodes (in-process, on an rclpy Context of their own) or the installed
-console tool, on its own ROS 2 domain (`FIRST_DOMAIN_ID + item - 1`, 220 to 231: no other module
+console tool, on its own ROS 2 domain (`FIRST_DOMAIN_ID + item - 1`, 200 to 211: no other module
 uses them), causes the item's fault, and asserts the diagnostic level and message, or the tool's
 output, within a deadline, and that no data was lost where the item says so. Every wait polls
 with a deadline (support.wait_until / spin_until); nothing sleeps a fixed time. docs/reliability.md
@@ -63,7 +63,7 @@ from lca_sim.ros.simulator_node import SimulatorNode
 from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S
 
-FIRST_DOMAIN_ID = 220  # item N runs on FIRST_DOMAIN_ID + N - 1
+FIRST_DOMAIN_ID = 200  # item N runs on FIRST_DOMAIN_ID + N - 1
 PIVOT_STATUS = f"{SIMULATOR_STATUS}/pivot"
 PIVOT = 1  # the pivot's index in the joint arrays
 # A realtime simulator on voltage commands (the default) without a controller: no command-loss
