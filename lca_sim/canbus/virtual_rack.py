@@ -15,7 +15,7 @@ Public API::
 
     config = load_rack_config(None)           # None: the shipped config/can/rack.yaml
     rack = VirtualDriveRack(bus, config)      # any python-can BusABC; nothing runs yet
-    rack.start()                              # boot-up messages, heartbeats, listening
+    rack.start()                              # settle the heap (gc.freeze), boot, listen
     rack.power_state("pivot")                 # cia402.PowerState
     rack.stop()                               # idempotent; stops the threads, not the bus
     with VirtualDriveRack(bus, config) as rack: ...   # start() / stop()
@@ -579,11 +579,21 @@ class VirtualDriveRack:
 
     # --- lifecycle -------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Listen on the bus, boot every node (boot-up message, PRE-OPERATIONAL, heartbeat)."""
+    def start(self, *, settle: bool = True) -> None:
+        """Listen on the bus, boot every node (boot-up message, PRE-OPERATIONAL, heartbeat).
+
+        Args:
+            settle: first settle the heap (`lca_sim.runtime.settle_heap`: collect, then
+                gc.freeze) as the console script does, so that a full collection of the
+                start-up objects (Pinocchio, numba, canopen: 70-120 ms with the GIL held) does
+                not stall the rack's cycle later. An embedding process that settles its heap
+                itself once everything is built may pass False.
+        """
         if self._started:
             return
         self._started = True
+        if settle:
+            settle_heap()  # before the rack's threads run: a full collection would stall them
         self._network.connect()
         with self._lock:
             now = time.monotonic()
@@ -1563,8 +1573,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rack: VirtualDriveRack | None = None
     try:
         rack = VirtualDriveRack(bus, config)
-        settle_heap()  # before the rack runs: a full collection would stall its cycle
-        rack.start()
+        rack.start()  # settles the heap first
         nodes = ", ".join(f"{a.name}={a.node_id}" for a in config.axes)
         print(
             f"{prog}: nodes {nodes} on {args.interface} {args.channel}; SIGINT or SIGTERM stops",

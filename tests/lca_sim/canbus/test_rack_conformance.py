@@ -9,6 +9,7 @@ after the one under test (frames of one bus are handled in order) and waits for 
 
 from __future__ import annotations
 
+import gc
 import itertools
 import os
 import struct
@@ -336,4 +337,19 @@ def test_item_07_a_stall_is_counted_reported_and_its_discount_bounded(
     finally:
         network.disconnect()
         rack.stop()
+        bus.shutdown()
+
+
+def test_item_11_the_in_process_entry_point_settles_the_heap(
+    channel: str, default_robot: RobotParams
+) -> None:
+    """`VirtualDriveRack.start()` collects and freezes the start-up objects, as `main()` does."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    rack = VirtualDriveRack(bus, load_rack_config(None), robot=default_robot)
+    gc.unfreeze()  # whatever an earlier test froze
+    try:
+        with rack:
+            assert gc.get_freeze_count() > 10_000  # the rack's own objects among them
+            assert rack.node("pivot") is not None
+    finally:
         bus.shutdown()
