@@ -18,13 +18,23 @@ The backends:
 * `can_bridge`: the CAN bridge node with its default `interface: virtual`, which runs the
   virtual drive rack in this process on python-can's virtual bus; wall-clock timing (CAN has
   no lockstep), 250 Hz SYNC like the controller's 4 ms period.
+* `can_bridge_remote`: the same bridge node with `interface: lca_remote`, the rack
+  (`lca-virtual-drive`) and the relay (`lca-can-server`) each a process of its own on
+  127.0.0.1: the three-terminal set-up of the README, closed-loop through the controller.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import re
+import select
+import subprocess
+import sys
+import time
 import warnings
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,7 +105,7 @@ def _controller(ctx: Context) -> ControllerNode:
     return ControllerNode(context=ctx, parameter_overrides=_overrides(**values))
 
 
-def _start_simulator(ctx: Context, _tmp_path: Path) -> Node:
+def _start_simulator(ctx: Context, _tmp_path: Path, _stack: ExitStack) -> Node:
     return SimulatorNode(
         context=ctx,
         parameter_overrides=_overrides(
@@ -107,12 +117,12 @@ def _start_simulator(ctx: Context, _tmp_path: Path) -> Node:
     )
 
 
-def _start_can_bridge(ctx: Context, tmp_path: Path) -> Node:
-    """The bridge with its in-process virtual rack (the shipped rack, pivot at START_DEG).
+def _rack_config(tmp_path: Path) -> Path:
+    """The shipped rack with the pivot at START_DEG and room for this process's GIL.
 
-    The watchdogs get room for this process's GIL, as in test_can_swap: the rack, the bridge,
-    the controller and the probe share one interpreter on two shared cores here. The watchdogs
-    have their own tests (test_virtual_drive, test_can_bridge).
+    The watchdogs get room for this process's GIL, as in test_can_swap: the rack (in-process
+    backend), the bridge, the controller and the probe share one interpreter on two shared
+    cores here. The watchdogs have their own tests (test_virtual_drive, test_can_bridge).
     """
     with (config_dir() / "can" / "rack.yaml").open() as f:
         rack = yaml.safe_load(f)
@@ -120,18 +130,73 @@ def _start_can_bridge(ctx: Context, tmp_path: Path) -> Node:
     rack["sync_loss_periods"] = 50
     rack_path = tmp_path / "rack.yaml"
     rack_path.write_text(yaml.safe_dump(rack))
+    return rack_path
+
+
+def _bridge(ctx: Context, **values: object) -> CanBridgeNode:
     return CanBridgeNode(
         context=ctx,
         parameter_overrides=_overrides(
-            channel=f"test_plant_contract_{tmp_path.name}",
-            rack_config=str(rack_path),
             auto_enable=True,
             cycle_hz=250.0,
             rpdo_deadline_ms=500,
             heartbeat_consumer_ms=1000,
             stale_timeout_s=0.5,
+            **values,
         ),
     )
+
+
+def _start_can_bridge(ctx: Context, tmp_path: Path, _stack: ExitStack) -> Node:
+    """The bridge with its in-process virtual rack (the shipped rack, pivot at START_DEG)."""
+    return _bridge(
+        ctx, channel=f"test_plant_contract_{tmp_path.name}", rack_config=str(_rack_config(tmp_path))
+    )
+
+
+def _spawn(stack: ExitStack, argv: list[str], ready: str, timeout_s: float = 120.0) -> str:
+    """Start a console script of this venv; return the first stderr match of `ready`.
+
+    The process is stopped (SIGTERM, then SIGKILL) when `stack` closes, and must exit 0 then.
+    """
+    proc = subprocess.Popen(
+        [str(Path(sys.executable).parent / argv[0]), *argv[1:]],
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+    def stop() -> None:
+        proc.terminate()
+        try:
+            code = proc.wait(20.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            code = proc.wait(20.0)
+        assert code == 0, f"{argv[0]} exited {code}"
+
+    stack.callback(stop)
+    assert proc.stderr is not None
+    seen = ""
+    deadline_s = time.monotonic() + timeout_s
+    while (left_s := deadline_s - time.monotonic()) > 0:
+        if not select.select([proc.stderr], [], [], left_s)[0]:
+            break
+        line = proc.stderr.readline()
+        if not line:
+            break
+        seen += line
+        if match := re.search(ready, line):
+            return match.group(0)
+    pytest.fail(f"{argv[0]}: no {ready!r} within {timeout_s:g} s: {seen[-2000:]}")
+
+
+def _start_can_bridge_remote(ctx: Context, tmp_path: Path, stack: ExitStack) -> Node:
+    """Relay and rack as processes of their own on 127.0.0.1, the bridge on `lca_remote`."""
+    url = _spawn(stack, ["lca-can-server", "--port", "0"], r"ws://127\.0\.0\.1:\d+/")
+    rack = ["lca-virtual-drive", "--interface", "lca_remote", "--channel", url]
+    _spawn(stack, [*rack, "--config", str(_rack_config(tmp_path))], r"nodes ")
+    return _bridge(ctx, interface="lca_remote", channel=url)
 
 
 @dataclass(frozen=True)
@@ -143,13 +208,14 @@ class Backend:
     """
 
     node_name: str
-    start: Callable[[Context, Path], Node]
+    start: Callable[[Context, Path, ExitStack], Node]
     wall_clock: bool
 
 
 BACKENDS: dict[str, Backend] = {
     "simulator": Backend("simulator", _start_simulator, wall_clock=False),
     "can_bridge": Backend("can_bridge", _start_can_bridge, wall_clock=True),
+    "can_bridge_remote": Backend("can_bridge", _start_can_bridge_remote, wall_clock=True),
 }
 REFERENCE = "simulator"
 
@@ -297,13 +363,14 @@ def _run_backend(backend: str, tmp_path: Path) -> ContractRun:
     rclpy.init(context=ctx)  # ROS_DOMAIN_ID from the environment (conftest: loopback only)
     executor = make_executor(ctx)  # the executor the nodes spin in production (run_node)
     nodes: list[Node] = []
+    stack = ExitStack()  # the backend's processes, stopped after its node
     try:
         # The controller and the probe first: building them cannot stall a wall-clock plant.
         ctl = _controller(ctx)
         probe = Node("contract_probe", context=ctx)
         nodes += [ctl, probe]
         _Probe(probe, run)
-        plant = spec.start(ctx, tmp_path)
+        plant = spec.start(ctx, tmp_path, stack)
         nodes.append(plant)
         for node in nodes:
             executor.add_node(node)
@@ -333,6 +400,7 @@ def _run_backend(backend: str, tmp_path: Path) -> ContractRun:
             node.destroy_node()
         executor.shutdown()
         rclpy.shutdown(context=ctx)
+        stack.close()
 
 
 class _Runs:
