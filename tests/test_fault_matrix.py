@@ -117,10 +117,10 @@ def _set_parameter(
     client = client_node.create_client(SetParameters, f"/{target}/set_parameters")
     spin_until(executor, client.service_is_ready, f"/{target}/set_parameters is served", 30.0)
     # rclpy leaves Parameter and Future.result unannotated
-    change = Parameter(name, value=value).to_parameter_msg()  # type: ignore[no-untyped-call]
+    change = Parameter(name, value=value).to_parameter_msg()
     future = client.call_async(SetParameters.Request(parameters=[change]))
     spin_until(executor, future.done, f"the answer to {name} := {value!r}", 30.0)
-    response = future.result()  # type: ignore[no-untyped-call]
+    response = future.result()
     assert response is not None
     result: SetParametersResult = response.results[0]
     return result

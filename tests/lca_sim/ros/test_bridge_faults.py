@@ -13,20 +13,22 @@ from typing import Any
 
 import can
 import support
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from support import spin_until
+from support import Diagnostics, spin_until
 
 from lca_control import contract as ri
 from lca_sim.cia402.device import PowerState
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 
 BRIDGE = "lca_hil/can_bridge"
+PIVOT = "lca_hil/can_bridge/pivot"
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
 ros_context = support.domain_contexts(220, 10)
 
@@ -52,40 +54,6 @@ def _bridge(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any) ->
     return bridge
 
 
-class DriveStatus:
-    """The latest /diagnostics status of one name, seen from a node of the test.
-
-    It also publishes current commands, as a controller would.
-    """
-
-    def __init__(self, ctx: Context, executor: SingleThreadedExecutor, name: str = BRIDGE) -> None:
-        self.name = name
-        self.node = Node("test_bridge_diagnostics", context=ctx)
-        self.latest: DiagnosticStatus | None = None
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_array, 50)
-        self.commands = self.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
-        executor.add_node(self.node)
-
-    def _on_array(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            if status.name == self.name:
-                self.latest = status
-
-    def message(self) -> str:
-        """The latest message ('' before any)."""
-        return self.latest.message if self.latest else ""
-
-    def shows(self, level: bytes, text: str) -> bool:
-        """The latest status has this level and its message contains `text`."""
-        s = self.latest
-        return s is not None and s.level == level and text in s.message
-
-    def value(self, key: str) -> str:
-        """One of the latest status's values ('' before any)."""
-        s = self.latest
-        return next((kv.value for kv in s.values if kv.key == key), "") if s else ""
-
-
 def _enabled(bridge: CanBridgeNode) -> bool:
     return all(
         bridge.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
@@ -97,41 +65,32 @@ def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> 
     """WARN "halted" after command_timeout_s, OK again on commands, ERROR at the quick stop."""
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
-        probe = DriveStatus(ctx, executor)
+        probe = Diagnostics(ctx, executor)
+        commands = probe.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
         try:
             spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
-            spin_until(
-                executor,
-                lambda: probe.shows(DiagnosticStatus.WARN, "waiting for the first command"),
-                "WARN: enabled, no command yet",
-            )
+            probe.wait_for(BRIDGE, WARN, "enabled, waiting for the first command")
 
             def commanding(until: str, level: bytes) -> None:
                 def step() -> None:
-                    probe.commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+                    commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
                     executor.spin_once(timeout_sec=0.01)
 
-                support.wait_until(lambda: probe.shows(level, until), until, 30.0, step=step)
+                support.wait_until(
+                    lambda: probe.shows(BRIDGE, level, until), until, 30.0, step=step
+                )
 
-            commanding("running", DiagnosticStatus.OK)
+            commanding("running", OK)
             # The controller stops: halt after 0.2 s, and the bridge reports it.
-            spin_until(
-                executor,
-                lambda: probe.shows(DiagnosticStatus.WARN, "halted, zero torque"),
-                "WARN: no command, halted",
-            )
-            assert probe.value("command_losses") == "1"
+            probe.wait_for(BRIDGE, WARN, "halted, zero torque")
+            assert probe.value(BRIDGE, "command_losses") == "1"
             # Back before the quick stop: the halt clears by itself.
-            commanding("commands again", DiagnosticStatus.OK)
+            commanding("commands again", OK)
             assert _enabled(bridge)
             # Silent past 0.2 + 1.0 s: the quick stop, which holds until ~/enable.
-            spin_until(
-                executor,
-                lambda: probe.shows(DiagnosticStatus.ERROR, "quick stop"),
-                "ERROR: quick stop after the silence",
-            )
-            assert "~/enable" in probe.message()
-            assert probe.value("command_losses") == "2"
+            status = probe.wait_for(BRIDGE, ERROR, "quick stop")
+            assert "~/enable" in status.message
+            assert probe.value(BRIDGE, "command_losses") == "2"
         finally:
             bridge.destroy_node()
             probe.node.destroy_node()
@@ -141,27 +100,15 @@ def test_a_second_publisher_of_joint_states_is_an_error_on_the_bridge() -> None:
     """Another node publishing joint_states beside the bridge: ERROR naming it, then clear."""
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, auto_enable=False)
-        probe = DriveStatus(ctx, executor)
+        probe = Diagnostics(ctx, executor)
         other = Node("second_plant", context=ctx)
         try:
-            spin_until(
-                executor, lambda: probe.shows(DiagnosticStatus.OK, "running"), "bridge OK first"
-            )
+            probe.wait_for(BRIDGE, OK, "running")
             publisher = other.create_publisher(JointState, ri.JOINT_STATES, 10)
-            spin_until(
-                executor,
-                lambda: probe.shows(
-                    DiagnosticStatus.ERROR, "another node publishes joint_states: /second_plant"
-                ),
-                "ERROR naming /second_plant",
-            )
-            assert "/second_plant" in probe.value("other_publishers")
+            probe.wait_for(BRIDGE, ERROR, "another node publishes joint_states: /second_plant")
+            assert "/second_plant" in probe.value(BRIDGE, "other_publishers")
             other.destroy_publisher(publisher)
-            spin_until(
-                executor,
-                lambda: probe.shows(DiagnosticStatus.OK, "running"),
-                "OK again once the other publisher is gone",
-            )
+            probe.wait_for(BRIDGE, OK, "running")
         finally:
             bridge.destroy_node()
             other.destroy_node()
@@ -172,28 +119,20 @@ def test_every_emcy_shows_on_the_drive_status_decoded_to_text() -> None:
     """An advisory EMCY is a WARN with its text and count; a drive fault's is an ERROR."""
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, auto_enable=False)
-        probe = DriveStatus(ctx, executor, "lca_hil/can_bridge/pivot")
+        probe = Diagnostics(ctx, executor)
         injector = can.Bus(interface="virtual", channel=bridge.params.channel)
         try:
-            spin_until(executor, lambda: probe.latest is not None, "a pivot status")
+            probe.wait_for(PIVOT, OK, "")
 
             def emcy(code: int) -> None:
                 data = [code & 0xFF, code >> 8, 0x10, 0, 0, 0, 0, 0]
                 injector.send(can.Message(arbitration_id=0x82, data=data, is_extended_id=False))
 
             emcy(0x8220)
-            spin_until(
-                executor,
-                lambda: probe.shows(DiagnosticStatus.WARN, "EMCY 0x8220 PDO length exceeded"),
-                "WARN with the advisory EMCY's text",
-            )
-            assert "(1 received)" in probe.message()
+            status = probe.wait_for(PIVOT, WARN, "EMCY 0x8220 PDO length exceeded")
+            assert "(1 received)" in status.message
             emcy(0x2310)
-            spin_until(
-                executor,
-                lambda: probe.shows(DiagnosticStatus.ERROR, "EMCY 0x2310 continuous over-current"),
-                "ERROR with the latched EMCY's text",
-            )
+            probe.wait_for(PIVOT, ERROR, "EMCY 0x2310 continuous over-current")
         finally:
             injector.shutdown()
             bridge.destroy_node()
