@@ -433,7 +433,7 @@ def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_a_flush_perio
     tmp_path: Path,
 ) -> None:
     """Item 8: "`kill -9` of `lca-record` left a bag that no tool of ours could open"."""
-    from lca_sim.cli.bagplot import read_bag
+    from lca_sim.cli.bagplot import BagReadError, read_bag
 
     lca_record = str(BIN / "lca-record")
     bag = tmp_path / "killed"
@@ -481,6 +481,8 @@ def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_a_flush_perio
         proc.wait(timeout=RECORD_TIMEOUT_S)
     assert proc.returncode == -9
     assert not (bag / "metadata.yaml").exists()  # the recorder did not close the bag
+    with pytest.raises(BagReadError, match="lca-record --recover"):
+        read_bag(bag)  # lca-plot names the fix instead of "not a bag"
 
     recovered = support.run_tool("lca-record", "--recover", str(bag), timeout_s=RECORD_TIMEOUT_S)
     assert recovered.returncode == 0, recovered.stderr

@@ -161,6 +161,11 @@ def read_bag(path: Path, namespace: str = "/", time_base: str = "auto") -> BagDa
     if not path.is_dir():
         raise BagReadError(f"bag {path}: no such folder")
     if not (path / "metadata.yaml").is_file():
+        if any(path.glob("*.mcap")):  # what a recorder killed before it closed leaves behind
+            raise BagReadError(
+                f"bag {path}: MCAP data but no metadata.yaml (a recording cut short, e.g. "
+                f"by SIGKILL): `lca-record --recover {path}` makes it readable"
+            )
         raise BagReadError(f"bag {path}: not a rosbag2 bag (no metadata.yaml)")
     data = BagData()
     try:
