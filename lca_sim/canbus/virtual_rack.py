@@ -30,7 +30,9 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   then sends its heartbeat every 0x1017 ms. NMT reset node / reset communication boot it again
   with the objects (all of them / 0x1000-0x1FFF) back at their defaults.
 * PDOs are processed only in NMT OPERATIONAL; RPDOs received in another state are counted and
-  dropped. An RPDO whose length differs from its mapping is counted and dropped.
+  dropped. An RPDO whose length differs from its mapping is counted and dropped, with EMCY
+  0x8210 (short) / 0x8220 (long) once per run (CiA 301). SDO is not answered in STOPPED.
+  29-bit, CAN FD, remote and error frames are counted and ignored (classical 11-bit nodes).
 * Time is SYNC driven. On each SYNC (COB-ID 0x80), in this order: (1) every synchronous RPDO
   (transmission type 0-240) received since the previous SYNC is applied, the latest frame of
   each RPDO winning; (2) the synchronous TPDOs are sent, carrying the state at the SYNC (the
@@ -40,6 +42,8 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   shows in the TPDOs of SYNC k+1. The four nodes share one plant and one time base: the
   largest 0x1006 of the four sets the step (a master writes the same value to all). Without
   SYNC the plant does not move. Event-driven RPDOs (type 254/255) are applied on reception.
+  SYNCs faster than 0x1006 allows (a second producer) do not advance the plant: counted, EMCY
+  0x8100 once per episode (`cia402.admit_sync`).
 * TPDOs: type 0 at a SYNC when their data changed, 1-240 every n-th SYNC, 254/255 when their
   data changed (checked after every SYNC and every `MONITOR_PERIOD_S`; inhibit time sub 3) and
   at least every event timer (sub 5) ms. TPDO3 (0x2010-0x2013) is type 254 with 100 ms;
@@ -53,11 +57,14 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   in OPERATIONAL; 0 = off), SYNC loss (no SYNC processed for `sync_loss_periods` x 0x1006 while
   OPERATIONAL and OPERATION ENABLED; 0x1006 = 0: off). Each sets 0x603F and 0x1001, sends an
   EMCY (0x8130, 0x8250, 0x8700) and applies the 0x6007 reaction (default 1: fault) if the drive
-  can produce torque (OPERATION ENABLED, QUICK STOP ACTIVE). NMT stop applies the 0x6007
-  reaction too (no EMCY in STOPPED). A rising edge of controlword bit 7 clears 0x603F / 0x1001
-  (with an EMCY "error reset", code 0) and leaves FAULT. Time this process stands still (a
-  monitor tick later than `FREEZE_THRESHOLD_S`: the GIL held, the host paused) is not counted
-  against the master: the armed deadlines move on by it (`process_freezes` counts it).
+  can produce torque (OPERATION ENABLED, QUICK STOP ACTIVE), then move the NMT state as 0x1029
+  sub 1 says (default 1: no change). Leaving OPERATIONAL, NMT stop and reset communication
+  apply the 0x6007 reaction too (0x603F = 0xFF01 where it acted; no EMCY in STOPPED). A rising
+  edge of controlword bit 7 clears 0x603F / 0x1001 (with an EMCY "error reset", code 0) and
+  leaves FAULT. Time this process stands still (a monitor tick later than
+  `FREEZE_THRESHOLD_S`: the GIL held, the host paused) is not counted against the master, up
+  to `max_stall_discount_s`: the armed deadlines move on by it; every stall is counted
+  (`process_freezes`, 0x2020, longest in 0x2021) and one beyond the bound sends EMCY 0xFF02.
 * PDO remapping over SDO, the standard way: set COB-ID bit 31, mapping sub 0 = 0, write the
   entries, sub 0 = their number, clear bit 31. Mapping writes while the PDO is valid, entries
   while sub 0 != 0, unmappable objects and more than 64 bits are refused with an SDO abort.
@@ -179,6 +186,8 @@ class RackConfig:
         encoder_increments_per_rev: 0x608F sub 1, motor side.
         sync_loss_periods: SYNC loss after this many 0x1006 periods without a SYNC.
         max_stall_discount_s: the most of one stall of this process the watchdogs discount.
+        eds_path: the EDS the nodes' object dictionaries are read from ("" = the shipped
+            config/can/lca_drive.eds); it must declare the objects of `lca_sim.cia402.objects`.
         axes: the drives, in the robot's axis order.
         source: the file it came from (for messages).
     """
@@ -192,6 +201,7 @@ class RackConfig:
     sync_loss_periods: float
     axes: tuple[AxisConfig, ...]
     max_stall_discount_s: float = DEFAULT_MAX_STALL_DISCOUNT_S
+    eds_path: str = ""
     source: str = ""
 
     @property
@@ -243,6 +253,12 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
     max_stall_discount_s = top.number(
         "max_stall_discount_s", default=DEFAULT_MAX_STALL_DISCOUNT_S, min_value=0.0, max_value=60.0
     )
+    eds = top.string("eds_path") if top.has("eds_path") else ""
+    if eds:
+        eds_file = Path(eds) if Path(eds).is_absolute() or base_dir is None else base_dir / eds
+        if not eds_file.is_file():
+            raise ConfigError(source, "eds_path", f"expected an EDS file, {eds_file} is none")
+        eds = str(eds_file.resolve())
     axes_reader = top.sub("axes")
     axes: list[AxisConfig] = []
     names = axes_reader.key_names()
@@ -283,6 +299,7 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         sync_loss_periods=sync_loss,
         axes=tuple(order),
         max_stall_discount_s=max_stall_discount_s,
+        eds_path=eds,
         source=source,
     )
 
@@ -545,7 +562,7 @@ class VirtualDriveRack:
         self._longest_stall_s = 0.0  # 0x2021
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
-        eds = str(eds_path())
+        eds = config.eds_path or str(eds_path())
         for joint_index, axis_config in enumerate(config.axes):
             plant_index = self._sim.axis_names.index(axis_config.name)
             dictionary = canopen.objectdictionary.import_od(eds, axis_config.node_id)

@@ -16,17 +16,26 @@ import struct
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import replace
+from dataclasses import fields, replace
+from pathlib import Path
 
 import can
 import canopen
 import pytest
 from can.interfaces.virtual import VirtualBus
+from support import CONFIG
 from test_virtual_drive import Probe, emcy_code, enable, nmt, remote, sync, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.canbus.virtual_rack import (
+    AxisConfig,
+    RackConfig,
+    VirtualDriveRack,
+    load_rack_config,
+)
+from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
+from lca_sim.errors import ConfigError
 
 PIVOT = 2
 L_ARM = 1
@@ -353,3 +362,38 @@ def test_item_11_the_in_process_entry_point_settles_the_heap(
             assert rack.node("pivot") is not None
     finally:
         bus.shutdown()
+
+
+def _doc_table_column(text: str, heading: str) -> list[str]:
+    """The first column (backticks stripped) of the first table after `heading` in a doc."""
+    after = text[text.index(heading) :]
+    block = after[after.index("\n|") + 1 :].split("\n\n")[0]
+    return [line.split("|")[1].strip().strip("`") for line in block.splitlines()[2:]]
+
+
+def test_item_12_every_rack_config_key_and_emcy_code_is_documented() -> None:
+    """docs/can.md lists exactly the rack.yaml keys the loader takes, and every EMCY code."""
+    text = (CONFIG.parent / "docs" / "can.md").read_text()
+    documented = set(_doc_table_column(text, "## The virtual drive rack"))
+    top = {f.name for f in fields(RackConfig)} - {"source"}
+    axis = {f"axes.<axis>.{f.name}" for f in fields(AxisConfig)} - {"axes.<axis>.name"}
+    assert documented == top | axis
+    codes = {int(c, 16) for c in _doc_table_column(text, "### EMCY codes the rack sends")}
+    sent = {v for k, v in vars(device).items() if k.startswith("EMCY_")}
+    assert codes == sent
+
+
+def test_eds_path_key_is_resolved_against_the_rack_file(tmp_path: Path) -> None:
+    """`eds_path` relative to the rack file; a missing file is a one-line ConfigError."""
+    shipped = CONFIG / "can" / "rack.yaml"
+    (tmp_path / "drive.eds").write_text((CONFIG / "can" / "lca_drive.eds").read_text())
+    rack_yaml = tmp_path / "rack.yaml"
+    rack_yaml.write_text(
+        shipped.read_text().replace("robot: default", "robot: default\neds_path: drive.eds")
+    )
+    assert load_rack_config(rack_yaml).eds_path == str(tmp_path / "drive.eds")
+    rack_yaml.write_text(
+        shipped.read_text().replace("robot: default", "robot: default\neds_path: none.eds")
+    )
+    with pytest.raises(ConfigError, match="eds_path"):
+        load_rack_config(rack_yaml)
