@@ -567,6 +567,10 @@ class VirtualDriveRack:
             plant_index = self._sim.axis_names.index(axis_config.name)
             dictionary = canopen.objectdictionary.import_od(eds, axis_config.node_id)
             node = canopen.LocalNode(axis_config.node_id, dictionary)
+            # canopen 2.4's SDO server starts with no multiplexer (None), and its abort cannot be
+            # packed then: a segment request before any transfer raised instead of being
+            # answered with an abort (CiA 301 7.2.4.3.17), found by tests/.../test_rack_fuzz.py.
+            node.sdo._index, node.sdo._subindex = 0, 0
             axis_params = robot.axes[plant_index]
             k_t = axis_params.motor.torque_constant_nm_per_a
             axis = _Axis(

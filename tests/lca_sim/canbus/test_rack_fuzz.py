@@ -1,0 +1,276 @@
+"""Whatever arrives on the bus, the virtual drive rack keeps running and applies no torque.
+
+A property-based test (hypothesis): random frame sequences (random 11- and 29-bit identifiers,
+lengths 0-8 and wrong ones, remote, CAN FD and error frames, floods of SDO requests and NMT
+commands, SYNC bursts, heartbeats, RPDOs of the wrong length) are thrown at one running rack on
+python-can's virtual bus. After each sequence the rack must still answer, no handler may have
+failed, and no axis may be enabled or carry current: the sequences hold no command a master
+gives (no well-formed RPDO, no SDO download), so any torque would be one nobody commanded. Then
+the rack must still boot (NMT reset node), and the lca_hil bridge's master (`Cia402Master`)
+must configure it, enable it, move an axis with a current command and stop it again.
+
+Bounded: a few dozen sequences of at most 120 frames, well under 20 s on a shared machine.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import struct
+import time
+from collections.abc import Iterator
+
+import can
+import canopen
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_virtual_drive import Probe, wait_until
+
+from lca_sim import RobotParams
+from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.virtual_rack import VirtualDriveRack, eds_path, load_rack_config
+from lca_sim.cia402.device import PowerState
+
+JOINTS = ("l_arm", "pivot", "c_arc", "lift")
+NODE_IDS = (1, 2, 3, 4)
+_channels = itertools.count()
+
+# --- the frames ------------------------------------------------------------------------------
+
+_any_data = st.binary(min_size=0, max_size=8)
+_node = st.sampled_from([0, 1, 2, 3, 4, 5, 127])
+
+# Any 11-bit identifier, with the CANopen function codes of these nodes weighted in.
+_standard_id = st.one_of(
+    st.integers(0, 0x7FF),
+    st.sampled_from([0x000, 0x080, 0x081, 0x082, 0x182, 0x282, 0x582, 0x602, 0x701, 0x77F]),
+)
+
+
+def _message(arbitration_id: int, data: bytes, **kwargs: bool) -> can.Message:
+    return can.Message(arbitration_id=arbitration_id, data=data, **kwargs)
+
+
+def _not_a_download(data: bytes) -> bool:
+    """An SDO request that writes nothing: not an initiate or segment download, block download."""
+    return not data or (data[0] & 0xE0) not in (0x00, 0x20, 0xC0)
+
+
+_random_standard = st.builds(
+    lambda i, d: _message(i, d, is_extended_id=False),
+    _standard_id.filter(lambda i: not 0x200 <= i <= 0x57F and not 0x600 <= i <= 0x67F),
+    _any_data,
+)
+_random_extended = st.builds(
+    lambda i, d: _message(i, d, is_extended_id=True), st.integers(0, 0x1FFFFFFF), _any_data
+)
+_remote = st.builds(
+    lambda i, n: can.Message(arbitration_id=i, is_remote_frame=True, dlc=n, is_extended_id=False),
+    _standard_id,
+    st.integers(0, 8),
+)
+_fd = st.builds(
+    lambda i, d: _message(i, d, is_extended_id=False, is_fd=True),
+    _standard_id,
+    st.binary(min_size=0, max_size=64),
+)
+_error_frame = st.builds(
+    lambda c: can.Message(arbitration_id=c, is_error_frame=True, dlc=8, data=bytes(8)),
+    st.integers(0, 0x1FFFFFFF),
+)
+# RPDO COB-IDs (0x200-0x4FF + node) with any length but the mapped one (4 bytes for RPDO1):
+# a well-formed RPDO is a master's command, which this test does not give.
+_bad_rpdo = st.builds(
+    lambda base, node, d: _message(base + node, d, is_extended_id=False),
+    st.sampled_from([0x200, 0x300, 0x400, 0x500]),
+    _node,
+    st.binary(min_size=0, max_size=8).filter(lambda d: len(d) != 4),
+).filter(lambda m: not (0x300 <= m.arbitration_id <= 0x37F and len(m.data) == 3))
+# SDO requests that read or abort (any length), never writes.
+_sdo = st.builds(
+    lambda node, d: _message(0x600 + node, d, is_extended_id=False),
+    _node,
+    st.one_of(
+        st.builds(
+            lambda index, sub: struct.pack("<BHB4x", 0x40, index, sub),
+            st.sampled_from([0x1000, 0x1001, 0x1017, 0x1029, 0x1800, 0x6041, 0x6064, 0x2020]),
+            st.integers(0, 8),
+        ),
+        _any_data.filter(_not_a_download),
+    ),
+)
+_nmt = st.builds(
+    lambda cmd, node, extra: _message(0x000, bytes([cmd, node]) + extra, is_extended_id=False),
+    st.sampled_from([0x01, 0x02, 0x80, 0x81, 0x82, 0x00, 0xFF]),
+    _node,
+    st.sampled_from([b"", b"", b"", b"\x00"]),
+)
+_sync = st.builds(
+    lambda d: _message(0x080, d, is_extended_id=False), st.sampled_from([b"", b"\x01", b"\x01\x02"])
+)
+_heartbeat = st.builds(
+    lambda node, d: _message(0x700 + node, d, is_extended_id=False),
+    st.sampled_from([1, 2, 5, 127]),
+    st.sampled_from([b"\x05", b"\x7f", b"", b"\x05\x05"]),
+)
+_frame = st.one_of(
+    _random_standard, _random_extended, _remote, _fd, _error_frame, _bad_rpdo, _sdo, _nmt,
+    _sync, _heartbeat,
+)  # fmt: skip
+_flood = st.builds(lambda f, n: [f] * n, st.one_of(_sdo, _nmt, _sync), st.integers(10, 60))
+_START_ALL = can.Message(arbitration_id=0x000, data=[0x01, 0], is_extended_id=False)
+# Half the sequences start with every node OPERATIONAL, where PDOs and SYNCs do the most.
+_sequence = st.tuples(
+    st.booleans(),
+    st.lists(st.one_of(_frame.map(lambda f: [f]), _flood), min_size=4, max_size=16),
+).map(lambda t: ([_START_ALL] if t[0] else []) + [f for chunk in t[1] for f in chunk][:120])
+
+
+# --- the rig ---------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def channel() -> str:
+    """A virtual channel no other test uses."""
+    return f"test_rack_fuzz_{os.getpid()}_{next(_channels)}"
+
+
+@pytest.fixture
+def probe(channel: str) -> Iterator[Probe]:
+    """The frame recorder and injector."""
+    recorder = Probe(channel)
+    try:
+        yield recorder
+    finally:
+        recorder.close()
+
+
+@pytest.fixture
+def rack(channel: str, probe: Probe, default_robot: RobotParams) -> Iterator[VirtualDriveRack]:
+    """The shipped rack, started; stopped whatever happens."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    drives = VirtualDriveRack(bus, load_rack_config(None), robot=default_robot)
+    try:
+        drives.start()
+        yield drives
+    finally:
+        drives.stop()
+        bus.shutdown()
+
+
+def _settled(rack: VirtualDriveRack, probe: Probe) -> None:
+    """Wait until the rack has handled every frame sent so far (it answers a later request).
+
+    NMT enter pre-operational for all, then an SDO upload of 0x1000 from l_arm: frames of one
+    bus are handled in order, so its answer means everything before it was handled.
+    """
+    mark = probe.mark()
+    probe.send(0x000, bytes([0x80, 0]))
+    probe.send(0x601, struct.pack("<BHB4x", 0x40, 0x1000, 0))
+    wait_until(
+        lambda: any(d[:1] == b"\x43" for d in probe.seen(0x581, mark)), "the rack answers again"
+    )
+
+
+def _no_torque(rack: VirtualDriveRack) -> None:
+    for name in JOINTS:
+        assert rack.power_state(name) is not PowerState.OPERATION_ENABLED, name
+    currents_a = rack.plant_state().current_a
+    assert all(abs(i) < 1e-6 for i in currents_a), currents_a
+
+
+def _bridge_params(robot: RobotParams) -> BridgeParams:
+    axes = {a.name: a for a in robot.axes}
+    return BridgeParams(
+        joints=JOINTS,
+        node_ids=NODE_IDS,
+        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
+        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
+        drive_state_names=robot.state_machine.state_names,
+        cycle_hz=250.0,
+        # room for a shared 2-core machine's stalls, as in test_can_bridge.py
+        rpdo_deadline_ms=500,
+        heartbeat_consumer_ms=1000,
+        stale_timeout_s=0.5,
+    )
+
+
+# --- the test --------------------------------------------------------------------------------
+
+
+def test_random_frames_then_the_master_still_boots_enables_moves_and_stops(
+    rack: VirtualDriveRack, probe: Probe, channel: str, default_robot: RobotParams
+) -> None:
+    """Random frames: the rack survives, applies no torque, then boots, enables, moves, stops."""
+    _settled(rack, probe)
+    # A master has set the cycle (0x1006 = 2 ms), so SYNC floods are early SYNCs too (until a
+    # random NMT reset puts it back to 0).
+    mark = probe.mark()
+    for node_id in NODE_IDS:
+        probe.send(0x600 + node_id, struct.pack("<BHBI", 0x23, 0x1006, 0, 2000))
+        probe.wait(0x580 + node_id, mark)
+    started_s = time.monotonic()
+
+    @settings(
+        max_examples=150,
+        deadline=None,
+        database=None,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    )
+    @given(frames=_sequence)
+    def throw(frames: list[can.Message]) -> None:
+        for msg in frames:
+            probe.bus.send(msg)
+        _settled(rack, probe)
+        _no_torque(rack)
+        assert rack.counters.handler_errors == 0
+
+    throw()
+    assert time.monotonic() - started_s < 20.0  # the bound this module promises
+    counters = rack.counters
+    assert counters.extended_frames > 0 and counters.fd_frames > 0 and counters.bad_frames > 0
+
+    # Still boots: NMT reset node, four boot-up messages.
+    mark = probe.mark()
+    probe.send(0x000, bytes([0x81, 0]))
+    for node_id in NODE_IDS:
+        assert probe.wait(0x700 + node_id, mark) == b"\x00"
+
+    # Enables, moves and stops on the bridge master's command.
+    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
+    network.connect()
+    currents_a = [0.0] * len(JOINTS)
+    bridge: Cia402Master | None = None
+
+    def feed(_snapshot: Snapshot) -> None:  # a controller answering every state
+        assert bridge is not None
+        bridge.set_currents(currents_a)
+
+    bridge = Cia402Master(network, _bridge_params(default_robot), eds_path(), on_state=feed)
+    try:
+        bridge.init()
+        bridge.start()
+        bridge.set_currents(currents_a)
+        assert bridge.enable(True) == "enabling"
+        wait_until(
+            lambda: all(rack.power_state(j) is PowerState.OPERATION_ENABLED for j in JOINTS),
+            "every drive enabled",
+        )
+        cycles = bridge.counters.complete_cycles
+        wait_until(lambda: bridge.counters.complete_cycles > cycles + 25, "25 cycles enabled")
+        assert all(abs(i) < 0.05 for i in rack.plant_state().current_a)  # none commanded
+        start_position = rack.plant_state().position[0]
+        currents_a[0] = 3.0  # l_arm: 3 A x 0.15 N m/A beats the static friction
+        wait_until(lambda: rack.plant_state().position[0] > start_position + 0.01, "l_arm moving")
+        currents_a[0] = 0.0
+        assert bridge.enable(False) == "disabling"
+        wait_until(
+            lambda: all(rack.power_state(j) is not PowerState.OPERATION_ENABLED for j in JOINTS),
+            "every drive disabled",
+        )
+        wait_until(lambda: all(abs(i) < 0.05 for i in rack.plant_state().current_a), "no current")
+        assert bridge.latched_reason() == ""
+    finally:
+        bridge.stop()
+        network.disconnect()
