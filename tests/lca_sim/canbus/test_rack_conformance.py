@@ -243,20 +243,22 @@ def test_item_05_leaving_operational_applies_the_communication_error_reaction(
 ) -> None:
     """Enabled with a torque in OPERATIONAL, then NMT pre-operational: EMCY, FAULT, 0 A."""
     node = remote(master, PIVOT)
-    node.sdo[0x1006].raw = 2000
+    # 20 ms cycle: SYNC loss (10 periods) leaves room for a shared machine between the SYNCs
+    node.sdo[0x1006].raw = 20_000
     nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     for controlword in (0x06, 0x07, 0x0F):
         probe.send(0x202, struct.pack("<Hh", controlword, 0))
         sync(rack, probe)
     assert rack.power_state("pivot") is PowerState.OPERATION_ENABLED
     probe.send(0x202, struct.pack("<Hh", 0x0F, 500))
-    sync(rack, probe, 20)
+    sync(rack, probe, 3)  # 60 ms of plant time (9 SYNCs in all: within the burst allowance)
     assert rack.plant_state().current_a[1] > 1.0
     mark = probe.mark()
     nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
     assert emcy_code(probe.wait(0x82, mark)) == (0xFF01, 0x11)
     assert rack.power_state("pivot") is PowerState.FAULT
-    sync(rack, probe, 20)
+    sync(rack, probe, 3)
+    assert rack.counters.syncs_too_fast == 0
     assert abs(rack.plant_state().current_a[1]) < 0.05
 
 
