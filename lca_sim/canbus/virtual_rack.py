@@ -1044,8 +1044,14 @@ class VirtualDriveRack:
     # --- NMT -------------------------------------------------------------------------------
 
     def _reset(self, axis: _Axis, communication_only: bool, now: float) -> None:
-        """Objects back to their defaults (0x1000-0x1FFF only for reset communication)."""
+        """Objects back to their defaults (0x1000-0x1FFF only for reset communication).
+
+        Reset communication keeps 0x1001: the error register reports the drive's errors (0x603F
+        and the FAULT it is in survive the reset), it is not a communication parameter.
+        """
         for key, default in axis.defaults.items():
+            if communication_only and key == (od.ERROR_REGISTER, 0):
+                continue
             if not communication_only or key[0] < 0x2000:
                 axis.values[key] = default
         for index in list(axis.node.data_store):

@@ -236,6 +236,14 @@ def test_item_09_a_fault_entered_through_nmt_stop_sets_the_error_code(
     assert node.sdo[0x1001].raw == 0x11
     nmt(rack, probe, 0x02, L_ARM, "STOPPED")  # a drive that produced no torque: no error
     assert rack.faults["l_arm"] == 0
+    lift = remote(master, 4)  # reset communication of an enabled drive: the same fault
+    enable(lift)
+    mark = probe.mark()
+    probe.send(0x000, bytes([0x82, 4]))
+    probe.wait(0x704, mark)  # its boot-up message
+    assert rack.power_state("lift") is PowerState.FAULT
+    assert lift.sdo[0x603F].raw == 0xFF01
+    assert lift.sdo[0x1001].raw == 0x11
 
 
 def test_item_05_leaving_operational_applies_the_communication_error_reaction(
