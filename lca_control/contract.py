@@ -23,6 +23,10 @@ Topics (`PLANT_PUBLISHES`, `PLANT_SUBSCRIBES`; QoS as plain values in `QosSpec`)
   runs in the drive.
 * `voltage_commands` (std_msgs/Float64MultiArray, controller): V per joint. A plant that cannot
   take voltages (a CiA 402 drive takes torque) still subscribes, to count and refuse them.
+* `velocity_commands` (std_msgs/Float64MultiArray, controller): the velocity setpoint its
+  velocity loop follows at this state, rad/s (m/s) per joint, published only while something
+  subscribes. A plant whose drives close the velocity loop themselves (the CAN bridge with an
+  axis in CiA 402 cyclic synchronous velocity) takes it instead of the current.
 * `velocity_reference` (std_msgs/Float64MultiArray, user -> controller): rad/s (m/s) per joint.
 
 Joint order: every state message of a plant names all its joints in the robot's axis order
@@ -65,6 +69,7 @@ CLOCK = "/clock"
 VOLTAGE_COMMANDS = "voltage_commands"
 CURRENT_COMMANDS = "current_commands"
 VELOCITY_REFERENCE = "velocity_reference"
+VELOCITY_COMMANDS = "velocity_commands"
 
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
@@ -126,6 +131,7 @@ PLANT_PUBLISHES: tuple[TopicSpec, ...] = (
 PLANT_SUBSCRIBES: tuple[TopicSpec, ...] = (
     TopicSpec(CURRENT_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
     TopicSpec(VOLTAGE_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
+    TopicSpec(VELOCITY_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS, required=False),
 )
 
 # Units of the JointState fields (revolute joint; a prismatic one reads m, m/s, N).

@@ -259,6 +259,7 @@ class JointController:
         self._last_t_s = t_s
         n = len(p.joints)
         if not p.enabled:
+            self.last_velocity_reference = [0.0] * n  # a drive closing the loop holds still
             return [0.0] * n
         references = self.velocity_references(t_s, positions)
         self.last_velocity_reference = references

@@ -73,6 +73,9 @@ class ControllerNode(Node):
             ri.VOLTAGE_COMMANDS if params.command_interface == "voltage" else ri.CURRENT_COMMANDS
         )
         self._command_pub = self.create_publisher(Float64MultiArray, topic, command_qos)
+        self._velocity_pub = self.create_publisher(
+            Float64MultiArray, ri.VELOCITY_COMMANDS, command_qos
+        )
         self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
         self.create_subscription(JointState, ri.JOINT_STATES, self._on_joint_states, state_qos)
         if params.command_interface == "voltage":
@@ -143,6 +146,8 @@ class ControllerNode(Node):
             return
         self._plant_t_s = t_s
         self._command_pub.publish(Float64MultiArray(data=commands))
+        if self._velocity_pub.get_subscription_count():  # a plant closing velocity loops
+            self._velocity_pub.publish(Float64MultiArray(data=self.core.last_velocity_reference))
         self.commands_sent += 1
 
     def _joint_index(self, names: list[str]) -> list[int] | None:

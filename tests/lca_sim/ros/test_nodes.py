@@ -6,6 +6,7 @@ spinning, and never sleeps a fixed time.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -280,3 +281,36 @@ def test_reset_and_enable_services() -> None:
         t0 = sim.sim_time_s
         spin_until(executor, lambda: sim.sim_time_s > t0 + 0.2)
         assert np.all(sim.sim.signal_array[2] == 0.0)  # voltage row: 0 V everywhere
+
+
+def test_velocity_commands_follow_the_ramp_for_a_drive_that_closes_the_loop() -> None:
+    """velocity_commands carries the setpoint the controller's velocity loop follows.
+
+    A CSV drive takes it instead of the current: over the ramp the pivot's entry rises with the
+    ramp's velocity (no position loop in the shipped parameters), the other joints' stay 0, and
+    every state answered after the subscription matched has its array.
+    """
+    with ros_context() as (ctx, executor):
+        sim, ctl = _lockstep_pair(ctx, executor)
+        Recorder(ctx, executor)  # the simulator waits for two joint_states subscribers
+        listener = Node("test_velocity_listener", context=ctx)
+        received: list[list[float]] = []
+        listener.create_subscription(
+            Float64MultiArray, "velocity_commands", lambda m: received.append(list(m.data)), 100
+        )
+        executor.add_node(listener)
+        spin_until(executor, lambda: sim.sim_time_s >= 3.0, timeout_s=120.0)
+        spin_until(
+            executor,
+            lambda: received[-1] == ctl.core.last_velocity_reference,
+            "the last setpoint delivered",
+        )
+        ramp = ctl.core.params.profile
+        assert ramp is not None
+        assert len(received) > 500
+        assert ctl.commands_sent - len(received) < 100  # only those before the match are missing
+        assert all(len(v) == 4 and v[0] == v[2] == v[3] == 0.0 for v in received)
+        pivot = [v[1] for v in received]
+        assert all(b >= a for a, b in itertools.pairwise(pivot))  # the ramp rises
+        assert pivot[-1] == pytest.approx(ramp.velocity(3.0), abs=1e-3)
+        assert pivot[-1] > 0.0
