@@ -4,6 +4,7 @@
     lca-hil paper --out out/paper          # every figure (--no-ros: without Fig. 15 and rclpy)
     lca-hil tune --axis pivot              # section 6 tuning
     lca-hil identify RESULT --axis pivot   # efficiencies from recorded motion
+    lca-hil run --out out/run              # the nodes' closed loop in one process, no ROS
 
 Only `fig15` (and `paper` with Fig. 15) imports rclpy, and only when it runs, so the other
 sub-commands work where ROS 2 is not installed; there, those two exit 2 with one error line.
@@ -17,6 +18,7 @@ from pathlib import Path
 
 from lca_sim.cli import identify as identify_cli
 from lca_sim.cli import paper as paper_cli
+from lca_sim.cli import run as run_cli
 from lca_sim.cli import tune
 from lca_sim.cli.ros_guard import ros_required
 from lca_sim.errors import run_guarded
@@ -32,11 +34,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     tune.add_parser(sub)
     paper_cli.add_parser(sub)
     identify_cli.add_parser(sub)
+    run_cli.add_parser(sub)
     args = parser.parse_args(argv)
     if args.command == "identify":
         return identify_cli.run(args)
     if args.command == "tune":
         return tune.run(args)
+    if args.command == "run":
+        return run_cli.run(args)
     if args.command == "paper":
         return paper_cli.run(args)
     return run_guarded("lca-hil fig15", lambda: _fig15(args))

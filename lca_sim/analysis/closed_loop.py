@@ -1,0 +1,304 @@
+"""The composed closed loop: the controller core against the commanded plant, in one process.
+
+`ClosedLoop` runs what the lockstep ROS loop runs (the simulator node with `timing_mode:
+lockstep`, the controller node), without ROS: the same objects, the same numbers, in the same
+order. Per control period, as the nodes do it:
+
+1. the plant's state at model step `k` is "published" with the stamp the simulator node gives
+   it: `k * dt_s` seconds, rounded to whole nanoseconds as `builtin_interfaces/Time` holds it
+   (`stamp_time_s`, the round trip of `lca_sim.ros.node_util.to_stamp` / `from_stamp`);
+2. the controller core (`lca_control.controller.JointController.update`) takes that time and the
+   joint positions, velocities and (voltage interface) armature currents, in its own joint
+   order, exactly the float64 values `joint_states` / `motor_states` carry;
+3. the plant (`lca_sim.model.commanded_plant.CommandedPlant`) takes the command array (a refused
+   one leaves the last good command in force, as in lockstep), then advances one control period
+   of model steps (`substeps_per_period`), or fewer up to the run's end (`lockstep_end_s`).
+
+The run starts as the node does: the `Simulator` with its rigid-body hold, the commanded plant
+around it (its warm-up step rewound), `reset` to the initial pose and `hold_zero`; the first
+state is at t = 0, and the controller's first period is its `nominal_period_s`. It ends with the
+state at the end time; the controller's command on that state is computed (and recorded) but,
+as in lockstep after `lockstep_end_s`, never applied.
+
+So a run of this module and a lockstep run recorded through the nodes are equal to the last bit
+(`tests/lca_sim/analysis/test_closed_loop.py` runs both): JointState and Float64MultiArray carry
+float64, so the only rounding on the way is that of the stamps, which is done here too.
+
+Pure: no ROS, no clock, no files. `lca-hil run` (`lca_sim.cli.run`) builds the config from the
+nodes' parameter files and writes the result.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from lca_control.controller import ControllerParams, JointController
+from lca_control.parameters import ParameterError
+from lca_control.pi import PIParams
+from lca_sim.errors import UnknownNameError
+from lca_sim.model.commanded_plant import VOLTAGE, CommandedPlant
+from lca_sim.model.params import RobotParams
+from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+_NS_PER_S = 1_000_000_000
+
+
+def stamp_time_s(t_s: float) -> float:
+    """Seconds as a `builtin_interfaces/Time` stamp holds them and the controller reads them.
+
+    The arithmetic of `lca_sim.ros.node_util.to_stamp` then `from_stamp` (whole seconds and
+    nanoseconds, then sec + 1e-9 * nanosec), without the message type.
+    """
+    sec = math.floor(t_s)
+    nanosec = round((t_s - sec) * 1e9)
+    if nanosec >= _NS_PER_S:
+        sec, nanosec = sec + 1, nanosec - _NS_PER_S
+    return float(int(sec)) + 1e-9 * float(int(nanosec))
+
+
+@dataclass(frozen=True, slots=True)
+class ClosedLoopConfig:
+    """One composed run: the robot, the controller's parameters and the simulator node's.
+
+    The plant fields are the simulator node's parameters of the same names
+    (`lca_sim.ros.simulator_params`), the ones a lockstep run uses.
+
+    Attributes:
+        robot: the validated robot.
+        controller: the controller node's validated parameters.
+        duration_s: simulated time of the run's last state (`lockstep_end_s`), s: a whole
+            number of model steps; the last period is shorter when it is not a whole number of
+            control periods.
+        joints: the plant's command order (the simulator's `joints`).
+        command_interface: `current` (the current PI runs in the plant at the model rate) or
+            `voltage` (both loops in the controller); the controller's must be the same.
+        dt_s: the model step, s.
+        rigid_body_update_steps: model steps per evaluation of Pinocchio's terms
+            (`rigid_body_period_s` / `dt_s`; the node's default 1 ms is 10).
+        control_period_s: simulated time per command, s: a whole number of model steps.
+        current_kp_v_per_a, current_ti_s: the in-drive current PI (current interface).
+        max_abs_command: commands beyond this magnitude are refused (`max_command_current_a`
+            or `max_command_voltage_v`, by the interface).
+        initial_position: the pose at t = 0, one value per robot axis (rad, m for the lift).
+        plant_enabled: the simulator's `enabled`: false puts 0 V on every axis.
+
+    Raises:
+        ParameterError: a value the lockstep loop could not run with (named as the node's
+            parameter).
+    """
+
+    robot: RobotParams
+    controller: ControllerParams
+    duration_s: float
+    joints: tuple[str, ...]
+    command_interface: str
+    dt_s: float
+    rigid_body_update_steps: int
+    control_period_s: float
+    current_kp_v_per_a: float
+    current_ti_s: float
+    max_abs_command: float
+    initial_position: tuple[float, ...]
+    plant_enabled: bool = True
+
+    def __post_init__(self) -> None:
+        if self.controller.command_interface != self.command_interface:
+            raise ParameterError(
+                "command_interface",
+                f"the controller's ({self.controller.command_interface})",
+                self.command_interface,
+            )
+        if not (math.isfinite(self.dt_s) and self.dt_s > 0.0):
+            raise ParameterError("dt_s", "a positive step", self.dt_s)
+        for name in ("control_period_s", "duration_s"):
+            value = getattr(self, name)
+            steps = value / self.dt_s if math.isfinite(value) else math.nan
+            if not (round(steps) >= 1 and abs(steps - round(steps)) <= 1e-6 * steps):
+                raise ParameterError(name, f"a whole multiple of dt_s = {self.dt_s:g}", value)
+        if len(self.initial_position) != len(self.robot.axes):
+            raise ParameterError(
+                "initial_position",
+                f"{len(self.robot.axes)} positions ({', '.join(self.robot.axis_names)})",
+                self.initial_position,
+            )
+
+    @property
+    def substeps_per_period(self) -> int:
+        """Model steps per control period (as the simulator node rounds it)."""
+        return round(self.control_period_s / self.dt_s)
+
+    @property
+    def end_steps(self) -> int:
+        """Model steps of the whole run (as the node rounds `lockstep_end_s`)."""
+        return round(self.duration_s / self.dt_s)
+
+    @property
+    def n_states(self) -> int:
+        """States of a run: t = 0 and one at the end of every control period."""
+        return 1 + -(-self.end_steps // self.substeps_per_period)
+
+
+@dataclass(frozen=True, slots=True)
+class ClosedLoopResult:
+    """A composed run, one row per state the controller saw (t = 0 and every period's end).
+
+    Per-axis arrays have a column per robot axis (`axes`), per-joint ones a column per
+    controller joint (`joints`).
+
+    Attributes:
+        axes: the robot's axis names (the order of joint_states).
+        joints: the controller's joints (the order of its commands and references).
+        state_names: drive-state names by index (`drive_state`).
+        time_s: the states' stamps as the controller reads them, s (`stamp_time_s`).
+        steps: model steps done at each state.
+        position: joint positions, rad (m for the lift).
+        velocity: joint velocities, rad/s (m/s).
+        current_a: armature currents, A.
+        voltage_v: amplifier voltages of the last model step, V.
+        drive_state: drive-state index per axis.
+        velocity_reference: the controller's velocity reference at each state, rad/s (m/s).
+        command: the controller's command on each state, A or V by `command_interface`; the
+            last row's was not applied (the run had ended).
+        command_interface: `current` or `voltage`.
+        commands_rejected: commands the plant refused (the last good one stayed in force).
+    """
+
+    axes: tuple[str, ...]
+    joints: tuple[str, ...]
+    state_names: tuple[str, ...]
+    time_s: FloatArray
+    steps: IntArray
+    position: FloatArray
+    velocity: FloatArray
+    current_a: FloatArray
+    voltage_v: FloatArray
+    drive_state: IntArray
+    velocity_reference: FloatArray
+    command: FloatArray
+    command_interface: str
+    commands_rejected: int
+
+    def tracking_error(self) -> FloatArray:
+        """Velocity reference minus joint velocity, per state and controller joint."""
+        index = [self.axes.index(j) for j in self.joints]
+        error: FloatArray = self.velocity_reference - self.velocity[:, index]
+        return error
+
+
+class ClosedLoop:
+    """The controller core and the commanded plant of one config, built once, run on demand.
+
+    Construction builds the model (Pinocchio, the compiled kernel) and the plant as the
+    simulator node does; `run` then costs only the loop, so a caller can time it apart.
+
+    Raises:
+        UnknownNameError: a controller or plant joint the robot does not have.
+    """
+
+    def __init__(self, config: ClosedLoopConfig) -> None:
+        self.config = config
+        c = config
+        self.sim = Simulator(
+            c.robot, dt_s=c.dt_s, rigid_body_update_steps=c.rigid_body_update_steps
+        )
+        axes = self.sim.axis_names
+        for joint in (*c.joints, *c.controller.joints):
+            if joint not in axes:
+                raise UnknownNameError("joint", joint, axes)
+        self.plant = CommandedPlant(
+            sim=self.sim,
+            joints=c.joints,
+            interface=c.command_interface,
+            current_pi=PIParams(c.current_kp_v_per_a, c.current_ti_s, -1.0, 1.0),
+            max_abs_command=c.max_abs_command,
+            enabled=c.plant_enabled,
+        )
+        self._index = [axes.index(j) for j in c.controller.joints]
+
+    def run(self) -> ClosedLoopResult:
+        """Run from the initial pose to `duration_s`: the lockstep loop, without ROS.
+
+        Every run starts as the node starts (reset pose, zero commands, a new controller), so
+        two runs of one `ClosedLoop` are equal.
+        """
+        c = self.config
+        sim, plant = self.sim, self.plant
+        axes = sim.axis_names
+        sim.reset(position=dict(zip(axes, c.initial_position, strict=True)))
+        plant.hold_zero()
+        rejected_before = plant.counters.rejected
+        controller = JointController(c.controller)
+        n, n_axes, n_joints = c.n_states, sim.n_axes, len(c.controller.joints)
+        time_s = np.empty(n)
+        steps_done = np.empty(n, dtype=np.int64)
+        position = np.empty((n, n_axes))
+        velocity = np.empty((n, n_axes))
+        current = np.empty((n, n_axes))
+        voltage = np.empty((n, n_axes))
+        drive = np.empty((n, n_axes))
+        reference = np.empty((n, n_joints))
+        command = np.empty((n, n_joints))
+
+        state = sim.state_array  # views, updated in place by every step
+        q_row, v_row, i_row = state[0], state[1], state[2]
+        drive_row = sim.mode_array[1]
+        voltage_row = sim.signal_array[SIGNAL_NAMES.index("voltage_v")]
+        index = self._index
+        voltage_interface = c.command_interface == VOLTAGE
+        update = controller.update
+        advance = plant.advance
+        take = plant.command
+        period = c.substeps_per_period
+        end = c.end_steps
+        dt_s = c.dt_s
+        done = 0
+        for k in range(n):
+            t_s = stamp_time_s(0.0 + done * dt_s)  # the node's time base is 0 in lockstep
+            q, v = q_row.tolist(), v_row.tolist()  # what JointState carries: Python floats
+            positions = [q[i] for i in index]
+            velocities = [v[i] for i in index]
+            currents = None
+            if voltage_interface:
+                amps = i_row.tolist()
+                currents = [amps[i] for i in index]
+            out = update(t_s, positions, velocities, currents)
+            if out is None:  # never: the stamps rise by a control period every time
+                raise RuntimeError(f"the controller skipped the state at {t_s!r} s")
+            time_s[k] = t_s
+            steps_done[k] = done
+            position[k] = q_row
+            velocity[k] = v_row
+            current[k] = i_row
+            voltage[k] = voltage_row
+            drive[k] = drive_row
+            reference[k] = controller.last_velocity_reference
+            command[k] = out
+            if done >= end:
+                break
+            take(out)  # refused: the last good command stays in force, as in lockstep
+            steps = min(period, end - done)
+            advance(steps)
+            done += steps
+        return ClosedLoopResult(
+            axes=axes,
+            joints=c.controller.joints,
+            state_names=sim.state_names,
+            time_s=time_s,
+            steps=steps_done,
+            position=position,
+            velocity=velocity,
+            current_a=current,
+            voltage_v=voltage,
+            drive_state=drive.astype(np.int64),
+            velocity_reference=reference,
+            command=command,
+            command_interface=c.command_interface,
+            commands_rejected=plant.counters.rejected - rejected_before,
+        )

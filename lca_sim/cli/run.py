@@ -1,0 +1,265 @@
+"""`lca-hil run`: the closed loop of the controller and simulator nodes, in one process, no ROS.
+
+    lca-hil run --out out/run                         # Fig. 15's ramp, 13 s
+    lca-hil run --controller-config my_gains.yaml --duration-s 5 --out out/gains
+
+Reads the two nodes' parameter files (config/ros/controller.yaml and simulator.yaml by default),
+runs the composed loop (`lca_sim.analysis.closed_loop`): the same numbers as the lockstep run of
+the two nodes over ROS 2 (`timing_mode` of the simulator's file is not used: the composed loop
+is the lockstep one), and writes trajectory.csv (one row per control period, floats in shortest
+round-trip form) and summary.json (strict JSON: duration, wall time, real-time factor, tracking
+errors, drive-state changes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lca_control.controller import validate_controller_params
+from lca_control.parameters import ParameterError
+from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
+from lca_sim.cli.output import number_cell, write_json, write_table
+from lca_sim.config.loader import config_dir, load_robot, read_yaml
+from lca_sim.errors import EXIT_OK, ConfigError, run_guarded
+from lca_sim.ros.simulator_params import validate_simulator_params
+
+PROG = "lca-hil run"
+DEFAULT_DURATION_S = 13.0  # Fig. 15: 1 s still, the 10 s ramp, 2 s after it
+PARAMS_KEY = "ros__parameters"
+MAX_LISTED_CHANGES = 50  # drive-state changes listed per joint in summary.json
+
+
+def node_parameters(path: Path, node: str) -> dict[str, Any]:
+    """The `ros__parameters` of `node` (or of `/**`) in a ROS 2 params file.
+
+    Raises:
+        ConfigError: the file, and what is missing.
+    """
+    document = read_yaml(path)
+    if not isinstance(document, Mapping):
+        raise ConfigError(str(path), "", "expected a ROS 2 params file (a mapping)")
+    for key in (node, f"/{node}", "/**"):
+        section = document.get(key)
+        if isinstance(section, Mapping) and isinstance(section.get(PARAMS_KEY), Mapping):
+            return dict(section[PARAMS_KEY])
+    raise ConfigError(str(path), node, f"expected {node}: {PARAMS_KEY}: (the node's parameters)")
+
+
+def closed_loop_config(
+    controller_values: Mapping[str, Any],
+    simulator_values: Mapping[str, Any],
+    duration_s: float | None = None,
+) -> ClosedLoopConfig:
+    """The composed run of the two nodes started with these parameter values.
+
+    Every value goes through the node's own validation, so what a node refuses is refused here
+    with the same words. The simulator's `timing_mode` is ignored (this is the lockstep loop).
+
+    Args:
+        controller_values: the controller node's parameters (missing ones at their defaults).
+        simulator_values: the simulator node's.
+        duration_s: simulated time of the run; None takes the simulator's `lockstep_end_s`.
+
+    Raises:
+        ParameterError: a bad value, named as the node's parameter.
+        ConfigError: a bad robot.
+    """
+    controller = validate_controller_params(controller_values)
+    simulator = validate_simulator_params(simulator_values)
+    if duration_s is None:
+        duration_s = simulator.lockstep_end_s
+        if duration_s <= 0.0:
+            raise ParameterError("lockstep_end_s", "a run's end > 0 (or --duration-s)", 0.0)
+    interface = simulator.command_interface
+    return ClosedLoopConfig(
+        robot=load_robot(simulator.robot),
+        controller=controller,
+        duration_s=duration_s,
+        joints=simulator.joints,
+        command_interface=interface,
+        dt_s=simulator.dt_s,
+        rigid_body_update_steps=simulator.rigid_body_update_steps,
+        control_period_s=simulator.control_period_s,
+        current_kp_v_per_a=simulator.current_kp_v_per_a,
+        current_ti_s=simulator.current_ti_s,
+        max_abs_command=(
+            simulator.max_command_voltage_v
+            if interface == "voltage"
+            else simulator.max_command_current_a
+        ),
+        initial_position=simulator.initial_position,
+        plant_enabled=simulator.enabled,
+    )
+
+
+def load_config(
+    controller_path: Path, simulator_path: Path, duration_s: float | None
+) -> ClosedLoopConfig:
+    """`closed_loop_config` from the two params files; a bad value names its file.
+
+    Raises:
+        ConfigError: the file, the parameter and what was expected.
+    """
+    controller_values = node_parameters(controller_path, "controller")
+    simulator_values = node_parameters(simulator_path, "simulator")
+    try:
+        validate_controller_params(controller_values)
+    except ParameterError as exc:
+        raise _in_file(controller_path, "controller", exc) from exc
+    try:
+        validate_simulator_params(simulator_values)
+    except ParameterError as exc:
+        raise _in_file(simulator_path, "simulator", exc) from exc
+    return closed_loop_config(controller_values, simulator_values, duration_s)
+
+
+def _in_file(path: Path, node: str, exc: ParameterError) -> ConfigError:
+    return ConfigError(str(path), f"{node}.{PARAMS_KEY}.{exc.name}", str(exc).split(": ", 1)[1])
+
+
+def trajectory_header(result: ClosedLoopResult) -> list[str]:
+    """trajectory.csv's header: t_s, per axis its state, per controller joint its loop."""
+    unit = "a" if result.command_interface == "current" else "v"
+    axis_columns = ("position", "velocity", "current_a", "voltage_v", "drive_state")
+    return (
+        ["t_s"]
+        + [f"{axis}_{col}" for axis in result.axes for col in axis_columns]
+        + [f"{j}_{col}" for j in result.joints for col in ("velocity_reference", f"command_{unit}")]
+    )
+
+
+def trajectory_rows(result: ClosedLoopResult) -> Iterator[list[str]]:
+    """trajectory.csv's rows (floats in shortest round-trip form: the exact float64 values)."""
+    names = result.state_names
+    for k in range(len(result.time_s)):
+        row = [number_cell(result.time_s[k])]
+        for a in range(len(result.axes)):
+            row += [
+                number_cell(result.position[k, a]),
+                number_cell(result.velocity[k, a]),
+                number_cell(result.current_a[k, a]),
+                number_cell(result.voltage_v[k, a]),
+                names[int(result.drive_state[k, a])],
+            ]
+        for j in range(len(result.joints)):
+            row += [
+                number_cell(result.velocity_reference[k, j]),
+                number_cell(result.command[k, j]),
+            ]
+        yield row
+
+
+def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -> dict[str, Any]:
+    """summary.json: the run, its speed, and per controller joint its tracking and current."""
+    error = result.tracking_error()
+    joints: dict[str, Any] = {}
+    for j, joint in enumerate(result.joints):
+        a = result.axes.index(joint)
+        drive = result.drive_state[:, a]
+        changes = np.flatnonzero(drive[1:] != drive[:-1]) + 1
+        joints[joint] = {
+            "max_abs_tracking_error": float(np.max(np.abs(error[:, j]))),
+            "rms_tracking_error": float(np.sqrt(np.mean(error[:, j] ** 2))),
+            "max_abs_current_a": float(np.max(np.abs(result.current_a[:, a]))),
+            "start_position": float(result.position[0, a]),
+            "end_position": float(result.position[-1, a]),
+            "drive_state_change_count": len(changes),
+            "drive_state_changes": [  # the first MAX_LISTED_CHANGES
+                {
+                    "t_s": float(result.time_s[k]),
+                    "position": float(result.position[k, a]),
+                    "from": result.state_names[int(drive[k - 1])],
+                    "to": result.state_names[int(drive[k])],
+                }
+                for k in changes[:MAX_LISTED_CHANGES]
+            ],
+        }
+    duration_s = float(result.time_s[-1])
+    return {
+        "robot": config.robot.name,
+        "command_interface": config.command_interface,
+        "reference_source": config.controller.reference_source,
+        "duration_s": duration_s,
+        "control_period_s": config.control_period_s,
+        "dt_s": config.dt_s,
+        "rigid_body_update_steps": config.rigid_body_update_steps,
+        "states": len(result.time_s),
+        "commands_rejected": result.commands_rejected,
+        "wall_s": wall_s,
+        "realtime_factor": duration_s / wall_s if wall_s > 0.0 else math.inf,
+        "joints": joints,
+    }
+
+
+def add_parser(sub: Any) -> None:
+    """Register `run` on the lca-hil subcommands (an argparse subparsers object)."""
+    ros = config_dir() / "ros"
+    parser = sub.add_parser(
+        "run",
+        help="the controller and simulator closed loop in one process, without ROS 2",
+        description=__doc__.split("\n\n")[0],
+    )
+    parser.add_argument(
+        "--controller-config",
+        type=Path,
+        default=ros / "controller.yaml",
+        help="the controller node's params file (default: config/ros/controller.yaml)",
+    )
+    parser.add_argument(
+        "--simulator-config",
+        type=Path,
+        default=ros / "simulator.yaml",
+        help="the simulator node's params file (default: config/ros/simulator.yaml)",
+    )
+    parser.add_argument(
+        "--duration-s",
+        type=float,
+        default=DEFAULT_DURATION_S,
+        help=f"simulated seconds (default {DEFAULT_DURATION_S:g}); a whole number of dt_s",
+    )
+    parser.add_argument("--out", type=Path, default=Path("out/run"), help="output folder")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run `lca-hil run` on parsed arguments; returns the exit code."""
+    return run_guarded(PROG, lambda: _run(args))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`lca-hil run ...` on its own (the lca-hil entry point registers `add_parser`)."""
+    parser = argparse.ArgumentParser(prog="lca-hil")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_parser(sub)
+    return run(parser.parse_args(argv))
+
+
+def _run(args: argparse.Namespace) -> int:
+    config = load_config(args.controller_config, args.simulator_config, args.duration_s)
+    loop = ClosedLoop(config)
+    start = time.perf_counter()
+    result = loop.run()
+    wall_s = time.perf_counter() - start
+    out: Path = args.out
+    write_table(out / "trajectory.csv", trajectory_header(result), trajectory_rows(result))
+    report = summary(result, config, wall_s)
+    write_json(out / "summary.json", report)
+    print(
+        f"{PROG}: {report['duration_s']:g} s simulated in {wall_s:.3f} s "
+        f"({report['realtime_factor']:.1f}x real time), {report['states']} states; "
+        f"{out / 'trajectory.csv'}, {out / 'summary.json'}"
+    )
+    for joint, figures in report["joints"].items():
+        if figures["drive_state_changes"] or figures["max_abs_tracking_error"] > 0.0:
+            print(
+                f"  {joint}: max |velocity error| {figures['max_abs_tracking_error']:.4g}, "
+                f"max |current| {figures['max_abs_current_a']:.3g} A, "
+                f"{figures['drive_state_change_count']} drive-state changes"
+            )
+    return EXIT_OK
