@@ -295,9 +295,11 @@ def test_velocity_commands_follow_the_ramp_for_a_drive_that_closes_the_loop() ->
         Recorder(ctx, executor)  # the simulator waits for two joint_states subscribers
         listener = Node("test_velocity_listener", context=ctx)
         received: list[list[float]] = []
-        listener.create_subscription(
-            Float64MultiArray, "velocity_commands", lambda m: received.append(list(m.data)), 100
-        )
+
+        def on_velocities(msg: Float64MultiArray) -> None:
+            received.append(list(msg.data))
+
+        listener.create_subscription(Float64MultiArray, "velocity_commands", on_velocities, 100)
         executor.add_node(listener)
         spin_until(executor, lambda: sim.sim_time_s >= 3.0, timeout_s=120.0)
         spin_until(
