@@ -597,6 +597,16 @@ def test_tune_without_ros(tmp_path: Path) -> None:
     assert params["velocity_kp_a_per_rad_s"] > 0.0 and params["current_kp_v_per_a"] > 0.0
 
 
+def test_closed_loop_run_without_ros(tmp_path: Path) -> None:
+    """`lca-hil run` (the nodes' lockstep loop composed in one process) writes its two files."""
+    out = tmp_path / "run"
+    _ok(_tool("lca-hil", ["run", "--duration-s", "0.2", "--out", str(out)], tmp_path))
+    rows = (out / "trajectory.csv").read_text(encoding="utf-8").splitlines()
+    assert len(rows) == 1 + 51 and rows[0].startswith("t_s,")
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert summary["duration_s"] == 0.2 and summary["realtime_factor"] > 0.0
+
+
 def test_sim_run_and_identify_without_ros(tmp_path: Path) -> None:
     """`lca-sim run` on a 0.5 s scenario writes result.csv/.png; `lca-hil identify` reads it."""
     scenario = tmp_path / "short.yaml"
