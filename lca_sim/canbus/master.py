@@ -33,7 +33,8 @@ import can
 import canopen
 from canopen.sdo.base import SdoArray, SdoRecord
 
-from lca_sim.cia402 import codec, emcy
+from lca_sim.canbus import emcy
+from lca_sim.cia402 import codec
 from lca_sim.cia402 import master as cm
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
@@ -504,17 +505,17 @@ class Cia402Master:
             if code & 0xFF00 == 0:
                 return  # "error reset / no error": nothing to latch
             self.counters.emcy_received += 1
-            if code in emcy.ADVISORY:  # a frame lost or rejected: reported, the axes go on
+            ours = axis.has_drive_state  # lca_hil's virtual drive: its own codes are known
+            if emcy.is_advisory(code, ours):  # a frame lost or refused: reported, axes go on
                 with self._lock:
                     axis.advisory_code = code
                     axis.advisory_count += 1
-                log.warning("EMCY from %s: %s", axis.joint, emcy.describe(code))
+                log.warning("EMCY from %s: %s", axis.joint, emcy.describe(code, ours))
                 return
             with self._lock:
                 axis.emcy_code = code
-            log.error(
-                "EMCY from %s: %s (axes stopped until recover)", axis.joint, emcy.describe(code)
-            )
+            text = emcy.describe(code, ours)
+            log.error("EMCY from %s: %s (axes stopped until recover)", axis.joint, text)
 
         return on_emcy
 
@@ -590,7 +591,11 @@ class Cia402Master:
     def _stop_reason(self) -> str:
         """The latches that quick-stop every axis: EMCY, a stale drive, bus-off."""
         reasons = []
-        latched = [f"{a.joint} {emcy.describe(a.emcy_code)}" for a in self._axes if a.emcy_code]
+        latched = [
+            f"{a.joint} {emcy.describe(a.emcy_code, a.has_drive_state)}"
+            for a in self._axes
+            if a.emcy_code
+        ]
         if latched:
             reasons.append("EMCY " + ", ".join(latched))
         if self._stale:

@@ -46,6 +46,7 @@ from std_srvs.srv import Trigger
 from lca_control import contract as ri
 from lca_control.contract import FloatArray, PlantSnapshot
 from lca_control.parameters import ParameterError
+from lca_sim.canbus import emcy
 from lca_sim.canbus.master import (
     GIL_SWITCH_INTERVAL_S,
     AxisState,
@@ -54,7 +55,6 @@ from lca_sim.canbus.master import (
     Cia402Master,
     Snapshot,
 )
-from lca_sim.cia402 import emcy
 from lca_sim.cia402.master import bus_load_pct
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.errors import ConfigError
@@ -463,12 +463,13 @@ class CanBridgeNode(Node):
         message = power.name.lower() if power else f"statusword 0x{s.statusword:04X}"
         level = DiagnosticStatus.OK
         code, count = advisory
+        ours = self.bridge.has_drive_state()  # lca_hil's drive: its own codes have text
         if code:
             level = DiagnosticStatus.WARN
-            message += f"; EMCY {emcy.describe(code)} ({count} received)"
+            message += f"; EMCY {emcy.describe(code, ours)} ({count} received)"
         if latched:
             level = DiagnosticStatus.ERROR
-            message += f"; EMCY {emcy.describe(latched)}: stopped until ~/recover"
+            message += f"; EMCY {emcy.describe(latched, ours)}: stopped until ~/recover"
         return status(
             f"lca_hil/can_bridge/{joint}",
             level,
@@ -476,8 +477,8 @@ class CanBridgeNode(Node):
             {
                 "statusword": f"0x{s.statusword:04X}",
                 "emcy_code": f"0x{latched:04X}",
-                "emcy_text": emcy.describe(latched) if latched else "none",
-                "advisory_emcy": emcy.describe(code) if code else "none",
+                "emcy_text": emcy.describe(latched, ours) if latched else "none",
+                "advisory_emcy": emcy.describe(code, ours) if code else "none",
                 "advisory_emcy_count": count,
                 "position": s.position,
                 "current_a": s.current_a,

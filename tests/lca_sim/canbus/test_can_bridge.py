@@ -19,9 +19,10 @@ import can
 import canopen
 import pytest
 
+from lca_sim.canbus import emcy
 from lca_sim.canbus.master import CAN_ERR_BUSOFF, BridgeParams, Cia402Master, Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
-from lca_sim.cia402 import device, emcy
+from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir, load_robot
 
@@ -490,12 +491,20 @@ def test_an_advisory_emcy_is_reported_with_its_text_and_the_axes_go_on(
 
 def test_a_latched_emcy_is_named_in_words() -> None:
     """Each code the rack sends has its own text; others fall back to their CiA 301 class."""
-    for name in ("EMCY_HEARTBEAT", "EMCY_RPDO_TIMEOUT", "EMCY_SYNC_LOSS"):
-        code = getattr(device, name)
-        assert code in emcy.SPECIFIC, name
+    sent = {name: getattr(device, name) for name in dir(device) if name.startswith("EMCY_")}
+    assert len(sent) >= 10
+    for name, code in sent.items():
+        assert code in emcy.SPECIFIC or code in emcy.LCA_DRIVE_SPECIFIC, name
     assert emcy.describe(0x8130) == "0x8130 life guard or heartbeat error"
     assert emcy.describe(0x8F01) == "0x8F01 monitoring error"
     assert emcy.describe(0x2391) == "0x2391 current error"
+    # A vendor's 0xFF01 is not ours: only lca_hil's drive gets lca_hil's text for it.
+    assert emcy.describe(0xFF01) == "0xFF01 device specific error"
+    assert "0x6007 reaction" in emcy.describe(0xFF01, lca_drive=True)
+    assert "second SYNC producer" in emcy.describe(0x8100, lca_drive=True)
+    assert emcy.is_advisory(device.EMCY_PROCESS_STALL, lca_drive=True)
+    assert not emcy.is_advisory(device.EMCY_PROCESS_STALL)
+    assert not emcy.is_advisory(device.EMCY_SYNC_TOO_FAST, lca_drive=True)
 
 
 def _map_for_1khz(channel: str) -> None:
