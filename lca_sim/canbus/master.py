@@ -218,6 +218,8 @@ class _Axis:
     cw_age: int = 0  # cycles since `cw_rpdo` was last sent
     cw_var: Any = None
     torque_var: Any = None
+    statuswords_received: int = 0
+    statuswords_at_reset: int = 0  # `statuswords_received` when recover() asked for a reset
 
 
 class _BusWatch(can.Listener):
@@ -441,6 +443,7 @@ class Cia402Master:
             targets.append(target)
         apply = _compile_apply(targets, struct.Struct(fmt).unpack_from, axis.gear)
         size = end  # the whole mapping: a shorter frame is not this PDO
+        carries_statusword = any(int(var.index) == od.STATUSWORD for var in tpdo)
 
         def on_tpdo(_can_id: int, data: bytearray, _timestamp: float) -> None:
             now = time.monotonic()
@@ -449,6 +452,7 @@ class Cia402Master:
                 return
             apply(axis.state, data)
             axis.last_tpdo_t = now
+            axis.statuswords_received += carries_statusword
             if sync_bit:
                 self._mark_fresh(axis, sync_bit, now)
 
@@ -565,10 +569,20 @@ class Cia402Master:
     def recover(self) -> None:
         """Clear the bridge's latches (EMCY, stale, bus-off, send failures), reset drive faults.
 
-        The drives end up disabled: enabling again is a separate, explicit request.
+        The drives end up disabled: enabling again is a separate, explicit request. Each drive
+        is also sent NMT start (CiA 301 7.2.8.3.2.1, command 0x01): a drive whose
+        communication error took it to PRE-OPERATIONAL (0x1029 sub 1 = 0, CiA 301's default)
+        sends its PDOs again; one already OPERATIONAL ignores it.
         """
+        if self._initialized and not self._bus_off:
+            for axis in self._axes:
+                try:
+                    axis.node.nmt.state = "OPERATIONAL"
+                except can.CanError as exc:
+                    log.error("NMT start of %s failed: %s", axis.joint, exc)
         with self._lock:
             for axis in self._axes:
+                axis.statuswords_at_reset = axis.statuswords_received
                 axis.emcy_code = 0
                 axis.advisory_code = axis.advisory_count = 0
                 axis.last_tpdo_t = time.monotonic()
@@ -657,8 +671,10 @@ class Cia402Master:
                 want = Want.QUICK_STOP
             frames = [f for axis in self._axes for f in self._rpdo_frames(axis, want)]
             if self._want is Want.FAULT_RESET and all(
-                a.state.power_state is not PowerState.FAULT for a in self._axes
-            ):
+                a.state.power_state is not PowerState.FAULT
+                and a.statuswords_received > a.statuswords_at_reset
+                for a in self._axes
+            ):  # judged on states the drives sent after recover(), not on ones from before
                 self._want = Want.DISABLED
             self._cycle += 1
             self.counters.cycles += 1

@@ -72,8 +72,8 @@ POSITION_ENCODER_RESOLUTION = 0x608F
 SUPPORTED_DRIVE_MODES = 0x6502
 
 # CiA 301 0x1029 sub 1 (7.5.2.32): what a communication error does to the NMT state.
-ERROR_BEHAVIOUR_PRE_OPERATIONAL = 0  # CiA 301's default: to PRE-OPERATIONAL, if OPERATIONAL
-ERROR_BEHAVIOUR_NO_CHANGE = 1  # lca_hil's default (docs/can.md: the bridge's recovery needs it)
+ERROR_BEHAVIOUR_PRE_OPERATIONAL = 0  # CiA 301's default and ours: to PRE-OPERATIONAL, if OP
+ERROR_BEHAVIOUR_NO_CHANGE = 1
 ERROR_BEHAVIOUR_STOPPED = 2
 ERROR_BEHAVIOURS = frozenset(
     {ERROR_BEHAVIOUR_PRE_OPERATIONAL, ERROR_BEHAVIOUR_NO_CHANGE, ERROR_BEHAVIOUR_STOPPED}
@@ -370,7 +370,7 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     # 1 = no change: CiA 301's default is 0, but a master then has to start the node again
     # after a fault reset, which the lca_hil bridge does not (docs/can.md).
     ObjectEntry(ERROR_BEHAVIOUR, 1, "Communication error", _U8, _RW, False,
-                _cia301(ERROR_BEHAVIOUR), default=ERROR_BEHAVIOUR_NO_CHANGE),
+                _cia301(ERROR_BEHAVIOUR), default=ERROR_BEHAVIOUR_PRE_OPERATIONAL),
     # lca_hil: the drive chain of the lca_sim plant (the paper's state machine, eq. 8-10)
     ObjectEntry(DRIVE_STATE, 0, "Gear functional state", _U8, _RO, True, "lca_hil",
                 default=0),  # index into the robot's drive-state names

@@ -243,6 +243,36 @@ def test_bridge_killed_drives_react_and_send_emcy(rig_factory: Callable[..., Rig
     )
 
 
+def test_recover_starts_drives_that_a_communication_error_took_to_pre_operational(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """0x1029 = 0 (CiA 301's default): the drives fall back to PRE-OPERATIONAL; ~/recover works.
+
+    The bridge's cycle stops, every drive reacts (fault, EMCY) and leaves OPERATIONAL; the cycle
+    starts again, the drives are stale (no PDOs in PRE-OPERATIONAL), and `recover()` (NMT start
+    with the fault reset) brings them back to where `enable` walks them to operation enabled.
+    """
+    rig = _enabled(rig_factory())
+    rig.bridge.stop()
+    wait_for(
+        lambda: all(rig.rack.nmt_state(j) == "PRE-OPERATIONAL" for j in JOINTS),
+        5.0,
+        "every drive in PRE-OPERATIONAL after its communication error",
+    )
+    rig.bridge.start()
+    wait_for(lambda: "stale drive" in rig.bridge.latched_reason(), 5.0, "the drives stale")
+    rig.bridge.recover()
+    wait_for(
+        lambda: all(rig.rack.nmt_state(j) == "OPERATIONAL" for j in JOINTS),
+        5.0,
+        "every drive OPERATIONAL again after recover",
+    )
+    reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
+    wait_for(lambda: all(v in reset for v in rig.states().values()), 5.0, "faults reset")
+    _enabled(rig)
+    assert rig.bridge.latched_reason() == ""
+
+
 def _collect(bus: can.BusABC, out: list[can.Message], duration_s: float) -> None:
     """EMCY frames (0x81..0xFF) seen on `bus` for `duration_s`."""
     end = time.monotonic() + duration_s

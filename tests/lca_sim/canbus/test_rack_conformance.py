@@ -282,7 +282,7 @@ def test_error_behaviour_0x1029_sets_the_nmt_state_after_a_communication_error(
 ) -> None:
     """CiA 301 0x1029 sub 1: an RPDO deadline miss leaves the node per 0 / 1 / 2."""
     node = remote(master, PIVOT)
-    assert node.sdo[0x1029][1].raw == 1  # lca_hil's default: no change
+    assert node.sdo[0x1029][1].raw == 0  # CiA 301's default: to PRE-OPERATIONAL
     with pytest.raises(canopen.SdoAbortedError):
         node.sdo[0x1029][1].raw = 3
     node.sdo[0x1029][1].raw = behaviour

@@ -237,6 +237,10 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
         assert abs(bridge.axis_state("pivot").current_a) < 0.05
         assert len(snapshots) > 50
         assert bridge.latched_reason() == ""
+        # The master's heartbeat stops with its cycle: with CiA 301's 0x1029 default (0) the
+        # drives would then leave OPERATIONAL on their own; this part is about the heartbeat.
+        for j in JOINTS:
+            bridge.sdo_write(j, 0x1029, 1, 1)
         bridge.stop()
 
         # NMT pre-operational and start again, broadcast: the heartbeat follows each state.
