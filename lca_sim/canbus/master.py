@@ -64,9 +64,63 @@ CYCLIC_TPDO_OBJECTS = frozenset({od.POSITION_ACTUAL, od.VELOCITY_ACTUAL})
 # go out after every n-th SYNC, 254/255 on an event; they are decoded, but a cycle is complete
 # without them.
 EVERY_SYNC = 1
+PDO_LAYOUTS = ("compact", "drive")
+SYNC_TRANSMISSION_MAX = 240  # CiA 301: types 1-240 go after every n-th SYNC
+EVENT_TRANSMISSION_TYPES = (254, 255)  # CiA 301: event-driven (manufacturer / profile event)
+# Compact layout: an event TPDO that has none gets this inhibit time (100 us units, CiA 301
+# 0x1800 sub 3), so a state that flickers cannot fill the bus: 10 ms, 100 frames/s at most.
+EVENT_INHIBIT_100US = 100
 # A controlword in an RPDO of its own is sent when it changes and at least this often, so a
 # drive that restarted (or a frame lost on a real bus) has it again within 0.1 s at 1 kHz.
 CONTROLWORD_REFRESH_CYCLES = 100
+
+
+def configure_compact_pdos(node: Any, slow_every: int) -> None:
+    """Map a drive's PDOs for a fast cycle over SDO, as a master configures them at boot.
+
+    CiA 301 7.5.2.35-38: each PDO is disabled, remapped and enabled again (canopen's
+    `PdoMap.save`). The layout (docs/can.md, "PDO layout"):
+
+    * RPDO1: target torque 0x6071, applied at the next SYNC (type 1); RPDO2: controlword
+      0x6040, applied on reception (type 255), sent by the master when it changes;
+    * TPDO1: position 0x6064 and velocity 0x606C after every SYNC (type 1): what the
+      controller's loops need each cycle, 8 bytes;
+    * TPDO2: statusword 0x6041 and current 0x6078 after every `slow_every`-th SYNC;
+    * the drive's other TPDOs keep their mapping: a synchronous one goes every `slow_every`-th
+      SYNC, an event-driven one without an inhibit time gets `EVENT_INHIBIT_100US`.
+
+    Args:
+        node: the drive's canopen RemoteNode, its PDOs read (`node.tpdo.read()`).
+        slow_every: the transmission type of the slow TPDOs (1-240).
+    """
+    rpdo1, rpdo2 = node.rpdo[1], node.rpdo[2]
+    for pdo, index, trans_type in ((rpdo1, od.TARGET_TORQUE, 1), (rpdo2, od.CONTROLWORD, 255)):
+        pdo.clear()
+        pdo.add_variable(index)
+        pdo.trans_type = trans_type
+        pdo.enabled = True
+    tpdo1, tpdo2 = node.tpdo[1], node.tpdo[2]
+    for pdo, indices, trans_type in (
+        (tpdo1, (od.POSITION_ACTUAL, od.VELOCITY_ACTUAL), 1),
+        (tpdo2, (od.STATUSWORD, od.CURRENT_ACTUAL), slow_every),
+    ):
+        pdo.clear()
+        for index in indices:
+            pdo.add_variable(index)
+        pdo.trans_type = trans_type
+        pdo.inhibit_time = 0
+        pdo.event_timer = 0
+        pdo.enabled = True
+    for number in node.tpdo:
+        pdo = node.tpdo[number]
+        if number <= 2 or not pdo.enabled:
+            continue
+        if 2 <= pdo.trans_type <= SYNC_TRANSMISSION_MAX:
+            pdo.trans_type = slow_every
+        elif pdo.trans_type in EVENT_TRANSMISSION_TYPES and not pdo.inhibit_time:
+            pdo.inhibit_time = EVENT_INHIBIT_100US
+    node.rpdo.save()
+    node.tpdo.save()
 
 
 class BridgeError(RuntimeError):
@@ -92,6 +146,12 @@ class BridgeParams:
         heartbeat_consumer_ms: written to each drive's 0x1016 (watching the master).
         rpdo_deadline_ms: written to each drive's 0x1400 sub 5.
         max_send_failures: consecutive failed sends after which the axes halt.
+        pdo_layout: "compact": `init()` maps every drive's PDOs for this cycle
+            (`configure_compact_pdos`: a 4-axis 1 kHz cycle fits 1 Mbit/s); "drive": use the
+            mapping the drive has (it must map what `_bind_pdos` needs).
+        slow_tpdo_rate_hz: compact layout: the rate of the TPDOs that are not needed every
+            cycle (statusword and current, the drive-chain extras): every n-th SYNC with
+            n = round(cycle_hz / this), at least 1.
     """
 
     joints: tuple[str, ...]
@@ -109,6 +169,13 @@ class BridgeParams:
     heartbeat_consumer_ms: int = 300
     rpdo_deadline_ms: int = 100
     max_send_failures: int = 10
+    pdo_layout: str = "compact"
+    slow_tpdo_rate_hz: float = 50.0
+
+    @property
+    def slow_tpdo_every(self) -> int:
+        """The transmission type (every n-th SYNC) of the compact layout's slow TPDOs."""
+        return max(1, min(SYNC_TRANSMISSION_MAX, round(self.cycle_hz / self.slow_tpdo_rate_hz)))
 
     def __post_init__(self) -> None:
         n = len(self.joints)
@@ -132,6 +199,13 @@ class BridgeParams:
                 raise ValueError(f"{name} must be > 0, got {value!r}")
         if self.max_send_failures < 1:
             raise ValueError("max_send_failures must be >= 1")
+        self._check_pdo_layout()
+
+    def _check_pdo_layout(self) -> None:
+        if self.pdo_layout not in PDO_LAYOUTS:
+            raise ValueError(f"pdo_layout must be one of {PDO_LAYOUTS}, got {self.pdo_layout!r}")
+        if not (math.isfinite(self.slow_tpdo_rate_hz) and self.slow_tpdo_rate_hz > 0.0):
+            raise ValueError(f"slow_tpdo_rate_hz must be > 0, got {self.slow_tpdo_rate_hz!r}")
 
 
 @dataclass(slots=True)
@@ -323,7 +397,14 @@ class Cia402Master:
                 revolutions = node.sdo[od.POSITION_ENCODER_RESOLUTION][2].raw
                 node.tpdo.read()  # type: ignore[no-untyped-call]
                 node.rpdo.read()  # type: ignore[no-untyped-call]
-            except (canopen.SdoCommunicationError, canopen.SdoAbortedError, KeyError) as exc:
+                if p.pdo_layout == "compact":
+                    configure_compact_pdos(node, p.slow_tpdo_every)
+            except (
+                canopen.SdoCommunicationError,
+                canopen.SdoAbortedError,
+                KeyError,
+                ValueError,
+            ) as exc:
                 raise BridgeError(
                     f"drive {axis.joint} (node {node.id}): configuration failed: {exc}"
                 ) from exc

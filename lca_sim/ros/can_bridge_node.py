@@ -228,6 +228,8 @@ class CanBridgeNode(Node):
                     heartbeat_consumer_ms=p.heartbeat_consumer_ms,
                     rpdo_deadline_ms=p.rpdo_deadline_ms,
                     max_send_failures=p.max_send_failures,
+                    pdo_layout=p.pdo_layout,
+                    slow_tpdo_rate_hz=p.slow_tpdo_rate_hz,
                 ),
                 eds,
                 on_state=self._on_state,

@@ -62,6 +62,13 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
         ParamSpec("heartbeat_consumer_ms", INT, 300,
                   "each drive's 0x1016 watch on the bridge's heartbeat, ms", 1, 65535,
                   live=False),
+        ParamSpec("pdo_layout", S, "compact",
+                  "compact: init maps the drives' PDOs for a fast cycle (docs/can.md); "
+                  "drive: use the drive's own mapping", choices=("compact", "drive"),
+                  live=False),
+        positive("slow_tpdo_rate_hz", 50.0,
+                 "compact layout: rate of statusword, current and extras TPDOs, Hz",
+                 high=2000.0, live=False),
         ParamSpec("rpdo_deadline_ms", INT, 100, "each drive's RPDO1 deadline (0x1400 sub 5), ms",
                   0, 65535, live=False),
         ParamSpec("max_send_failures", INT, 10,
@@ -94,6 +101,8 @@ class CanBridgeNodeParams:
     stale_timeout_s: float
     heartbeat_producer_ms: int
     heartbeat_consumer_ms: int
+    pdo_layout: str
+    slow_tpdo_rate_hz: float
     rpdo_deadline_ms: int
     max_send_failures: int
     auto_init: bool

@@ -575,7 +575,7 @@ def test_a_drive_with_the_controlword_in_its_own_rpdo_runs_and_gets_it_on_change
 ) -> None:
     """Torque each cycle, controlword when it changes (and every 100 cycles); TPDO1 completes."""
     seen: list[int] = []
-    rig = rig_factory(before_init=_map_for_1khz)
+    rig = rig_factory(before_init=_map_for_1khz, pdo_layout="drive")
     n = len(rig.snapshots)
     _enabled(rig)
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
@@ -601,3 +601,43 @@ def test_a_drive_with_the_controlword_in_its_own_rpdo_runs_and_gets_it_on_change
         assert rig.bridge.counters.bad_pdos == 0
     finally:
         watcher.shutdown()
+
+
+def test_the_compact_layout_sends_one_frame_per_axis_and_direction_each_cycle(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """init() maps the drives for a fast cycle: per cycle SYNC, RPDO1 and TPDO1 per axis.
+
+    Statusword and current (TPDO2) and the drive-chain extras (TPDO4) come every n-th SYNC,
+    n = cycle_hz / slow_tpdo_rate_hz = 250 / 50 = 5; the controlword (RPDO2) on change and
+    every 100 cycles. Counted on the bus over 250 cycles of an enabled, driven rig.
+    """
+    rig = rig_factory(slow_tpdo_rate_hz=50.0)
+    assert rig.bridge.params.slow_tpdo_every == 5
+    _enabled(rig)
+    rig.currents_a = [0.0, 2.0, 0.0, 0.0]
+    wait_for(lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05, 5.0, "2 A")
+    watcher = can.Bus(interface="virtual", channel=rig.channel)
+    counts: dict[int, int] = {}
+    try:
+        cycles = rig.bridge.counters.cycles
+        deadline = time.monotonic() + 10.0
+        while rig.bridge.counters.cycles < cycles + 250 and time.monotonic() < deadline:
+            msg = watcher.recv(0.01)
+            if msg is not None:
+                counts[msg.arbitration_id] = counts.get(msg.arbitration_id, 0) + 1
+        n = rig.bridge.counters.cycles - cycles
+    finally:
+        watcher.shutdown()
+    assert n >= 250
+    for node_id in NODE_IDS:
+        assert abs(counts.get(0x180 + node_id, 0) - n) <= 2  # TPDO1: position, velocity
+        assert abs(counts.get(0x200 + node_id, 0) - n) <= 2  # RPDO1: target torque
+        assert abs(counts.get(0x280 + node_id, 0) - n / 5) <= 2  # TPDO2: statusword, current
+        assert abs(counts.get(0x480 + node_id, 0) - n / 5) <= 2  # TPDO4: extras
+        assert counts.get(0x300 + node_id, 0) <= n // 100 + 1  # RPDO2: controlword refresh
+    assert abs(counts.get(0x80, 0) - n) <= 2  # SYNC
+    state = rig.bridge.axis_state("pivot")
+    assert state.statusword & 0x6F == 0x27  # operation enabled, read from TPDO2
+    assert abs(state.current_a - 2.0) < 0.05
+    assert len(rig.snapshots) > n  # a complete cycle from TPDO1 alone
