@@ -24,6 +24,10 @@ import time
 # the other side for it. It must stay below the tightest deadline they watch (SYNC loss: 10
 # periods, 20 ms at 500 Hz).
 FREEZE_THRESHOLD_S = 0.01
+# Python's default GIL switch interval (5 ms) lets one thread hold the interpreter for several
+# CAN periods; every process that runs a CAN cycle (the bridge's master, the virtual rack, the
+# benchmark) sets this instead.
+GIL_SWITCH_INTERVAL_S = 5e-4
 
 
 def discounted(stamp_s: float, frozen_s: float, now_s: float) -> float:

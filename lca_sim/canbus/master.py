@@ -40,13 +40,10 @@ from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
 from lca_sim.cia402.device import CW_HALT, MODE_CST, PowerState
 from lca_sim.cia402.master import TorqueScale, Want
-from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
+from lca_sim.runtime import FREEZE_THRESHOLD_S, GIL_SWITCH_INTERVAL_S, discounted
 
 log = logging.getLogger(__name__)
 
-# Python's default GIL switch interval (5 ms) lets one thread hold the interpreter for several
-# CAN periods; processes that run a Cia402Master (the node, the benchmark) set this instead.
-GIL_SWITCH_INTERVAL_S = 5e-4
 SYNC_COB_ID = 0x80
 HEARTBEAT_BASE = 0x700
 NMT_OPERATIONAL_CODE = 0x05
@@ -260,8 +257,9 @@ class Counters:
     silence_halts: int = 0
     frames_sent: int = 0
     frames_received: int = 0
-    bits_sent: int = 0
+    bits_sent: int = 0  # worst-case stuffing (`frame_bits`)
     bits_received: int = 0
+    nominal_bits: int = 0  # both directions, without stuffing (`frame_bits_nominal`)
     process_freezes: int = 0
 
 
@@ -309,6 +307,7 @@ class _BusWatch(can.Listener):
         c = self._bridge.counters
         c.frames_received += 1
         c.bits_received += cm.frame_bits(int(msg.dlc))
+        c.nominal_bits += cm.frame_bits_nominal(int(msg.dlc))
 
 
 class Cia402Master:
@@ -848,6 +847,7 @@ class Cia402Master:
         self._send_failures_in_row = 0
         self.counters.frames_sent += 1
         self.counters.bits_sent += cm.frame_bits(len(data))
+        self.counters.nominal_bits += cm.frame_bits_nominal(len(data))
 
     # --- inspection ----------------------------------------------------------------------
 

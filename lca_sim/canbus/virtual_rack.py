@@ -103,7 +103,13 @@ from lca_sim.model.commanded_plant import CURRENT, CommandedPlant
 from lca_sim.model.params import AXIS_NAMES, RobotParams
 from lca_sim.model.schema import MappingReader
 from lca_sim.model.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
-from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted, settle_heap, yield_gil
+from lca_sim.runtime import (
+    FREEZE_THRESHOLD_S,
+    GIL_SWITCH_INTERVAL_S,
+    discounted,
+    settle_heap,
+    yield_gil,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -1590,6 +1596,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_BAD_INPUT
+    # The rack answers each SYNC within a fraction of a period: a thread holding the GIL for
+    # Python's default 5 ms would make it miss cycles (the bridge process sets the same).
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

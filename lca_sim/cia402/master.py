@@ -118,6 +118,11 @@ def frame_bits(data_bytes: int) -> int:
     return 47 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4
 
 
+def frame_bits_nominal(data_bytes: int) -> int:
+    """Bits on the wire of the same frame without stuffing (44 + 8 n, plus 3 of interframe)."""
+    return 47 + 8 * data_bytes
+
+
 def bus_load_pct(bits_per_s: float, bitrate_bit_s: float) -> float:
     """Bus load in percent of the bit rate."""
     return 100.0 * bits_per_s / bitrate_bit_s

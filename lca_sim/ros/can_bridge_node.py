@@ -48,7 +48,6 @@ from lca_control.contract import FloatArray, PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_sim.canbus import emcy
 from lca_sim.canbus.master import (
-    GIL_SWITCH_INTERVAL_S,
     AxisState,
     BridgeError,
     BridgeParams,
@@ -65,7 +64,7 @@ from lca_sim.ros.can_bridge_params import (
 )
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status
 from lca_sim.ros.plant_contract import PlantPublisher, qos_profile, worst_first
-from lca_sim.runtime import settle_heap
+from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
 

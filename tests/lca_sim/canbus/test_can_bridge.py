@@ -641,3 +641,45 @@ def test_the_compact_layout_sends_one_frame_per_axis_and_direction_each_cycle(
     assert state.statusword & 0x6F == 0x27  # operation enabled, read from TPDO2
     assert abs(state.current_a - 2.0) < 0.05
     assert len(rig.snapshots) > n  # a complete cycle from TPDO1 alone
+
+
+def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> None:
+    """Four axes at 1 kHz: the budget of every frame the compact layout puts on the bus.
+
+    Per cycle: SYNC, four RPDO1 (2 bytes) and four TPDO1 (8 bytes); every 20th SYNC four
+    TPDO2 (4) and four TPDO4 (6); TPDO3 (6, event) at its inhibit-time maximum, 100/s per
+    axis; the controlword refresh every 100 cycles; five heartbeats every 100 ms. Worst-case
+    stuffing (CAN 2.0A: 47 + 8 DLC + floor((34 + 8 DLC - 1) / 4) bits per frame) stays under
+    1 Mbit/s: 989 bits per 1 ms cycle. The old layout (13 frames a cycle) needed 1401.
+    """
+    from lca_sim.canbus.master import CONTROLWORD_REFRESH_CYCLES, EVENT_INHIBIT_100US
+    from lca_sim.cia402 import master as cm
+    from lca_sim.cia402 import objects as od
+
+    cycle_hz = 1000.0
+    every = _params(cycle_hz=cycle_hz).slow_tpdo_every
+    assert every == 20
+    axes = len(JOINTS)
+
+    def size(number: int) -> int:
+        pdo = next(p for p in od.DEFAULT_PDOS if not p.receive and p.number == number)
+        return sum(od.entry(i).data_type.bits for i in pdo.objects) // 8
+
+    event_per_cycle = 1.0 / (EVENT_INHIBIT_100US * 1e-4 * cycle_hz)
+    heartbeats_per_cycle = (axes + 1) / (0.1 * cycle_hz)
+
+    def per_cycle(bits: Callable[[int], int]) -> float:
+        return (
+            bits(0)
+            + axes * (bits(2) + bits(8))
+            + axes * (bits(4) + bits(size(4))) / every
+            + axes * bits(size(3)) * event_per_cycle
+            + axes * bits(2) / CONTROLWORD_REFRESH_CYCLES
+            + bits(1) * heartbeats_per_cycle
+        )
+
+    worst = cm.bus_load_pct(per_cycle(cm.frame_bits) * cycle_hz, 1e6)
+    nominal = cm.bus_load_pct(per_cycle(cm.frame_bits_nominal) * cycle_hz, 1e6)
+    assert worst == pytest.approx(98.925)
+    assert worst < 100.0
+    assert nominal == pytest.approx(82.107)
