@@ -60,6 +60,9 @@ setup(
         # scipy: the identification's filters and confidence intervals.
         "control>=0.10",
         "scipy>=1.11",
+        # `lca-hil sweep`: the points run on dask.distributed, the results are Parquet tables.
+        "dask[distributed]>=2024.8",
+        "pyarrow>=15",
         "setuptools<80",
     ],
     extras_require={
