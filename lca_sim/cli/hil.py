@@ -5,6 +5,7 @@
     lca-hil tune --axis pivot              # section 6 tuning
     lca-hil identify RESULT --axis pivot   # efficiencies from recorded motion
     lca-hil run --out out/run              # the nodes' closed loop in one process, no ROS
+    lca-hil sweep SPEC --out out/sweep     # a sweep spec's points on Dask (--plot DIR: PNGs)
 
 Only `fig15` (and `paper` with Fig. 15) imports rclpy, and only when it runs, so the other
 sub-commands work where ROS 2 is not installed; there, those two exit 2 with one error line.
@@ -19,6 +20,7 @@ from pathlib import Path
 from lca_sim.cli import identify as identify_cli
 from lca_sim.cli import paper as paper_cli
 from lca_sim.cli import run as run_cli
+from lca_sim.cli import sweep as sweep_cli
 from lca_sim.cli import tune
 from lca_sim.cli.ros_guard import ros_required
 from lca_sim.errors import run_guarded
@@ -35,6 +37,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     paper_cli.add_parser(sub)
     identify_cli.add_parser(sub)
     run_cli.add_parser(sub)
+    sweep_cli.add_parser(sub)
     args = parser.parse_args(argv)
     if args.command == "identify":
         return identify_cli.run(args)
@@ -42,6 +45,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return tune.run(args)
     if args.command == "run":
         return run_cli.run(args)
+    if args.command == "sweep":
+        return sweep_cli.run(args)
     if args.command == "paper":
         return paper_cli.run(args)
     return run_guarded("lca-hil fig15", lambda: _fig15(args))
