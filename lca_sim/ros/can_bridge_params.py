@@ -27,7 +27,8 @@ S, INT = ParamKind.STRING, ParamKind.INTEGER
 CAN_BRIDGE_PARAMETERS = ParameterTable(
     (
         ParamSpec("interface", S, "virtual",
-                  "python-can interface: socketcan (can0, vcan0) or virtual", live=False),
+                  "python-can interface: socketcan (can0, vcan0), virtual, or lca_remote "
+                  "(lca-can-server, docs/can-transport.md)", live=False),
         ParamSpec("channel", S, "lca_can",
                   "bus channel: can0 for socketcan; any name for virtual", live=False),
         ParamSpec("bitrate", INT, 1_000_000,

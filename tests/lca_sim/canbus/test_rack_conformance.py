@@ -393,6 +393,23 @@ def test_item_12_every_rack_config_key_and_emcy_code_is_documented() -> None:
     assert codes == sent
 
 
+def test_every_bridge_parameter_is_documented_with_its_default() -> None:
+    """docs/can.md's bridge table lists exactly the bridge's parameters, defaults as declared."""
+    from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
+
+    text = (CONFIG.parent / "docs" / "can.md").read_text()
+    after = text[text.index("## The bridge's parameters") :]
+    block = after[after.index("\n|") + 1 :].split("\n\n")[0]
+    rows = {
+        cells[1].strip().strip("`"): cells[3].strip()
+        for cells in (line.split("|") for line in block.splitlines()[2:])
+    }
+    assert set(rows) == set(CAN_BRIDGE_PARAMETERS.names)
+    for spec in CAN_BRIDGE_PARAMETERS.specs:
+        shown = '""' if spec.default == "" else str(spec.default)
+        assert rows[spec.name] == shown, spec.name
+
+
 def test_eds_path_key_is_resolved_against_the_rack_file(tmp_path: Path) -> None:
     """`eds_path` relative to the rack file; a missing file is a one-line ConfigError."""
     shipped = CONFIG / "can" / "rack.yaml"
