@@ -40,7 +40,7 @@ from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
 from lca_sim.cia402.device import CW_HALT, MODE_CST, PowerState
 from lca_sim.cia402.master import TorqueScale, Want
-from lca_sim.runtime import FREEZE_THRESHOLD_S, GIL_SWITCH_INTERVAL_S, discounted
+from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
 
 log = logging.getLogger(__name__)
 
