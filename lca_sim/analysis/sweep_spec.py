@@ -442,7 +442,7 @@ def parse_spec(data: object, source: str) -> SweepSpec:
     )
     _check_columns(parameters, metrics, source)
     plot = _mapping(top.get("plot", {}), source, "plot", "a mapping")
-    _unknown(plot, ("mark", "lines_by"), source, "plot")
+    _unknown(plot, ("mark", "lines_by", "degrees"), source, "plot")
     description = top.get("description", "")
     if not isinstance(description, str):
         raise _fail(source, "description", "expected text")
@@ -561,7 +561,11 @@ def apply_point(spec: SweepSpec, documents: Documents, point: Point) -> Document
                 continue
             if not isinstance(node, dict):
                 raise _fail(spec.source, where, f"{trail}: not a mapping")
-            may_add = root in ("controller", "simulator") and len(parts) == 1
+            # a node parameter or a base key the file leaves at its default
+            may_add = len(parts) == 1 and (
+                root in ("controller", "simulator")
+                or (root == "base" and last in BASE_KEYS[spec.kind])
+            )
             if last not in node and not may_add:
                 raise _fail(
                     spec.source,

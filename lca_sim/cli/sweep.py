@@ -23,6 +23,7 @@ import argparse
 import contextlib
 import dataclasses
 import importlib.metadata
+import itertools
 import json
 import logging
 import math
@@ -592,10 +593,14 @@ def plot_sweep(out: Path) -> list[Path]:
         p["name"] for p in record["parameters"] if p["values"] is None or len(p["values"]) > 1
     ]
     title = Path(record["spec"]).stem
+    degrees = set(record["plot"].get("degrees", []))
     for metric in record["metrics"]:
         name, unit = metric["name"], metric["unit"]
         fig, ax = plt.subplots(figsize=(7.0, 4.6))
         label = f"{name} ({unit})"
+        if name in degrees:  # plot.degrees: a radian metric drawn in degrees
+            label = f"{name} (deg)"
+            ok = [{**r, name: None if r[name] is None else math.degrees(r[name])} for r in ok]
         if record["sampling"] == "random" or not varying:
             _histogram(ax, [r[name] for r in ok], label, len(rows) - len(ok))
         elif len(varying) == 1:
@@ -627,12 +632,13 @@ def _histogram(ax: Any, values: Sequence[Any], label: str, failed: int) -> None:
             0.98,
             0.95,
             f"n = {len(data)} ({failed} failed, {len(values) - len(data)} NaN)\n"
-            f"5/50/95 %: {q[0]:.4g} / {q[1]:.4g} / {q[2]:.4g}",
+            f"5/50/95 %: {q[0]:.6g} / {q[1]:.6g} / {q[2]:.6g}",
             transform=ax.transAxes,
             ha="right",
             va="top",
             fontsize=8,
         )
+    ax.ticklabel_format(axis="x", useOffset=False)
     ax.set_xlabel(label)
     ax.set_ylabel("points")
 
@@ -681,7 +687,7 @@ def _two(
     mesh = ax.pcolormesh(_edges(xs), _edges(ys), grid, shading="flat", cmap="viridis")
     fig.colorbar(mesh, ax=ax, label=label)
     for axis_set, vals in ((ax.set_xscale, xs), (ax.set_yscale, ys)):
-        if min(vals) > 0 and max(vals) / min(vals) > 20:
+        if _is_log(vals):
             axis_set("log")
     ax.set_xlabel(varying[1])
     ax.set_ylabel(varying[0])
@@ -697,6 +703,14 @@ def _two(
         ax.legend(loc="upper right")
 
 
+def _is_log(values: Sequence[float]) -> bool:
+    """Sorted values spaced by a constant ratio (a `range: {log: true}`)."""
+    if len(values) < 3 or min(values) <= 0.0:
+        return False
+    ratios = [b / a for a, b in itertools.pairwise(values)]
+    return max(ratios) - min(ratios) < 1e-6 * max(ratios) and ratios[0] > 1.0
+
+
 def _edges(values: Sequence[float]) -> list[float]:
     """Cell edges around sorted centres (geometric for a log-spaced set)."""
     import numpy as np  # noqa: PLC0415
@@ -704,7 +718,7 @@ def _edges(values: Sequence[float]) -> list[float]:
     v = np.asarray(values, dtype=float)
     if len(v) == 1:
         return [v[0] * 0.9, v[0] * 1.1] if v[0] else [-0.5, 0.5]
-    log = v.min() > 0 and v.max() / v.min() > 20
+    log = _is_log(values)
     w = np.log(v) if log else v
     mid = (w[1:] + w[:-1]) / 2
     edges = np.concatenate([[w[0] - (mid[0] - w[0])], mid, [w[-1] + (w[-1] - mid[-1])]])

@@ -1,0 +1,231 @@
+"""`lca-hil sweep` on Dask: the same table on any number of workers, resume, retry, a cluster.
+
+One and two local workers give the same table; a sweep killed with SIGKILL resumes with only the
+missing points; a failing point is retried, then recorded failed; a real scheduler with two
+worker processes finishes a sweep with one of them killed in the middle.
+
+Every Dask process binds 127.0.0.1. The points are Fig. 13's current step, lengthened where a
+test needs points in flight (a 0.5 s step is about half a second of work).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from support import ROOT, wait_until
+
+from lca_sim.analysis.sweep import PointOutcome, PointTask
+from lca_sim.cli.sweep import LOG, POINTS_DIR, RESULTS, TRAJECTORIES, run_sweep, timed_point
+
+DEADLINE_S = 240.0  # a loaded, shared 2-core machine
+
+
+def _spec(tmp_path: Path, n: int, duration_s: float, trajectories: bool = False) -> Path:
+    """A spec of n current-step points (Kp values), each `duration_s` of simulated time."""
+    spec: dict[str, Any] = {
+        "base": {"kind": "current_step", "robot": "default", "axis": "pivot",
+                 "duration_s": duration_s},
+        "parameters": [
+            {"name": "kp", "path": "base.current_kp_v_per_a",
+             "range": {"start": 10.0, "stop": 60.0, "num": n}},
+        ],
+        "metrics": [
+            {"metric": "overshoot_pct", "signal": "current_a"},
+            {"metric": "rise_time_s", "signal": "current_a"},
+            {"metric": "energy_drawn_j"},
+        ],
+    }  # fmt: skip
+    if trajectories:
+        spec["trajectories"] = {"every_s": 0.002}
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(spec), encoding="utf-8")
+    return path
+
+
+def _rows(out: Path) -> list[dict[str, Any]]:
+    import pyarrow.parquet as pq  # type: ignore[import-untyped]
+
+    rows: list[dict[str, Any]] = pq.read_table(out / RESULTS).to_pylist()
+    return rows
+
+
+def _log(out: Path) -> dict[str, Any]:
+    log: dict[str, Any] = json.loads((out / LOG).read_text(encoding="utf-8"))
+    return log
+
+
+def _finished(out: Path) -> set[str]:
+    folder = out / POINTS_DIR
+    return {p.name for p in folder.glob("*.parquet") if ".trajectory." not in p.name}
+
+
+@pytest.fixture
+def processes() -> Iterator[list[subprocess.Popen[str]]]:
+    """Processes a test starts, each in its own session; killed (their groups) at the end."""
+    started: list[subprocess.Popen[str]] = []
+    yield started
+    for proc in started:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+
+
+def _start(processes: list[subprocess.Popen[str]], args: list[str], cwd: Path) -> Any:
+    proc = subprocess.Popen(
+        args,
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    processes.append(proc)
+    return proc
+
+
+def _sweep_args(spec: Path, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "lca_sim.cli.hil", "sweep", str(spec), "--out", str(out),
+            "--no-progress", *extra]  # fmt: skip
+
+
+def test_one_or_two_workers_give_the_same_table(tmp_path: Path) -> None:
+    """The same spec on 1 and on 2 local workers: results and trajectories equal bit for bit."""
+    spec = _spec(tmp_path, 6, 0.01, trajectories=True)
+    one, two = tmp_path / "one", tmp_path / "two"
+    run_sweep(spec, one, workers=1, stream=None)
+    run_sweep(spec, two, workers=2, stream=None)
+    for name in (RESULTS, TRAJECTORIES):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name
+    rows = _rows(one)
+    assert [r["index"] for r in rows] == list(range(6))
+    assert all(r["status"] == "ok" and r["error"] == "" for r in rows)
+    assert rows[0]["overshoot_pct"] > rows[-1]["overshoot_pct"] > 0.0  # more Kp, less overshoot
+    again = run_sweep(spec, one, workers=1, stream=None)
+    assert again["computed"] == 0 and again["reused"] == 6
+    assert (one / RESULTS).read_bytes() == (two / RESULTS).read_bytes()
+
+
+def test_a_sigkilled_sweep_resumes_with_only_the_missing_points(
+    tmp_path: Path, processes: list[subprocess.Popen[str]]
+) -> None:
+    """SIGKILL the sweep (and its workers) mid-run; the rerun computes only what is missing."""
+    n = 8
+    spec = _spec(tmp_path, n, 0.5)
+    out = tmp_path / "out"
+    proc = _start(processes, _sweep_args(spec, out, "--workers", "1"), tmp_path)
+    wait_until(lambda: len(_finished(out)) >= 2 or proc.poll() is not None, "2 points", DEADLINE_S)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    before = _finished(out)
+    assert 2 <= len(before) < n, f"{len(before)} points finished before the kill"
+    mtimes = {name: (out / POINTS_DIR / name).stat().st_mtime_ns for name in before}
+    log = run_sweep(spec, out, workers=1, stream=None)
+    assert log["reused"] == len(before)
+    assert log["computed"] == n - len(before)
+    keys = {row["index"]: row["key"] for row in _rows(out)}
+    assert {f"{keys[i]}.parquet" for i in log["computed_indices"]}.isdisjoint(before)
+    assert {name: (out / POINTS_DIR / name).stat().st_mtime_ns for name in before} == mtimes
+    assert [r["status"] for r in _rows(out)] == ["ok"] * n
+
+
+def _flaky(calls: Path, task: PointTask) -> tuple[PointOutcome, float]:
+    """timed_point, except that point 1 always raises; every call is counted in `calls`."""
+    with calls.open("a", encoding="utf-8") as log:
+        log.write(f"{task.index}\n")
+    if task.index == 1:
+        raise RuntimeError("a point that always fails")
+    return timed_point(task)
+
+
+def test_a_failing_point_is_retried_once_then_recorded_failed(tmp_path: Path) -> None:
+    """Point 1 raises: submitted twice, then a failed row with its reason; the rest are ok."""
+    from distributed import Client, LocalCluster
+
+    spec = _spec(tmp_path, 4, 0.005)
+    out = tmp_path / "out"
+    calls = tmp_path / "calls.txt"
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
+                     host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
+        Client(cluster) as client,  # type: ignore[no-untyped-call]
+    ):  # fmt: skip
+        log = run_sweep(
+            spec, out, stream=None, client=client, function=functools.partial(_flaky, calls)
+        )
+    counts = calls.read_text(encoding="utf-8").split()
+    assert sorted(counts) == ["0", "1", "1", "2", "3"]
+    assert log["failed"] == 1 and log["retried"]["1"].startswith("RuntimeError: a point that")
+    rows = _rows(out)
+    assert [r["status"] for r in rows] == ["ok", "failed", "ok", "ok"]
+    assert rows[1]["error"] == "RuntimeError: a point that always fails"
+    assert rows[1]["overshoot_pct"] != rows[1]["overshoot_pct"]  # NaN
+    rerun = run_sweep(spec, out, workers=1, stream=None)  # a failed point is computed again
+    assert rerun["computed"] == 1 and rerun["computed_indices"] == [1]
+    assert [r["status"] for r in _rows(out)] == ["ok"] * 4
+
+
+def test_an_existing_cluster_with_a_worker_killed_mid_sweep(
+    tmp_path: Path, processes: list[subprocess.Popen[str]]
+) -> None:
+    """`dask scheduler` + two `dask worker` processes; SIGKILL one mid-sweep; the sweep ends."""
+    dask = str(Path(sys.executable).parent / "dask")
+    scheduler_file = tmp_path / "scheduler.json"
+    _start(
+        processes,
+        [
+            dask,
+            "scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--no-dashboard",
+            "--scheduler-file",
+            str(scheduler_file),
+        ],
+        tmp_path,
+    )
+    wait_until(
+        lambda: scheduler_file.is_file() and scheduler_file.stat().st_size > 0,
+        "the scheduler file",
+        60.0,
+    )
+    address = json.loads(scheduler_file.read_text(encoding="utf-8"))["address"]
+    assert address.startswith("tcp://127.0.0.1:")
+    workers = [
+        _start(processes, [dask, "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+                           "--no-nanny", "--no-dashboard", "--name", f"w{i}"], tmp_path)
+        for i in range(2)
+    ]  # fmt: skip
+    from distributed import Client
+
+    with Client(address, timeout="60s") as client:  # type: ignore[no-untyped-call]
+        client.wait_for_workers(2, timeout=120)
+    n = 10
+    spec = _spec(tmp_path, n, 0.5)
+    out = tmp_path / "out"
+    sweep = _start(processes, _sweep_args(spec, out, "--scheduler", address), tmp_path)
+    wait_until(lambda: len(_finished(out)) >= 2 or sweep.poll() is not None, "2 points", DEADLINE_S)
+    assert sweep.poll() is None, "the sweep ended before a worker could be killed"
+    os.killpg(workers[0].pid, signal.SIGKILL)
+    sweep.wait(timeout=DEADLINE_S)
+    assert sweep.returncode == 0, sweep.stderr.read() if sweep.stderr else ""
+    rows = _rows(out)
+    assert [r["status"] for r in rows] == ["ok"] * n
+    log = _log(out)
+    assert log["scheduler"] == address and log["computed"] == n
