@@ -37,8 +37,8 @@ from lca_sim.canbus import emcy
 from lca_sim.cia402 import codec
 from lca_sim.cia402 import master as cm
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.codec import CodecError, DriveUnits
-from lca_sim.cia402.device import CW_HALT, MODE_CST, PowerState
+from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
+from lca_sim.cia402.device import CW_HALT, MODE_CST, MODE_CSV, PowerState
 from lca_sim.cia402.master import TorqueScale, Want
 from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
 
@@ -62,6 +62,9 @@ CYCLIC_TPDO_OBJECTS = frozenset({od.POSITION_ACTUAL, od.VELOCITY_ACTUAL})
 # without them.
 EVERY_SYNC = 1
 PDO_LAYOUTS = ("compact", "drive")
+# CiA 402-2 cyclic synchronous modes the bridge runs an axis in: 0x6060 value, target object.
+MODES = {"cst": MODE_CST, "csv": MODE_CSV}
+MODE_TARGETS = {MODE_CST: od.TARGET_TORQUE, MODE_CSV: od.TARGET_VELOCITY}
 SYNC_TRANSMISSION_MAX = 240  # CiA 301: types 1-240 go after every n-th SYNC
 EVENT_TRANSMISSION_TYPES = (254, 255)  # CiA 301: event-driven (manufacturer / profile event)
 # Compact layout: an event TPDO that has none gets this inhibit time (100 us units, CiA 301
@@ -72,14 +75,15 @@ EVENT_INHIBIT_100US = 100
 CONTROLWORD_REFRESH_CYCLES = 100
 
 
-def configure_compact_pdos(node: Any, slow_every: int) -> None:
+def configure_compact_pdos(node: Any, slow_every: int, target: int = od.TARGET_TORQUE) -> None:
     """Map a drive's PDOs for a fast cycle over SDO, as a master configures them at boot.
 
     CiA 301 7.5.2.35-38: each PDO is disabled, remapped and enabled again (canopen's
     `PdoMap.save`). The layout (docs/can.md, "PDO layout"):
 
-    * RPDO1: target torque 0x6071, applied at the next SYNC (type 1); RPDO2: controlword
-      0x6040, applied on reception (type 255), sent by the master when it changes;
+    * RPDO1: the mode's target (target torque 0x6071 in CST, 2 bytes; target velocity 0x60FF
+      in CSV, 4 bytes), applied at the next SYNC (type 1); RPDO2: controlword 0x6040, applied
+      on reception (type 255), sent by the master when it changes;
     * TPDO1: position 0x6064 and velocity 0x606C after every SYNC (type 1): what the
       controller's loops need each cycle, 8 bytes;
     * TPDO2: statusword 0x6041 and current 0x6078 after every `slow_every`-th SYNC;
@@ -89,9 +93,10 @@ def configure_compact_pdos(node: Any, slow_every: int) -> None:
     Args:
         node: the drive's canopen RemoteNode, its PDOs read (`node.tpdo.read()`).
         slow_every: the transmission type of the slow TPDOs (1-240).
+        target: the object RPDO1 carries (`MODE_TARGETS` of the axis's mode).
     """
     rpdo1, rpdo2 = node.rpdo[1], node.rpdo[2]
-    for pdo, index, trans_type in ((rpdo1, od.TARGET_TORQUE, 1), (rpdo2, od.CONTROLWORD, 255)):
+    for pdo, index, trans_type in ((rpdo1, target, 1), (rpdo2, od.CONTROLWORD, 255)):
         pdo.clear()
         pdo.add_variable(index)
         pdo.trans_type = trans_type
@@ -146,6 +151,9 @@ class BridgeParams:
         pdo_layout: "compact": `init()` maps every drive's PDOs for this cycle
             (`configure_compact_pdos`: a 4-axis 1 kHz cycle fits 1 Mbit/s); "drive": use the
             mapping the drive has (it must map what `_bind_pdos` needs).
+        modes: per joint, "cst" (cyclic synchronous torque: the current command becomes the
+            target torque) or "csv" (cyclic synchronous velocity: the velocity command becomes
+            the target velocity 0x60FF and the drive closes the velocity loop); empty: all CST.
         slow_tpdo_rate_hz: compact layout: the rate of the TPDOs that are not needed every
             cycle (statusword and current, the drive-chain extras): every n-th SYNC with
             n = round(cycle_hz / this), at least 1.
@@ -168,6 +176,11 @@ class BridgeParams:
     max_send_failures: int = 10
     pdo_layout: str = "compact"
     slow_tpdo_rate_hz: float = 50.0
+    modes: tuple[str, ...] = ()
+
+    def mode_of(self, k: int) -> int:
+        """The 0x6060 value of joint k."""
+        return MODES[self.modes[k]] if self.modes else MODE_CST
 
     @property
     def slow_tpdo_every(self) -> int:
@@ -199,6 +212,12 @@ class BridgeParams:
         self._check_pdo_layout()
 
     def _check_pdo_layout(self) -> None:
+        if self.modes and (
+            len(self.modes) != len(self.joints) or not set(self.modes) <= set(MODES)
+        ):
+            raise ValueError(
+                f"modes must give one of {sorted(MODES)} per joint, got {list(self.modes)}"
+            )
         if self.pdo_layout not in PDO_LAYOUTS:
             raise ValueError(f"pdo_layout must be one of {PDO_LAYOUTS}, got {self.pdo_layout!r}")
         if not (math.isfinite(self.slow_tpdo_rate_hz) and self.slow_tpdo_rate_hz > 0.0):
@@ -273,9 +292,12 @@ class _Axis:
     gear: float
     scale: TorqueScale | None = None
     units: DriveUnits | None = None  # 0x6075, 0x6076, 0x608F as read by init()
+    velocity: Codec | None = None  # motor rad/s <-> increments/s, from `units` (0x60FF)
     state: AxisState = field(default_factory=AxisState)
     controlword: int = 0
     command_a: float = 0.0
+    command_rad_s: float = 0.0  # CSV: the joint velocity command
+    mode: int = MODE_CST  # 0x6060 as init() wrote it
     last_tpdo_t: float = 0.0
     fresh: int = 0  # a bit per every-SYNC TPDO that arrived this cycle
     sync_mask: int = 0  # the bits of all its every-SYNC TPDOs: the cycle's complete at this
@@ -289,7 +311,7 @@ class _Axis:
     cw_sent: int = -1  # the controlword last sent in `cw_rpdo`
     cw_age: int = 0  # cycles since `cw_rpdo` was last sent
     cw_var: Any = None
-    torque_var: Any = None
+    target_var: Any = None  # the mode's target in `rpdo`: 0x6071 (CST) or 0x60FF (CSV)
     statuswords_received: int = 0
     statuswords_at_reset: int = 0  # `statuswords_received` when recover() asked for a reset
 
@@ -343,6 +365,8 @@ class Cia402Master:
                 strict=True,
             )
         ]
+        for k, axis in enumerate(self._axes):
+            axis.mode = params.mode_of(k)
         if network.notifier is None:
             raise ValueError("the network must be connected (its notifier running)")
         network.notifier.add_listener(_BusWatch(self))
@@ -382,7 +406,13 @@ class Cia402Master:
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
             try:
                 node.nmt.state = "PRE-OPERATIONAL"
-                node.sdo[od.MODES_OF_OPERATION].raw = MODE_CST
+                supported = int(node.sdo[od.SUPPORTED_DRIVE_MODES].raw)
+                if not supported >> (axis.mode - 1) & 1:  # CiA 402-2 0x6502: bit n-1, mode n
+                    raise BridgeError(
+                        f"drive {axis.joint} (node {node.id}) does not support mode {axis.mode} "
+                        f"(0x6502 = 0x{supported:08X})"
+                    )
+                node.sdo[od.MODES_OF_OPERATION].raw = axis.mode
                 node.sdo[od.CYCLE_PERIOD].raw = codec.CYCLE_PERIOD.encode(1.0 / p.cycle_hz)
                 node.sdo[od.HEARTBEAT_PRODUCER].raw = p.heartbeat_producer_ms
                 node.sdo[od.HEARTBEAT_CONSUMER][1].raw = (
@@ -397,7 +427,7 @@ class Cia402Master:
                 node.tpdo.read()  # type: ignore[no-untyped-call]
                 node.rpdo.read()  # type: ignore[no-untyped-call]
                 if p.pdo_layout == "compact":
-                    configure_compact_pdos(node, p.slow_tpdo_every)
+                    configure_compact_pdos(node, p.slow_tpdo_every, MODE_TARGETS[axis.mode])
             except (
                 canopen.SdoCommunicationError,
                 canopen.SdoAbortedError,
@@ -412,6 +442,7 @@ class Cia402Master:
                     rated_torque_mnm, rated_current_ma, increments, revolutions
                 )
                 axis.scale = TorqueScale(axis.k_t, axis.units.rated_torque_nm, max_permille)
+                axis.velocity = codec.velocity(axis.units)
             except (CodecError, ValueError) as exc:
                 raise BridgeError(f"drive {axis.joint} (node {node.id}): {exc}") from exc
             self._bind_pdos(axis)
@@ -434,23 +465,22 @@ class Cia402Master:
         self._bind_tpdos(axis)
 
     def _bind_rpdos(self, axis: _Axis) -> None:
-        cw = torque = None
+        wanted = MODE_TARGETS[axis.mode]
+        cw = target = None
         for number in axis.node.rpdo:
             rpdo = axis.node.rpdo[number]
             if not rpdo.enabled:
                 continue
             indices = {int(var.index) for var in rpdo}
-            if od.TARGET_TORQUE in indices and torque is None:
-                torque, axis.torque_var = rpdo, rpdo[od.TARGET_TORQUE]
+            if wanted in indices and target is None:
+                target, axis.target_var = rpdo, rpdo[wanted]
             if od.CONTROLWORD in indices and cw is None:
                 cw, axis.cw_var = rpdo, rpdo[od.CONTROLWORD]
-        if cw is None or torque is None:
-            raise BridgeError(
-                f"drive {axis.joint}: no enabled RPDO maps the "
-                f"{'controlword' if cw is None else 'target torque'}"
-            )
-        axis.rpdo = torque
-        axis.cw_rpdo = None if cw is torque else cw
+        if cw is None or target is None:
+            what = "controlword" if cw is None else f"target 0x{wanted:04X} of mode {axis.mode}"
+            raise BridgeError(f"drive {axis.joint}: no enabled RPDO maps the {what}")
+        axis.rpdo = target
+        axis.cw_rpdo = None if cw is target else cw
         axis.cw_sent, axis.cw_age = -1, 0
 
     def _bind_tpdos(self, axis: _Axis) -> None:
@@ -622,12 +652,39 @@ class Cia402Master:
         with self._lock:
             for axis, value in zip(self._axes, currents_a, strict=True):
                 axis.command_a = float(value)
-            self._last_command_t = time.monotonic() if now is None else now
-            self._commanded = True
-            if not self._quick_stopped:
-                self._silence_halt = False  # the controller is back before the quick stop
+            self._commands_arrived(time.monotonic() if now is None else now)
         self.counters.commands_accepted += 1
         return None
+
+    def set_velocities(self, velocities: Sequence[float], now: float | None = None) -> str | None:
+        """Take a velocity command (joint rad/s or m/s, joint order) for the CSV axes.
+
+        The CST axes ignore it (they take `set_currents`); both count as the controller's
+        commands for the silence watch. None, or why it was refused.
+        """
+        if len(velocities) != len(self._axes):
+            self.counters.commands_rejected += 1
+            return f"expected {len(self._axes)} velocities ({', '.join(self.params.joints)})"
+        if not all(math.isfinite(v) for v in velocities):
+            self.counters.commands_rejected += 1
+            return f"velocities must be finite, got {list(velocities)}"
+        with self._lock:
+            for axis, value in zip(self._axes, velocities, strict=True):
+                axis.command_rad_s = float(value)
+            self._commands_arrived(time.monotonic() if now is None else now)
+        self.counters.commands_accepted += 1
+        return None
+
+    def _commands_arrived(self, now: float) -> None:
+        self._last_command_t = now
+        self._commanded = True
+        if not self._quick_stopped:
+            self._silence_halt = False  # the controller is back before the quick stop
+
+    @property
+    def velocity_axes(self) -> tuple[str, ...]:
+        """The joints run in CSV (they take `set_velocities`)."""
+        return tuple(a.joint for a in self._axes if a.mode == MODE_CSV)
 
     def enable(self, on: bool) -> str:
         """Walk every drive to operation enabled (or back to ready to switch on)."""
@@ -812,16 +869,18 @@ class Cia402Master:
         """The RPDO frame(s) of one drive: the torque's, and the controlword's if due."""
         state = axis.state.power_state
         controlword = cm.next_controlword(state, want, axis.controlword)
-        torque = 0
+        target = 0
         running = want is Want.ENABLED and state is PowerState.OPERATION_ENABLED
         if running and (self._silence_halt or self._user_halt or self._failure_halt):
             controlword |= CW_HALT
+        elif running and axis.mode == MODE_CSV and axis.velocity is not None:
+            target = axis.velocity.encode(axis.command_rad_s * axis.gear)
         elif running and axis.scale is not None:
-            torque, clamped = axis.scale.target_permille(axis.command_a)
+            target, clamped = axis.scale.target_permille(axis.command_a)
             self.counters.commands_clamped += int(clamped)
         axis.controlword = controlword
         axis.cw_var.raw = controlword
-        axis.torque_var.raw = torque
+        axis.target_var.raw = target
         frames = []
         cw_rpdo = axis.cw_rpdo
         if cw_rpdo is not None:

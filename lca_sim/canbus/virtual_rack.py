@@ -91,7 +91,8 @@ import canopen
 from canopen import SdoAbortedError
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
-from lca_control.pi import PIParams
+from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
+from lca_control.pi import PIController, PIParams
 from lca_sim.cia402 import codec
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
@@ -188,6 +189,8 @@ class RackConfig:
         robot: robot config, a shipped name or a path.
         dt_s: plant integration step.
         current_kp_v_per_a, current_ti_s: the in-drive current PI.
+        velocity_kp_a_per_rad_s, velocity_ti_s: the in-drive velocity PI of CSV (mode 9), on
+            the joint's velocity, the paper's section 6 gains by default (lca_control's).
         heartbeat_producer_ms: 0x1017 after boot-up.
         encoder_increments_per_rev: 0x608F sub 1, motor side.
         sync_loss_periods: SYNC loss after this many 0x1006 periods without a SYNC.
@@ -208,6 +211,8 @@ class RackConfig:
     axes: tuple[AxisConfig, ...]
     max_stall_discount_s: float = DEFAULT_MAX_STALL_DISCOUNT_S
     eds_path: str = ""
+    velocity_kp_a_per_rad_s: float = PAPER_VELOCITY_KP_A_PER_RAD_S
+    velocity_ti_s: float = PAPER_VELOCITY_TI_S
     source: str = ""
 
     @property
@@ -253,6 +258,12 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
     dt_s = top.number("dt_s", min_value=0.0, max_value=0.01, min_exclusive=True)
     kp = top.number("current_kp_v_per_a", min_value=0.0)
     ti_s = top.number("current_ti_s", min_value=0.0, min_exclusive=True)
+    velocity_kp = top.number(
+        "velocity_kp_a_per_rad_s", default=PAPER_VELOCITY_KP_A_PER_RAD_S, min_value=0.0
+    )
+    velocity_ti_s = top.number(
+        "velocity_ti_s", default=PAPER_VELOCITY_TI_S, min_value=0.0, min_exclusive=True
+    )
     heartbeat_ms = _integer(top, "heartbeat_producer_ms", 0, 0xFFFF)
     increments = _integer(top, "encoder_increments_per_rev", 1, 0xFFFFFFFF)
     sync_loss = top.number("sync_loss_periods", default=3.0, min_value=1.0)
@@ -306,6 +317,8 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         axes=tuple(order),
         max_stall_discount_s=max_stall_discount_s,
         eds_path=eds,
+        velocity_kp_a_per_rad_s=velocity_kp,
+        velocity_ti_s=velocity_ti_s,
         source=source,
     )
 
@@ -439,10 +452,14 @@ class _Axis:
     sync_loss_reported: bool = False
     torque: Codec = field(init=False)  # N m <-> per mille of 0x6076 (0x6071, 0x6077)
     current: Codec = field(init=False)  # A <-> per mille of 0x6075 (0x6078)
+    velocity: Codec = field(init=False)  # motor rad/s <-> increments/s (0x606C, 0x60FF)
+    velocity_loop: PIController | None = None  # CSV: target velocity -> current setpoint
+    csv_permille: int = 0  # CSV: the velocity loop's output, per mille of 0x6075
 
     def __post_init__(self) -> None:
         self.torque = codec.torque(self.units)
         self.current = codec.current(self.units)
+        self.velocity = codec.velocity(self.units)
 
     def value(self, index: int, subindex: int = 0) -> int:
         """A stored (non-dynamic) object value."""
@@ -592,6 +609,10 @@ class VirtualDriveRack:
             )
             axis.defaults = self._defaults(axis)
             axis.live = self._live_objects(axis)
+            limit_a = axis_config.rated_current_a * axis_config.max_torque_permille / 1000.0
+            axis.velocity_loop = PIController(
+                PIParams(config.velocity_kp_a_per_rad_s, config.velocity_ti_s, -limit_a, limit_a)
+            )
             # canopen leaves these two unannotated.
             node.add_read_callback(self._read_callback(axis))  # type: ignore[no-untyped-call]
             node.add_write_callback(self._write_callback(axis))  # type: ignore[no-untyped-call]
@@ -790,9 +811,35 @@ class VirtualDriveRack:
         return axis.torque.encode(axis.torque_constant_nm_per_a * current_a)
 
     def _demand(self, axis: _Axis) -> cia402.TorqueDemand:
+        target = axis.csv_permille if axis.drive.mode == cia402.MODE_CSV else None
         return cia402.torque_demand(
-            axis.drive, axis.value(od.TARGET_TORQUE), axis.value(od.MAX_TORQUE)
+            axis.drive,
+            axis.value(od.TARGET_TORQUE) if target is None else target,
+            axis.value(od.MAX_TORQUE),
         )
+
+    def _velocity_loop(self, axis: _Axis, dt_s: float) -> None:
+        """CSV (CiA 402-2 mode 9): the drive's velocity PI turns 0x60FF into its torque demand.
+
+        Runs once per SYNC that advances the plant, over that period, on the joint velocity
+        (0x60FF and 0x606C are the motor's, / the gear ratio), with lca_control's PI (the
+        paper's gains by default: the same loop the controller node would close, here at the
+        bus cycle). Its output, a current, is the demand the current loop then follows, in per
+        mille of 0x6075 and clamped to 0x6072 like a CST target. Outside operation enabled, or
+        halted, the loop starts again from 0.
+        """
+        loop = axis.velocity_loop
+        assert loop is not None
+        drive = axis.drive
+        if drive.power is not PowerState.OPERATION_ENABLED or drive.halted:
+            loop.reset()
+            axis.csv_permille = 0
+            return
+        if dt_s <= 0.0:
+            return
+        target_rad_s = axis.velocity.decode(axis.value(od.TARGET_VELOCITY)) / axis.gear_ratio
+        current_a = loop.update(target_rad_s, float(self._state[1, axis.plant_index]), dt_s)
+        axis.csv_permille = axis.current.encode(current_a)
 
     def _statusword(self, axis: _Axis) -> int:
         demand = self._demand(axis)
@@ -1372,6 +1419,8 @@ class VirtualDriveRack:
         currents_a = [0.0] * len(self._axes)
         any_enabled = False
         for axis in self._axes:
+            if axis.drive.mode == cia402.MODE_CSV:
+                self._velocity_loop(axis, span_s)
             demand = self._demand(axis)
             # Rated torque is k_t x rated current: a torque in per mille of 0x6076 is the same
             # per mille of 0x6075 (CiA 402-2 0x6071 / 0x6075), the drive's current setpoint.

@@ -29,10 +29,14 @@ from dataclasses import dataclass, replace
 # --- modes of operation (CiA 402-2 0x6060) ---
 
 MODE_NONE = 0
+MODE_CSV = 9  # cyclic synchronous velocity: the drive closes the velocity loop (0x60FF)
 MODE_CST = 10  # cyclic synchronous torque
 # Modes a write of 0x6060 may select; CSV (9) and the others are refused.
-SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CST})
-SUPPORTED_DRIVE_MODES_BITS = 1 << (MODE_CST - 1)  # 0x6502: bit 9 = CST
+SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CSV, MODE_CST})
+# The modes in which the drive follows a cyclic target (the torque, or its velocity loop's).
+CYCLIC_MODES: frozenset[int] = frozenset({MODE_CSV, MODE_CST})
+# 0x6502 (CiA 402-2): bit n - 1 for mode n; bit 8 = CSV, bit 9 = CST.
+SUPPORTED_DRIVE_MODES_BITS = (1 << (MODE_CSV - 1)) | (1 << (MODE_CST - 1))
 
 # --- controlword bits (CiA 402-2 0x6040) ---
 
@@ -309,12 +313,14 @@ def settle(state: Cia402AxisState, *, standstill: bool, quick_stop_option: int) 
 
 
 def torque_demand(state: Cia402AxisState, target_permille: int, max_permille: int) -> TorqueDemand:
-    """The torque the drive applies, per mille of rated torque (CST mode).
+    """The torque the drive applies, per mille of rated torque (CST, and CSV).
 
-    Zero unless operation is enabled in CST without halt; otherwise the target clamped to
-    +-`max_permille` (0x6072).
+    Zero unless operation is enabled in a cyclic mode without halt; otherwise the target (in
+    CSV: the velocity loop's output) clamped to +-`max_permille` (0x6072).
     """
-    if state.power is not PowerState.OPERATION_ENABLED or state.mode != MODE_CST or state.halted:
+    if state.power is not PowerState.OPERATION_ENABLED or state.mode not in CYCLIC_MODES:
+        return TorqueDemand(0, False)
+    if state.halted:
         return TorqueDemand(0, False)
     if abs(target_permille) > max_permille:
         return TorqueDemand(max_permille if target_permille > 0 else -max_permille, True)
@@ -333,7 +339,8 @@ def statusword(state: Cia402AxisState, *, target_reached: bool, internal_limit: 
         word |= SW_TARGET_REACHED
     if internal_limit:
         word |= SW_INTERNAL_LIMIT
-    if state.power is PowerState.OPERATION_ENABLED and state.mode == MODE_CST and not state.halted:
+    enabled = state.power is PowerState.OPERATION_ENABLED
+    if enabled and state.mode in CYCLIC_MODES and not state.halted:
         word |= SW_FOLLOWS_COMMAND
     return word
 

@@ -63,6 +63,7 @@ MODES_OF_OPERATION_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064  # increments
 VELOCITY_ACTUAL = 0x606C  # increments/s
 TARGET_TORQUE = 0x6071  # per mille of rated torque
+TARGET_VELOCITY = 0x60FF  # increments/s (CSV, mode 9)
 MAX_TORQUE = 0x6072
 MOTOR_RATED_CURRENT = 0x6075  # mA
 MOTOR_RATED_TORQUE = 0x6076  # mN m
@@ -414,6 +415,8 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
                 _cia402(VELOCITY_ACTUAL), "rad/s", Scaling.INCREMENTS_PER_S, _SAT, default=0),
     ObjectEntry(TARGET_TORQUE, 0, "Target torque", _I16, _RWW, True, _cia402(TARGET_TORQUE),
                 "N m", Scaling.PERMILLE_RATED_TORQUE, _SAT, default=0),
+    ObjectEntry(TARGET_VELOCITY, 0, "Target velocity", _I32, _RWW, True,
+                _cia402(TARGET_VELOCITY), "rad/s", Scaling.INCREMENTS_PER_S, _SAT, default=0),
     ObjectEntry(MAX_TORQUE, 0, "Max torque", _U16, _RWW, True, _cia402(MAX_TORQUE), "N m",
                 Scaling.PERMILLE_RATED_TORQUE, _SAT, default=2000),
     ObjectEntry(MOTOR_RATED_CURRENT, 0, "Motor rated current", _U32, _RO, False,
@@ -431,7 +434,7 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     ObjectEntry(POSITION_ENCODER_RESOLUTION, 2, "Motor revolutions", _U32, _RO, False,
                 _cia402(POSITION_ENCODER_RESOLUTION), default=1),
     ObjectEntry(SUPPORTED_DRIVE_MODES, 0, "Supported drive modes", _U32, _RO, False,
-                _cia402(SUPPORTED_DRIVE_MODES), default=0x00000200),  # bit 9: CST
+                _cia402(SUPPORTED_DRIVE_MODES), default=0x00000300),  # bits 8, 9: CSV, CST
 )  # fmt: skip
 
 

@@ -228,6 +228,7 @@ class CanBridgeNode(Node):
                     rpdo_deadline_ms=p.rpdo_deadline_ms,
                     max_send_failures=p.max_send_failures,
                     pdo_layout=p.pdo_layout,
+                    modes=p.modes,
                     slow_tpdo_rate_hz=p.slow_tpdo_rate_hz,
                 ),
                 eds,
@@ -256,6 +257,10 @@ class CanBridgeNode(Node):
         self.create_subscription(
             Float64MultiArray, ri.VOLTAGE_COMMANDS, self._on_voltage_command, command_qos
         )
+        if self.bridge.velocity_axes:  # CSV axes close their velocity loop in the drive
+            self.create_subscription(
+                Float64MultiArray, ri.VELOCITY_COMMANDS, self._on_velocity_command, command_qos
+            )
         for name, handler in (
             ("init", self._srv_init),
             ("enable", self._srv_enable),
@@ -358,6 +363,15 @@ class CanBridgeNode(Node):
         if reason is not None:
             self.get_logger().warning(
                 f"command rejected ({self.bridge.counters.commands_rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
+
+    def _on_velocity_command(self, msg: Float64MultiArray) -> None:
+        reason = self.bridge.set_velocities(list(msg.data))
+        if reason is not None:
+            self.get_logger().warning(
+                f"velocity command rejected ({self.bridge.counters.commands_rejected} so far): "
+                f"{reason}",
                 throttle_duration_sec=1.0,
             )
 

@@ -48,6 +48,10 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
                   "CANopen node id of each joint's drive", 1, 127, live=False),
         ParamSpec("master_node_id", INT, 127, "the bridge's own node id (its heartbeat)",
                   1, 127, live=False),
+        ParamSpec("modes", ParamKind.STRING_ARRAY, [],
+                  "per joint: cst (current commands -> target torque) or csv (velocity_commands "
+                  "-> target velocity, the drive's velocity loop); empty: all cst",
+                  choices=("cst", "csv"), live=False),
         ParamSpec("command_interface", S, "current",
                   "only current (A): target torque = k_t i (CiA 402 torque mode)",
                   choices=("current",), live=False),
@@ -96,6 +100,7 @@ class CanBridgeNodeParams:
     joints: tuple[str, ...]
     node_ids: tuple[int, ...]
     master_node_id: int
+    modes: tuple[str, ...]
     cycle_hz: float
     command_timeout_s: float
     quick_stop_after_s: float
@@ -134,5 +139,8 @@ def validate_can_bridge_params(values: Mapping[str, Any]) -> CanBridgeNodeParams
             f"{len(joints)} distinct ids in 1..127, other than master_node_id {master}",
             node_ids,
         )
+    modes: tuple[str, ...] = v["modes"]
+    if modes and len(modes) != len(joints):
+        raise ParameterError("modes", f"{len(joints)} modes (one per joint) or none", modes)
     fields = {k: v[k] for k in v if k != "command_interface"}
     return CanBridgeNodeParams(**fields)

@@ -20,7 +20,13 @@ import canopen
 import pytest
 
 from lca_sim.canbus import emcy
-from lca_sim.canbus.master import CAN_ERR_BUSOFF, BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.master import (
+    CAN_ERR_BUSOFF,
+    BridgeError,
+    BridgeParams,
+    Cia402Master,
+    Snapshot,
+)
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
@@ -683,3 +689,43 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
     assert worst == pytest.approx(98.925)
     assert worst < 100.0
     assert nominal == pytest.approx(82.107)
+
+
+def test_csv_the_drive_closes_the_velocity_loop_on_the_target_velocity(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """Pivot in CSV (mode 9, 0x60FF), the others in CST: the pivot holds the commanded speed.
+
+    The drive's velocity PI (lca_control's, the paper's gains) runs at the bus cycle on the
+    joint velocity; the bridge sends the joint velocity command as 0x60FF (motor increments/s).
+    Against gravity at 35 deg, the pivot holds 0.02 rad/s within 5 % while the CST axes
+    stay at zero current.
+    """
+    rig = rig_factory(modes=("cst", "csv", "cst", "cst"))
+    assert rig.bridge.velocity_axes == ("pivot",)
+    assert rig.rack.node("pivot").sdo[0x6060].raw == 9
+    assert rig.rack.node("l_arm").sdo[0x6060].raw == 10
+    target_rad_s = 0.02
+    assert rig.bridge.set_velocities([0.0, target_rad_s, 0.0, 0.0]) is None
+    _enabled(rig)
+    wait_for(
+        lambda: abs(rig.bridge.axis_state("pivot").velocity - target_rad_s) < 2e-4,
+        10.0,
+        "the pivot at its commanded speed",
+    )
+    first = len(rig.snapshots)
+    wait_for(lambda: len(rig.snapshots) >= first + 50, 5.0, "0.2 s more at 250 Hz")
+    speeds = [s.axes[1].velocity for s in rig.snapshots[first : first + 50]]
+    assert max(abs(v - target_rad_s) for v in speeds) < 0.05 * target_rad_s
+    assert rig.bridge.axis_state("pivot").statusword & 0x1000  # bit 12: follows the target
+    assert all(abs(rig.bridge.axis_state(j).current_a) < 0.05 for j in ("l_arm", "c_arc", "lift"))
+    rig.bridge.set_velocities([0.0, 0.0, 0.0, 0.0])
+    wait_for(lambda: abs(rig.bridge.axis_state("pivot").velocity) < 1e-3, 10.0, "stopped")
+
+
+def test_csv_refused_when_the_drive_maps_no_target_velocity(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """With the drive's own mapping (no 0x60FF in an RPDO) a CSV axis is one clear error."""
+    with pytest.raises(BridgeError, match="target 0x60FF of mode 9"):
+        rig_factory(modes=("cst", "csv", "cst", "cst"), pdo_layout="drive")

@@ -256,7 +256,7 @@ def test_sdo_aborts(rack: VirtualDriveRack, master: canopen.Network) -> None:
     node = remote(master, PIVOT)
     cases = [
         (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 1)), 0x06090030),
-        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 9)), 0x06090030),
+        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 8)), 0x06090030),  # CSP
         (lambda: node.sdo.upload(0x5000, 0), 0x06020000),
         (lambda: node.sdo.upload(0x6041, 1), 0x06090011),
         (lambda: node.sdo.download(0x6041, 0, b"\x00\x00"), 0x06010002),
@@ -270,7 +270,7 @@ def test_sdo_aborts(rack: VirtualDriveRack, master: canopen.Network) -> None:
         codes.append(aborted.value.code)
     assert codes == [code for _, code in cases]
     assert node.sdo[0x6060].raw == 10
-    assert node.sdo[0x6502].raw == 0x0200
+    assert node.sdo[0x6502].raw == 0x0300  # CSV and CST
 
 
 def test_fault_reset_acts_on_the_rising_edge_only(

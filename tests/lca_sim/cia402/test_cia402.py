@@ -211,15 +211,16 @@ def test_torque_demand(
 
 
 def test_supported_modes() -> None:
-    """CST (10) and no mode (0) are accepted; CSV (9), profile position (1) are not."""
-    assert [cia402.is_supported_mode(m) for m in (10, 0, 9, 1, -1)] == [
+    """CST (10), CSV (9) and no mode (0) are accepted; CSP (8), profile position (1) are not."""
+    assert [cia402.is_supported_mode(m) for m in (10, 9, 0, 8, 1, -1)] == [
+        True,
         True,
         True,
         False,
         False,
         False,
     ]
-    assert cia402.SUPPORTED_DRIVE_MODES_BITS == 0x0200
+    assert cia402.SUPPORTED_DRIVE_MODES_BITS == 0x0300  # CiA 402-2 0x6502: bits 8 and 9
 
 
 @given(

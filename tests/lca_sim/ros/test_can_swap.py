@@ -72,8 +72,11 @@ class SwapRun:
     longest_freeze_ms: int  # the longest this process stood still while tracking
 
 
-def _run_swap(tmp_path: Path) -> SwapRun:
-    """The bridge (with its virtual rack), the shipped controller and a probe, 11.5 s of ramp."""
+def _run_swap(tmp_path: Path, modes: tuple[str, ...] = (), until_s: float = 11.5) -> SwapRun:
+    """The bridge (with its virtual rack), the shipped controller and a probe, on the ramp.
+
+    `modes`: the bridge's per-joint CiA 402 modes (empty: all CST); `until_s`: controller time.
+    """
     tmp_path.mkdir()
     ctx = Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
@@ -101,6 +104,7 @@ def _run_swap(tmp_path: Path) -> SwapRun:
                 Parameter("rpdo_deadline_ms", value=500),
                 Parameter("heartbeat_consumer_ms", value=1000),
                 Parameter("stale_timeout_s", value=0.5),
+                Parameter("modes", value=list(modes), type_=Parameter.Type.STRING_ARRAY),
             ],
         )
         stamp_s, position_rad, velocity_rad_s = array("d"), array("d"), array("d")
@@ -128,7 +132,7 @@ def _run_swap(tmp_path: Path) -> SwapRun:
         deadline = time.monotonic() + 60.0
         watch = FreezeWatch()
         try:
-            while ctl.core.elapsed_s < 11.5:
+            while ctl.core.elapsed_s < until_s:
                 assert time.monotonic() < deadline, f"only {ctl.core.elapsed_s:.2f} s of the ramp"
                 executor.spin_once(timeout_sec=0.05)
                 if not watch.is_alive() and ctl.core.elapsed_s >= TRACKING_FROM_S:
@@ -199,3 +203,29 @@ def test_controller_unchanged_over_can_tracks_the_ramp_and_switches_near_55_deg(
     ]
     assert len(errors) > 1500  # 250 Hz over 8.9 s: 2225, less any incomplete cycles
     assert math.degrees(max(errors)) < 0.5  # deg/s (0.3 over the lockstep simulator)
+
+
+def test_the_same_controller_drives_a_csv_axis_through_its_velocity_commands(
+    tmp_path: Path,
+) -> None:
+    """The pivot in CSV: the drive closes the velocity loop on the controller's setpoints.
+
+    Nothing changes on the controller: the bridge subscribes to velocity_commands for its CSV
+    axis (the controller publishes them while someone listens) and sends them as 0x60FF; the
+    drive's velocity PI (the paper's gains, at the 250 Hz bus cycle) tracks the ramp as the
+    controller's own loop does over CST.
+    """
+    run = _run_swap(tmp_path / "first", modes=("cst", "csv", "cst", "cst"), until_s=4.5)
+    if run.longest_freeze_ms > LONG_FREEZE_MS:
+        warnings.warn(f"stood still {run.longest_freeze_ms} ms; once more", stacklevel=1)
+        run = _run_swap(tmp_path / "second", modes=("cst", "csv", "cst", "cst"), until_s=4.5)
+    assert run.latched_reason == ""
+    t0 = run.stamp_s[0]
+    errors = [
+        abs(v - run.ramp.velocity(t - t0))
+        for t, v in zip(run.stamp_s, run.velocity_rad_s, strict=True)
+        if t0 + TRACKING_FROM_S < t < t0 + 4.4
+    ]
+    assert len(errors) > 400  # 250 Hz over 2.4 s: 600, less any incomplete cycles
+    assert math.degrees(max(errors)) < 0.5  # deg/s, as over CST
+    assert run.ramp.velocity(4.4) > math.radians(1.5)  # the ramp did rise (deg/s)
