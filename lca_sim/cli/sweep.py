@@ -55,6 +55,12 @@ TRAJECTORIES = "trajectories.parquet"
 RECORD = "sweep.json"
 LOG = "run_log.json"
 ATTEMPTS = 2  # a point is submitted at most twice: once, and once more after a failure
+# A worker computes a point in one thread while its event loop (heartbeats, transfers) waits in
+# another; with Python's 5 ms GIL switch interval that loop takes the GIL back every few ms and
+# a 13-s closed-loop point runs about 8 % slower than in a plain loop. 50 ms leaves the loop
+# answering well within Dask's timeouts (seconds) and the point at the plain loop's speed
+# (bench/sweep.py).
+WORKER_SWITCH_INTERVAL_S = 0.05
 OK, FAILED = "ok", "failed"
 
 
@@ -265,6 +271,7 @@ def _outcome_row(task: PointTask, outcome: PointOutcome | None, error: str) -> d
 
 def timed_point(task: PointTask) -> tuple[PointOutcome, float]:
     """`run_point` and its wall time on the worker, s (what the workers run)."""
+    sys.setswitchinterval(WORKER_SWITCH_INTERVAL_S)
     start = time.perf_counter()
     outcome = run_point(task)
     return outcome, time.perf_counter() - start
