@@ -607,6 +607,22 @@ def test_closed_loop_run_without_ros(tmp_path: Path) -> None:
     assert summary["duration_s"] == 0.2 and summary["realtime_factor"] > 0.0
 
 
+def test_sweep_without_ros(tmp_path: Path) -> None:
+    """`lca-hil sweep` runs a 2-point spec on a local Dask worker and draws its plots."""
+    spec = tmp_path / "spec.yaml"
+    doc = {
+        "base": {"kind": "current_step", "axis": "pivot", "duration_s": 0.005},
+        "parameters": [{"name": "kp", "path": "base.current_kp_v_per_a", "values": [20.0, 40.0]}],
+        "metrics": [{"metric": "peak_current_a"}],
+    }
+    spec.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    out = tmp_path / "sweep"
+    args = ["sweep", str(spec), "--out", str(out), "--workers", "1", "--plot", str(out)]
+    _ok(_tool("lca-hil", args, tmp_path))
+    _written(out / "results.parquet")
+    _written(out / "plots" / "peak_current_a.png", 10_000)
+
+
 def test_sim_run_and_identify_without_ros(tmp_path: Path) -> None:
     """`lca-sim run` on a 0.5 s scenario writes result.csv/.png; `lca-hil identify` reads it."""
     scenario = tmp_path / "short.yaml"
