@@ -20,9 +20,11 @@ A parameter's path starts at one of the run's documents (`ROOTS`): `base` (the s
 block), `robot` (the robot YAML, after its `base:` merge), `controller` and `simulator` (the
 nodes' parameters, closed loop), `scenario` (the open-loop scenario YAML). Below the root, a
 mapping is entered by key, a list by index or, for a list of named items (the robot's axes),
-by name. Every path must exist in the base documents, with one exception: an axis without its
-own `efficiency` table takes the robot's top-level one (that is what the robot file means), so
-`robot.axes.pivot.efficiency...` changes the pivot's alone.
+by name. Every path must exist in the base documents, with three exceptions: a node parameter
+the params file leaves at its default (`controller.*`, `simulator.*`: the node's validation
+then names an unknown one), a base key the block leaves at its default, and an axis without its
+own `efficiency` table, which takes the robot's top-level one (that is what the robot file
+means), so `robot.axes.pivot.efficiency...` changes the pivot's alone.
 
 Grid sweeps take the product of the parameters' values (the last parameter varies fastest);
 random sweeps draw `samples` points, point i from the generator seeded with (seed, i), the

@@ -377,3 +377,35 @@ def test_documents_root_names() -> None:
     """Documents answers each root a path can start at."""
     documents = Documents(base={"a": 1}, robot={}, urdf_xml="")
     assert documents.root("base") == {"a": 1} and documents.root("scenario") == {}
+
+
+def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
+    """A closed-loop point with a controller gain set runs the loop `lca-hil run` runs."""
+    from lca_sim.analysis.closed_loop import ClosedLoop
+    from lca_sim.cli.run import closed_loop_config, node_parameters
+
+    spec_doc = {
+        "base": {"kind": "closed_loop", "duration_s": 1.2, "axis": "pivot"},
+        "parameters": [
+            {"name": "kp", "path": "controller.velocity_kp_a_per_rad_s", "values": [200.0]}
+        ],
+        "metrics": [{"metric": "peak_current_a"}, {"metric": "tracking_error_max"}],
+    }
+    spec, documents = load_spec(_write(tmp_path, spec_doc))
+    (task,) = build_tasks(spec, documents, "0")
+    outcome = run_point(task)
+    controller = node_parameters(CONFIG / "ros" / "controller.yaml", "controller")
+    simulator = node_parameters(CONFIG / "ros" / "simulator.yaml", "simulator")
+    config = closed_loop_config({**controller, "velocity_kp_a_per_rad_s": 200.0}, simulator, 1.2)
+    result = ClosedLoop(config).run()
+    pivot = result.axes.index("pivot")
+    assert outcome.metrics["peak_current_a"] == float(np.max(np.abs(result.current_a[:, pivot])))
+    error = result.tracking_error()[:, result.joints.index("pivot")]
+    assert outcome.metrics["tracking_error_max"] == float(np.max(np.abs(error)))
+    bad = {
+        **spec_doc,
+        "parameters": [{"name": "k", "path": "controller.velocity_kp", "values": [1]}],
+    }
+    spec, documents = load_spec(_write(tmp_path, bad))
+    with pytest.raises(ConfigError, match="velocity_kp"):
+        build_tasks(spec, documents, "0")
