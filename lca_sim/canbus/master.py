@@ -274,6 +274,7 @@ class Counters:
     emcy_received: int = 0
     bad_pdos: int = 0
     silence_halts: int = 0
+    drive_restarts: int = 0
     frames_sent: int = 0
     frames_received: int = 0
     bits_sent: int = 0  # worst-case stuffing (`frame_bits`)
@@ -312,6 +313,7 @@ class _Axis:
     cw_age: int = 0  # cycles since `cw_rpdo` was last sent
     cw_var: Any = None
     target_var: Any = None  # the mode's target in `rpdo`: 0x6071 (CST) or 0x60FF (CSV)
+    boot_watch: Any = None  # its boot-up callback on the network, once subscribed
     statuswords_received: int = 0
     statuswords_at_reset: int = 0  # `statuswords_received` when recover() asked for a reset
 
@@ -375,6 +377,7 @@ class Cia402Master:
         self._user_halt = False  # ~/halt, until the next enable
         self._quick_stopped = False
         self._stale: list[str] = []
+        self._rebooted: list[str] = []  # drives that sent a boot-up after init()
         self._bus_off = False
         self._send_failures_in_row = 0
         self._failure_halt = False
@@ -401,7 +404,7 @@ class Cia402Master:
             BridgeError: a drive did not answer, or refused a setting.
         """
         p = self.params
-        for axis in self._axes:
+        for k, axis in enumerate(self._axes):
             node = axis.node
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
             try:
@@ -447,9 +450,14 @@ class Cia402Master:
                 raise BridgeError(f"drive {axis.joint} (node {node.id}): {exc}") from exc
             self._bind_pdos(axis)
             node.emcy.add_callback(self._emcy_callback(axis))
+            if axis.boot_watch is None:  # once: init() may run again
+                axis.boot_watch = self._boot_up_callback(axis)
+                self.network.subscribe(HEARTBEAT_BASE + self.params.node_ids[k], axis.boot_watch)
         for axis in self._axes:
             axis.node.nmt.state = "OPERATIONAL"
             axis.last_tpdo_t = time.monotonic()
+        with self._lock:
+            self._rebooted = []  # configured again: a restart before this no longer matters
         self._initialized = True
 
     def _bind_pdos(self, axis: _Axis) -> None:
@@ -613,6 +621,26 @@ class Cia402Master:
         if snapshot is not None and self.on_state is not None:
             self.on_state(snapshot)
 
+    def _boot_up_callback(self, axis: _Axis) -> Callable[[int, bytearray, float], None]:
+        """A boot-up message (CiA 301 7.2.8.3.3: heartbeat COB-ID, state byte 0) after init().
+
+        The drive restarted behind the master's back (power, reset, a NMT reset node from
+        elsewhere): its configuration, PDO mapping included, is its boot default again, so every
+        axis stops (latched) until `init()` configures it again. Counted and logged once.
+        """
+
+        def on_heartbeat(_can_id: int, data: bytearray, _timestamp: float) -> None:
+            if len(data) != 1 or data[0] != 0 or not self._initialized:
+                return
+            self.counters.drive_restarts += 1
+            with self._lock:
+                if axis.joint in self._rebooted:
+                    return
+                self._rebooted.append(axis.joint)
+            log.error("drive %s restarted (boot-up): axes stopped until ~/init", axis.joint)
+
+        return on_heartbeat
+
     def _emcy_callback(self, axis: _Axis) -> Callable[[Any], None]:
         def on_emcy(entry: Any) -> None:
             code = int(entry.code)
@@ -751,6 +779,8 @@ class Cia402Master:
             reasons.append("EMCY " + ", ".join(latched))
         if self._stale:
             reasons.append("stale drive " + ", ".join(self._stale))
+        if self._rebooted:
+            reasons.append(f"drive {', '.join(self._rebooted)} restarted (boot-up): ~/init")
         if self._bus_off:
             reasons.append("bus-off")
         return "; ".join(reasons)

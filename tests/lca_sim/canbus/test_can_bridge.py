@@ -729,3 +729,29 @@ def test_csv_refused_when_the_drive_maps_no_target_velocity(
     """With the drive's own mapping (no 0x60FF in an RPDO) a CSV axis is one clear error."""
     with pytest.raises(BridgeError, match="target 0x60FF of mode 9"):
         rig_factory(modes=("cst", "csv", "cst", "cst"), pdo_layout="drive")
+
+
+def test_a_drive_that_restarts_behind_the_masters_back_stops_the_axes_until_init(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """NMT reset node from elsewhere: the boot-up is seen, the axes stop, ~/init clears it.
+
+    After a reset the drive is back to its boot mapping (CiA 301), which no longer matches
+    what init() configured; carrying on would send it frames it does not expect.
+    """
+    rig = _enabled(rig_factory())
+    rig.injector.send(can.Message(arbitration_id=0x000, data=[0x81, 2], is_extended_id=False))
+    wait_for(lambda: "restarted (boot-up)" in rig.bridge.latched_reason(), 2.0, "restart seen")
+    assert "drive pivot restarted" in rig.bridge.latched_reason()
+    assert rig.bridge.counters.drive_restarts == 1
+    rig.bridge.recover()
+    assert "restarted" in rig.bridge.latched_reason()  # recover alone is not enough
+    assert "not enabled" in rig.bridge.enable(True)
+    rig.bridge.stop()
+    rig.bridge.init()
+    rig.bridge.start()
+    rig.bridge.recover()
+    wait_for(lambda: rig.bridge.latched_reason() == "", 5.0, "latches cleared after init")
+    reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
+    wait_for(lambda: all(v in reset for v in rig.states().values()), 5.0, "faults reset")
+    _enabled(rig)

@@ -274,3 +274,95 @@ def test_random_frames_then_the_master_still_boots_enables_moves_and_stops(
     finally:
         bridge.stop()
         network.disconnect()
+
+
+def test_random_frames_at_a_running_bridge_never_make_it_command_torque(
+    rack: VirtualDriveRack, probe: Probe, channel: str, default_robot: RobotParams
+) -> None:
+    """The bridge's master, running with every drive enabled and a zero command, under fire.
+
+    The same random sequences (bad PDOs, foreign and fake TPDOs, EMCYs, NMT and SDO floods,
+    SYNCs of a second producer, error frames) arrive while its cycle runs. Whatever it
+    concludes from them (a latched EMCY, a stale drive, a fake statusword), its cycle goes on
+    (or, after a bus-off error frame, stops and says so until `recover()`), and every target
+    torque it sends is 0: it never commands a torque the controller did not. Then `init()`,
+    `recover()` and `enable` bring the drives back, and a command moves an axis again.
+    """
+    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
+    network.connect()
+    bridge = Cia402Master(network, _bridge_params(default_robot), eds_path())
+    try:
+        bridge.init()
+        bridge.start()
+        assert bridge.set_currents([0.0] * len(JOINTS)) is None
+        assert bridge.enable(True) == "enabling"
+        wait_until(
+            lambda: all(rack.power_state(j) is PowerState.OPERATION_ENABLED for j in JOINTS),
+            "every drive enabled",
+        )
+        mark = probe.mark()
+        started_s = time.monotonic()
+
+        @settings(
+            max_examples=60,
+            deadline=None,
+            database=None,
+            suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+        )
+        @given(frames=_sequence)
+        def throw(frames: list[can.Message]) -> None:
+            for msg in frames:
+                probe.bus.send(msg)
+                bridge.set_currents([0.0] * len(JOINTS))  # the controller goes on
+            cycles = bridge.counters.cycles
+
+            def bus_off() -> bool:
+                return "bus-off" in bridge.latched_reason()
+
+            def running() -> bool:
+                # A bus-off error frame (of this sequence, or one still queued from an earlier
+                # one): the cyclic transmission stopped, as it must, and says so; an
+                # operator's ~/recover starts it again.
+                if bus_off():
+                    assert bridge.counters.error_frames > 0
+                    bridge.recover()
+                    start[0] = bridge.counters.cycles
+                return bridge.counters.cycles > start[0] + 2
+
+            start = [cycles]
+            wait_until(running, "the bridge's cycle runs")
+
+        throw()
+        assert time.monotonic() - started_s < 30.0
+        # RPDO1 of the compact layout: the target torque alone, INTEGER16 per mille.
+        sent = [d for n in NODE_IDS for d in probe.seen(0x200 + n, mark) if len(d) == 2]
+        assert len(sent) > 100
+        assert {struct.unpack("<h", d)[0] for d in sent} == {0}
+
+        # The random NMT resets may have put a drive back to its boot mapping behind the
+        # master's back: configure them again (the bridge's ~/init), then clear the latches.
+        bridge.stop()
+        bridge.init()
+        bridge.start()
+        bridge.recover()
+        bridge.set_currents([0.0] * len(JOINTS))
+        wait_until(lambda: bridge.latched_reason() == "", "latches cleared")
+        reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
+        wait_until(
+            lambda: all(bridge.axis_state(j).power_state in reset for j in JOINTS),
+            "faults reset",
+        )
+        assert bridge.enable(True) == "enabling"
+        wait_until(
+            lambda: all(rack.power_state(j) is PowerState.OPERATION_ENABLED for j in JOINTS),
+            "every drive enabled again",
+        )
+        start_position = rack.plant_state().position[0]
+        deadline_s = time.monotonic() + 10.0
+        while rack.plant_state().position[0] < start_position + 0.01:
+            assert time.monotonic() < deadline_s, "l_arm did not move on a 3 A command"
+            bridge.set_currents([3.0, 0.0, 0.0, 0.0])
+            time.sleep(0.01)  # a controller's period, not a wait for a result
+    finally:
+        bridge.stop()
+        network.disconnect()
