@@ -342,6 +342,9 @@ def test_random_frames_at_a_running_bridge_never_make_it_command_torque(
         # The random NMT resets may have put a drive back to its boot mapping behind the
         # master's back: configure them again (the bridge's ~/init), then clear the latches.
         bridge.stop()
+        # The sequences' SDO requests used the drives' default SDO channel too (CiA 301 gives
+        # it one client at a time): let the rack answer them all before the master's own.
+        _settled(rack, probe)
         bridge.init()
         bridge.start()
         bridge.recover()
