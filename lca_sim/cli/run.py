@@ -28,6 +28,7 @@ from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoo
 from lca_sim.cli.output import number_cell, write_json, write_table
 from lca_sim.config.loader import config_dir, load_robot, read_yaml
 from lca_sim.errors import EXIT_OK, ConfigError, run_guarded
+from lca_sim.model.params import RobotParams
 from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil run"
@@ -56,6 +57,7 @@ def closed_loop_config(
     controller_values: Mapping[str, Any],
     simulator_values: Mapping[str, Any],
     duration_s: float | None = None,
+    robot: RobotParams | None = None,
 ) -> ClosedLoopConfig:
     """The composed run of the two nodes started with these parameter values.
 
@@ -66,6 +68,7 @@ def closed_loop_config(
         controller_values: the controller node's parameters (missing ones at their defaults).
         simulator_values: the simulator node's.
         duration_s: simulated time of the run; None takes the simulator's `lockstep_end_s`.
+        robot: the robot in place of the simulator's `robot` (a sweep's varied one).
 
     Raises:
         ParameterError: a bad value, named as the node's parameter.
@@ -79,7 +82,7 @@ def closed_loop_config(
             raise ParameterError("lockstep_end_s", "a run's end > 0 (or --duration-s)", 0.0)
     interface = simulator.command_interface
     return ClosedLoopConfig(
-        robot=load_robot(simulator.robot),
+        robot=load_robot(simulator.robot) if robot is None else robot,
         controller=controller,
         duration_s=duration_s,
         joints=simulator.joints,

@@ -35,14 +35,13 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
-from lca_control.controller import validate_controller_params
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
 from lca_sim.analysis.metrics import METRICS
 from lca_sim.analysis.sweep import PointOutcome, PointTask, build_task, run_point
 from lca_sim.analysis.sweep_spec import Documents, SweepSpec, expand_points, parse_spec
 from lca_sim.cli.output import atomic_path, save_png, write_json
-from lca_sim.cli.run import node_parameters
+from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import _read_with_base, config_dir, read_yaml, resolve
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
 from lca_sim.model.params import RobotParams
@@ -151,30 +150,12 @@ def closed_loop_builder(documents: Documents, robot: RobotParams) -> ClosedLoopC
     Raises:
         ParameterError: a node parameter the node would refuse.
     """
-    controller = validate_controller_params(documents.controller)
     simulator = validate_simulator_params(documents.simulator)
     duration = documents.base.get("duration_s", simulator.lockstep_end_s)
     if isinstance(duration, bool) or not isinstance(duration, int | float) or duration <= 0:
         raise ParameterError("duration_s", "a run's length > 0 (base.duration_s)", duration)
-    interface = simulator.command_interface
-    return ClosedLoopConfig(
-        robot=robot,
-        controller=controller,
-        duration_s=float(duration),
-        joints=simulator.joints,
-        command_interface=interface,
-        dt_s=simulator.dt_s,
-        rigid_body_update_steps=simulator.rigid_body_update_steps,
-        control_period_s=simulator.control_period_s,
-        current_kp_v_per_a=simulator.current_kp_v_per_a,
-        current_ti_s=simulator.current_ti_s,
-        max_abs_command=(
-            simulator.max_command_voltage_v
-            if interface == "voltage"
-            else simulator.max_command_current_a
-        ),
-        initial_position=simulator.initial_position,
-        plant_enabled=simulator.enabled,
+    return closed_loop_config(
+        documents.controller, documents.simulator, float(duration), robot=robot
     )
 
 
