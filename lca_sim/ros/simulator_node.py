@@ -44,6 +44,16 @@ the message "ended at <t> s" and the value `ended` (`ENDED_KEY`) = "True" in eve
 diagnostics period, so an orchestrator that subscribes late still sees it. The process keeps
 running (parameters and services stay available) until it is stopped; raising
 `lockstep_end_s` live resumes the run, and 0 means no end.
+
+Simulation control (std_srvs/Trigger services; docs/simulation-control.md has the whole story):
+`~/pause` stops simulated time, `~/resume` continues it, `~/step` (only while paused) advances
+`step_periods` control periods (`control_period_s` each), `~/reset` puts the plant back to
+`initial_position` (in lockstep also simulated time back to 0). In realtime mode a pause holds
+the plant and the stamps exactly, a resume does not catch up the paused wall time (it is counted
+as `paused_s`, never as a stall), and `realtime_factor` sets how fast simulated time runs against
+the wall clock. In lockstep mode a paused simulator takes commands but runs no period for them:
+the latest one waits (`command_pending`) for `~/resume` or `~/step`, which lets that one and
+then the next N - 1 commands through, one period each.
 """
 
 from __future__ import annotations
@@ -132,6 +142,14 @@ class SimulatorNode(Node):
         self._after_end = 0
         self._end_reported = False
         self._commands_lost = False  # the controller peer, as /diagnostics reports it
+        self._paused = False
+        self._pending = False  # lockstep, paused: a command came, its period has not run
+        self._step_budget = 0  # lockstep, paused: commands ~/step still lets through
+        self._pause_began = 0.0  # monotonic, s
+        self._paused_s = 0.0  # realtime: wall time spent paused (ended pauses), s
+        self._window_paused_s = 0.0
+        self._manual_steps = 0  # realtime: model steps taken by ~/step (not wall-paced)
+        self._window_manual = 0
         self._command_losses = 0
         self._gear_ratio = np.array([a.gear_ratio for a in self.sim.robot.axes])
         self._irreversible = robot.state_machine.irreversible_stop
@@ -154,6 +172,9 @@ class SimulatorNode(Node):
         self.create_subscription(Float64MultiArray, active, self._on_command, command_qos)
         self.create_subscription(Float64MultiArray, other, self._on_wrong_interface, command_qos)
         self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(Trigger, "~/pause", self._on_pause)
+        self.create_service(Trigger, "~/resume", self._on_resume)
+        self.create_service(Trigger, "~/step", self._on_step)
         self.create_service(SetBool, "~/enable", self._on_enable)
 
         if self._lockstep:
@@ -179,12 +200,33 @@ class SimulatorNode(Node):
         return self._time_base_s + self._steps_done * self.params.dt_s
 
     @property
+    def steps(self) -> int:
+        """Model steps (of `dt_s`) since start-up, or in lockstep since the last `~/reset`."""
+        return self._steps_done
+
+    @property
+    def paused(self) -> bool:
+        """Simulated time is stopped (`~/pause`) until `~/resume`; `~/step` moves it on."""
+        return self._paused
+
+    @property
+    def lockstep_started(self) -> bool:
+        """Lockstep: the first state has gone out (its subscribers matched); realtime: True."""
+        return self._started
+
+    @property
+    def command_pending(self) -> bool:
+        """Lockstep, paused: a command has come whose period waits for `~/step` or `~/resume`."""
+        return self._pending
+
+    @property
     def ended(self) -> bool:
         """A lockstep run has reached `lockstep_end_s`: no further state goes out."""
         end = self.params.lockstep_end_steps
         return self._lockstep and end is not None and self._steps_done >= end
 
-    def _reset_pose(self) -> None:
+    def _reset_pose(self, keep_command: bool = False) -> None:
+        """The plant at `initial_position`, at rest; its command zeroed unless `keep_command`."""
         position = dict(zip(self.sim.axis_names, self.params.initial_position, strict=True))
         try:
             self.sim.reset(position=position)
@@ -194,7 +236,8 @@ class SimulatorNode(Node):
                 f"a pose within the end stops ({exc})",
                 self.params.initial_position,
             ) from exc
-        self.plant.hold_zero()
+        if not keep_command:
+            self.plant.hold_zero()
 
     # --- commands ------------------------------------------------------------------------
 
@@ -210,7 +253,18 @@ class SimulatorNode(Node):
             # In lockstep the loop must go on: the last good command stays in force.
         self._last_command_wall = time.monotonic()
         if self._lockstep and self._started:
+            if self._paused:
+                self._paused_command()
+                return
             self._lockstep_step()
+
+    def _paused_command(self) -> None:
+        """Lockstep, paused: a period for a command `~/step` lets through, else it waits."""
+        if self._step_budget > 0:
+            self._step_budget -= 1
+            self._lockstep_step()
+        else:
+            self._pending = True
 
     def _lockstep_step(self) -> None:
         """Advance one control period (or up to the end) and publish; nothing once ended."""
@@ -250,6 +304,8 @@ class SimulatorNode(Node):
     # --- stepping ------------------------------------------------------------------------
 
     def _realtime_tick(self) -> None:
+        if self._paused:
+            return  # simulated time stands; the plant holds its state exactly
         p = self.params
         silent_s = time.monotonic() - self._last_command_wall
         if silent_s > p.command_timeout_s and np.any(self.plant.target != 0.0):
@@ -258,11 +314,13 @@ class SimulatorNode(Node):
                 f"no command for {p.command_timeout_s:g} s: 0 V, {self._hold_words}",
                 throttle_duration_sec=5.0,
             )
-        due = round((time.monotonic() - self._wall_start) / p.dt_s) - self._steps_done
-        cap = MAX_CATCH_UP_PERIODS * round(1.0 / (p.publish_rate_hz * p.dt_s))
+        factor = p.realtime_factor
+        due = round((time.monotonic() - self._wall_start) * factor / p.dt_s) - self._steps_done
+        cap = MAX_CATCH_UP_PERIODS * max(1, round(factor / (p.publish_rate_hz * p.dt_s)))
         if due > cap:
             self._overrun_steps += due - cap
-            self._wall_start += (due - cap) * p.dt_s  # drop the backlog: simulated time slips
+            # drop the backlog: simulated time slips
+            self._wall_start += (due - cap) * p.dt_s / factor
             due = cap
         if due > 0:
             self.plant.advance(due)
@@ -411,14 +469,19 @@ class SimulatorNode(Node):
             return None
         dt_s = self.params.dt_s
         now = time.monotonic()
-        wall_s = now - self._window_wall
+        paused_s = self._paused_s + (now - self._pause_began if self._paused else 0.0)
+        # Wall time paused and steps taken by ~/step are neither running nor a stall.
+        wall_s = now - self._window_wall - (paused_s - self._window_paused_s)
+        paced = (self._steps_done - self._window_steps) - (self._manual_steps - self._window_manual)
         skipped = self._overrun_steps - self._window_overrun
         values["stamp_lag_s"] = (now - self._wall_origin) - self._steps_done * dt_s
         values["skipped_s"] = self._overrun_steps * dt_s
-        if wall_s > 0.0:
-            values["realtime_factor"] = (self._steps_done - self._window_steps) * dt_s / wall_s
+        values["paused_s"] = paused_s
+        if wall_s > 1e-3:
+            values["realtime_factor"] = paced * dt_s / wall_s
         self._window_wall, self._window_steps = now, self._steps_done
         self._window_overrun = self._overrun_steps
+        self._window_paused_s, self._window_manual = paused_s, self._manual_steps
         if skipped <= 0:
             return None
         return DiagnosticStatus.WARN, (
@@ -436,9 +499,12 @@ class SimulatorNode(Node):
             level, message = DiagnosticStatus.WARN, "commands rejected"
         command_age_s = time.monotonic() - self._last_command_wall
         ended = self.ended  # no commands are wanted any more: not a peer problem
-        peer = None if ended else self._command_health(command_age_s)
+        # Paused, no command is due: silence then is no peer problem either.
+        peer = None if ended or self._paused else self._command_health(command_age_s)
         if peer is not None:
             level, message = peer
+        if self._paused:
+            message = f"paused at {self.sim_time_s:g} s"
         if ended:
             message = f"ended at {self.sim_time_s:g} s"
         values: dict[str, object] = {
@@ -455,6 +521,10 @@ class SimulatorNode(Node):
             "lockstep_end_s": p.lockstep_end_s,
             ENDED_KEY: ended,
             "commands_after_end": self._after_end,
+            "paused": self._paused,
+            "command_pending": self._pending,
+            "step_periods_left": self._step_budget,
+            "realtime_factor_set": p.realtime_factor,
             **counters.as_dict(),
         }
         found = [(level, message)]
@@ -503,14 +573,115 @@ class SimulatorNode(Node):
     # --- services and parameters ---------------------------------------------------------
 
     def _on_reset(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        self._reset_pose()
-        response.success = True
-        response.message = (
-            f"reset to {list(self.params.initial_position)} at {self.sim_time_s:.4f} s"
-        )
-        if self._lockstep and self._started and not self.ended:
-            self._publish_state()
+        response.success, response.message = self.reset()
         return response
+
+    def _on_pause(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.pause()
+        return response
+
+    def _on_resume(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.resume()
+        return response
+
+    def _on_step(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.step()
+        return response
+
+    def reset(self) -> tuple[bool, str]:
+        """`~/reset`: the plant at `initial_position`, at rest, with a zero command.
+
+        Lockstep: simulated time back to 0 as well (an ended run starts again), and the state
+        at 0 is published, so a controller restarts its loops and profile (its time went back).
+        A reset before the first period has run keeps the command already taken (the
+        controller will not answer the same stamp twice). Realtime: simulated time goes on
+        (the stamps follow the wall clock). Returns the reply's success and message.
+        """
+        pose = list(self.params.initial_position)
+        if not self._lockstep:
+            self._reset_pose()
+            return True, f"reset to {pose} at {self.sim_time_s:.4f} s (time goes on)"
+        rewind = self._steps_done > 0
+        self._reset_pose(keep_command=not rewind)
+        self._moving_speed[:] = 0.0
+        self._contact_speed[:] = 0.0
+        self._at_end_stop[:] = False
+        if rewind:
+            self._steps_done = 0
+            self._pending = False
+            self._step_budget = 0
+        self._end_reported = False
+        if self._started:
+            self._publish_state()
+        return True, f"reset to {pose}, simulated time 0 s" + (
+            ""
+            if self._paused
+            else ("; running: a command in flight may take the first period (~/pause first)")
+        )
+
+    def pause(self) -> tuple[bool, str]:
+        """`~/pause`: simulated time stops (see the module docstring). Success and message."""
+        if self._paused:
+            return True, f"already paused at {self.sim_time_s:.6f} s"
+        self._paused = True
+        self._pause_began = time.monotonic()
+        how = "commands wait for ~/step or ~/resume" if self._lockstep else "the plant holds"
+        return True, f"paused at {self.sim_time_s:.6f} s: {how}"
+
+    def resume(self) -> tuple[bool, str]:
+        """`~/resume`: simulated time runs again, without catching up the pause."""
+        if not self._paused:
+            return True, f"already running at {self.sim_time_s:.6f} s"
+        self._paused = False
+        self._step_budget = 0
+        if self._lockstep:
+            if self._pending:
+                self._pending = False
+                self._lockstep_step()
+        else:
+            paused_s = time.monotonic() - self._pause_began
+            self._paused_s += paused_s
+            self._wall_start += paused_s  # no catch-up: the pause is not a backlog
+            self._last_command_wall += paused_s  # nor is it command silence
+        return True, f"resumed at {self.sim_time_s:.6f} s"
+
+    def step(self) -> tuple[bool, str]:
+        """`~/step`, while paused: `step_periods` control periods.
+
+        Realtime: all at once under the command in force, each state published. Lockstep: the
+        command waiting (if any) and then the next ones, one period each, up to N; the call
+        returns at once, `steps` shows the progress. Success false with the reason when the
+        simulator runs, has not started, or has ended.
+        """
+        p = self.params
+        n = p.step_periods
+        if not self._paused:
+            return False, "running: ~/pause first, then ~/step"
+        if self.ended:
+            return False, f"the lockstep run ended at {self.sim_time_s:g} s (lockstep_end_s)"
+        if self._lockstep and not self._started:
+            return False, "lockstep has not started: waiting for joint_states subscribers"
+        period_s = n * p.control_period_s
+        if self._lockstep:
+            self._step_budget = n
+            taken = 0
+            if self._pending:
+                self._pending = False
+                self._step_budget -= 1
+                taken = 1
+                self._lockstep_step()
+            return True, (
+                f"stepping {n} control periods ({period_s:g} s): {taken} run now, the next "
+                f"{self._step_budget} commands run one each"
+            )
+        substeps = p.substeps_per_period
+        for _ in range(n):
+            self.plant.advance(substeps)
+            self._steps_done += substeps
+            self._manual_steps += substeps
+            self._publish_state()
+        self._wall_start -= n * substeps * p.dt_s / p.realtime_factor  # resume goes on from here
+        return True, f"stepped {n} control periods ({period_s:g} s) to {self.sim_time_s:.6f} s"
 
     def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
         """The `enabled` parameter by service (`set_enabled_by_service`)."""
@@ -546,6 +717,12 @@ class SimulatorNode(Node):
         )
         if new.enabled != old.enabled:
             self.plant.set_enabled(new.enabled)
+        if new.realtime_factor != old.realtime_factor and not self._lockstep:
+            # Simulated time goes on from where it is, at the new pace.
+            now = self._pause_began if self._paused else time.monotonic()
+            self._wall_start = now - (now - self._wall_start) * (
+                old.realtime_factor / new.realtime_factor
+            )
         if new.publish_rate_hz != old.publish_rate_hz and not self._lockstep:
             self.destroy_timer(self._tick_timer)
             self._tick_timer = self.create_timer(1.0 / new.publish_rate_hz, self._realtime_tick)

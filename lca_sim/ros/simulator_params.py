@@ -52,7 +52,8 @@ SIMULATOR_PARAMETERS = ParameterTable(
                  "of dt_s (dt_s: at every step)", high=0.01, live=False),
         positive("publish_rate_hz", 250.0, "realtime: state publish rate, Hz", high=10_000.0),
         positive("control_period_s", CONTROL_PERIOD_S,
-                 "lockstep: simulated time advanced per command, s (a whole multiple of dt_s)",
+                 "lockstep: simulated time advanced per command; the period of ~/step, s (a "
+                 "whole multiple of dt_s)",
                  high=1.0),
         positive("command_timeout_s", 0.1,
                  "realtime: command silence after which the voltage drops to 0, s", high=60.0),
@@ -73,6 +74,12 @@ SIMULATOR_PARAMETERS = ParameterTable(
                      "lockstep: simulated time of the run's last state, s (a whole multiple of "
                      "dt_s); no state after it (0: no end)", high=1e6),
         positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
+        positive("realtime_factor", 1.0,
+                 "realtime: simulated time advances this many times the wall time (lockstep: "
+                 "stored, the controller sets the pace)", high=100.0),
+        ParamSpec("step_periods", ParamKind.INTEGER, 1,
+                  "control periods (control_period_s) one ~/step call advances while paused",
+                  1, 1_000_000),
     )
 )  # fmt: skip
 READ_ONLY = SIMULATOR_PARAMETERS.read_only
@@ -101,6 +108,8 @@ class SimulatorNodeParams:
     lockstep_resend_s: float
     lockstep_end_s: float
     diagnostics_period_s: float
+    realtime_factor: float
+    step_periods: int
 
     @property
     def substeps_per_period(self) -> int:

@@ -98,6 +98,20 @@ def _lockstep_ends_at(sim: SimulatorNode, end_s: float) -> bool:
     return sim.ended and abs(sim.sim_time_s - end_s) < 1e-12 and sim._published == published
 
 
+def _step_runs_periods(sim: SimulatorNode, periods: int) -> bool:
+    """step_periods: paused, one ~/step lets exactly that many commands run a period."""
+    command = Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0])
+    sim.reset()  # time back to 0: a run that lockstep_end_s ended starts again
+    sim.pause()
+    t0 = sim.sim_time_s
+    stepped = sim.step()[0]
+    for _ in range(periods + 2):
+        sim._on_command(command)
+    advanced_s = sim.sim_time_s - t0
+    sim.resume()  # the command left waiting runs its period
+    return stepped and math.isclose(advanced_s, periods * sim.params.control_period_s)
+
+
 def _timer_period_s(timer: Any) -> float:
     return float(timer.timer_period_ns) * 1e-9
 
@@ -144,6 +158,9 @@ def test_simulator_applies_or_rejects_every_parameter() -> None:
             # not a whole number of 8 ms periods: the last period is cut short at the end
             "lockstep_end_s": (0.0502, lambda n: _lockstep_ends_at(n, 0.0502)),
             "diagnostics_period_s": (0.5, lambda n: _timer_period_s(n._diag_timer) == 0.5),
+            # realtime only (its effect: test_sim_control); in lockstep it is stored
+            "realtime_factor": (0.5, lambda n: n.params.realtime_factor == 0.5),
+            "step_periods": (3, lambda n: _step_runs_periods(n, 3)),
         }
         _walk(sim, SIMULATOR_PARAMETERS, probes, lambda name: sim.get_parameter(name).value)
 
