@@ -28,6 +28,10 @@ Topics (`PLANT_PUBLISHES`, `PLANT_SUBSCRIBES`; QoS as plain values in `QosSpec`)
   subscribes. A plant whose drives close the velocity loop themselves (the CAN bridge with an
   axis in CiA 402 cyclic synchronous velocity) takes it instead of the current.
 * `velocity_reference` (std_msgs/Float64MultiArray, user -> controller): rad/s (m/s) per joint.
+* `/robot_joint_states`, `/robot_joint_commands` (sensor_msgs/JointState; optional, each
+  plant's `joint_state_topic` / `joint_command_topic` parameter): the topics of ros2_control's
+  topic-based hardware interface, joint_states' content again and joint commands by name
+  (docs/ros2_control.md).
 
 Joint order: every state message of a plant names all its joints in the robot's axis order
 (`RobotParams.axis_names`; l_arm, pivot, c_arc, lift for the shipped robots), the same in every
@@ -70,6 +74,10 @@ VOLTAGE_COMMANDS = "voltage_commands"
 CURRENT_COMMANDS = "current_commands"
 VELOCITY_REFERENCE = "velocity_reference"
 VELOCITY_COMMANDS = "velocity_commands"
+# ros2_control's topic-based hardware interface (joint_state_topic_hardware_interface,
+# topic_based_ros2_control/TopicBasedSystem): the defaults its code uses; docs/ros2_control.md.
+ROBOT_JOINT_COMMANDS = "/robot_joint_commands"
+ROBOT_JOINT_STATES = "/robot_joint_states"
 
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
@@ -127,11 +135,13 @@ PLANT_PUBLISHES: tuple[TopicSpec, ...] = (
     TopicSpec(DRIVE_CHAIN_STATES, DIAGNOSTIC_ARRAY_TYPE, STATE_QOS),
     TopicSpec(DIAGNOSTICS, DIAGNOSTIC_ARRAY_TYPE, DIAGNOSTICS_QOS),
     TopicSpec(CLOCK, CLOCK_TYPE, CLOCK_QOS, required=False),
+    TopicSpec(ROBOT_JOINT_STATES, JOINT_STATE_TYPE, STATE_QOS, required=False),
 )
 PLANT_SUBSCRIBES: tuple[TopicSpec, ...] = (
     TopicSpec(CURRENT_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
     TopicSpec(VOLTAGE_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
     TopicSpec(VELOCITY_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS, required=False),
+    TopicSpec(ROBOT_JOINT_COMMANDS, JOINT_STATE_TYPE, COMMAND_QOS, required=False),
 )
 
 # Units of the JointState fields (revolute joint; a prismatic one reads m, m/s, N).

@@ -40,6 +40,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterType, ParameterValue, SetParametersResult
 from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.node import Node
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
@@ -63,7 +64,13 @@ from lca_sim.ros.can_bridge_params import (
     validate_can_bridge_params,
 )
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status
-from lca_sim.ros.plant_contract import PlantPublisher, qos_profile, worst_first
+from lca_sim.ros.plant_contract import (
+    JointCommand,
+    PlantPublisher,
+    qos_profile,
+    read_joint_command,
+    worst_first,
+)
 from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
@@ -247,7 +254,7 @@ class CanBridgeNode(Node):
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
         self._init_lock = threading.Lock()
 
-        self._plant = PlantPublisher(self, p.joints)
+        self._plant = PlantPublisher(self, p.joints, joint_state_topic=p.joint_state_topic)
         self._torque_constants = np.array(self.bridge.params.torque_constants_nm_per_a)
         self._gear_ratios = np.array(self.bridge.params.gear_ratios)
         command_qos = qos_profile(ri.COMMAND_QOS)
@@ -260,6 +267,20 @@ class CanBridgeNode(Node):
         if self.bridge.velocity_axes:  # CSV axes close their velocity loop in the drive
             self.create_subscription(
                 Float64MultiArray, ri.VELOCITY_COMMANDS, self._on_velocity_command, command_qos
+            )
+        # ros2_control's topic-based interface: the commands in force, joint order, so a
+        # JointState naming some joints leaves the others as they are.
+        self._held_current_a = np.zeros(len(p.joints))
+        self._held_velocity = np.zeros(len(p.joints))
+        self._effort_to_current = (
+            np.ones(len(p.joints))
+            if p.joint_command_effort == "current"
+            else 1.0 / (self._torque_constants * self._gear_ratios)
+        )
+        self.joint_command_counts = {"accepted": 0, "refused": 0, "unknown_names": 0}
+        if p.joint_command_topic:
+            self.create_subscription(
+                JointState, p.joint_command_topic, self._on_joint_command, command_qos
             )
         for name, handler in (
             ("init", self._srv_init),
@@ -359,21 +380,87 @@ class CanBridgeNode(Node):
     # --- topics --------------------------------------------------------------------------
 
     def _on_command(self, msg: Float64MultiArray) -> None:
-        reason = self.bridge.set_currents(list(msg.data))
-        if reason is not None:
+        self._set_currents(list(msg.data))
+
+    def _set_currents(self, currents_a: list[float]) -> None:
+        reason = self.bridge.set_currents(currents_a)
+        if reason is None:
+            self._held_current_a[:] = currents_a
+        else:
             self.get_logger().warning(
                 f"command rejected ({self.bridge.counters.commands_rejected} so far): {reason}",
                 throttle_duration_sec=1.0,
             )
 
     def _on_velocity_command(self, msg: Float64MultiArray) -> None:
-        reason = self.bridge.set_velocities(list(msg.data))
-        if reason is not None:
+        self._set_velocities(list(msg.data))
+
+    def _set_velocities(self, velocities: list[float]) -> None:
+        reason = self.bridge.set_velocities(velocities)
+        if reason is None:
+            self._held_velocity[:] = velocities
+        else:
             self.get_logger().warning(
                 f"velocity command rejected ({self.bridge.counters.commands_rejected} so far): "
                 f"{reason}",
                 throttle_duration_sec=1.0,
             )
+
+    def _on_joint_command(self, msg: JointState) -> None:
+        """A JointState command (docs/ros2_control.md), each joint by its drive's mode.
+
+        A cst joint takes its effort entry (A, or joint torque per `joint_command_effort`),
+        a csv joint its velocity entry (the drive closes the loop); joints not named, or with
+        NaN, keep their command. The entry of the other field is ignored when zero (what the
+        interface sends for an interface no controller claims) and refused when not.
+        """
+        p = self.params
+        counts = self.joint_command_counts
+        cmd = read_joint_command(msg.name, msg.velocity, msg.effort, p.joints)
+        counts["unknown_names"] += len(cmd.unknown)
+        csv = set(self.bridge.velocity_axes)
+        problems = self._joint_command_problems(cmd, csv)
+        efforts = [j for j in p.joints if j in cmd.effort and j not in csv]
+        velocities = [j for j in p.joints if j in cmd.velocity and j in csv]
+        if cmd.error or not (efforts or velocities):
+            counts["refused"] += 1
+        else:
+            counts["accepted"] += 1
+            if efforts:
+                currents = self._held_current_a.tolist()
+                for k, joint in enumerate(p.joints):
+                    if joint in efforts:
+                        currents[k] = cmd.effort[joint] * float(self._effort_to_current[k])
+                self._set_currents(currents)
+            if velocities:
+                wanted = self._held_velocity.tolist()
+                for k, joint in enumerate(p.joints):
+                    if joint in velocities:
+                        wanted[k] = cmd.velocity[joint]
+                self._set_velocities(wanted)
+        if problems:
+            self.get_logger().warning(
+                f"{p.joint_command_topic}: {'; '.join(problems)} ({counts['refused']} refused, "
+                f"{counts['unknown_names']} unknown names so far)",
+                throttle_duration_sec=1.0,
+            )
+
+    def _joint_command_problems(self, cmd: JointCommand, csv: set[str]) -> list[str]:
+        """What to warn about in a JointState command (empty: nothing)."""
+        problems: list[str] = []
+        if cmd.unknown:
+            problems.append(
+                f"unknown joints {list(cmd.unknown)} (this node's: {list(self.params.joints)})"
+            )
+        if cmd.error:
+            problems.append(cmd.error)
+        no_loop = sorted(j for j, v in cmd.velocity.items() if v != 0.0 and j not in csv)
+        if no_loop:
+            problems.append(f"velocity for {no_loop}: their drives run cst (modes), send effort")
+        no_effort = sorted(j for j, v in cmd.effort.items() if v != 0.0 and j in csv)
+        if no_effort:
+            problems.append(f"effort for {no_effort}: their drives run csv (modes), send velocity")
+        return problems
 
     def _on_voltage_command(self, msg: Float64MultiArray) -> None:
         self._wrong_interface += 1
@@ -537,7 +624,12 @@ class CanBridgeNode(Node):
             if latched
             else (DiagnosticStatus.OK, "commands again" if self._command_losses else "running")
         ]
-        if c.commands_rejected or c.send_failures or self._wrong_interface:
+        if (
+            c.commands_rejected
+            or c.send_failures
+            or self._wrong_interface
+            or self.joint_command_counts["refused"]
+        ):
             found.append((DiagnosticStatus.WARN, "rejected commands or failed sends"))
         peer = self._command_health(now)
         if peer is not None:
@@ -551,6 +643,9 @@ class CanBridgeNode(Node):
             "command_age_s": bridge.command_age_s(now),
             "states_published": self._published,
             "commands_wrong_interface": self._wrong_interface,
+            "joint_commands_accepted": self.joint_command_counts["accepted"],
+            "joint_commands_refused": self.joint_command_counts["refused"],
+            "joint_command_unknown_names": self.joint_command_counts["unknown_names"],
             "command_losses": self._command_losses,
             **{k: getattr(c, k) for k in c.__slots__},
         }

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from lca_control.contract import ROBOT_JOINT_COMMANDS, ROBOT_JOINT_STATES
 from lca_control.parameters import (
     ParameterError,
     ParameterTable,
@@ -19,6 +20,7 @@ from lca_control.parameters import (
     positive,
 )
 from lca_sim.model.params import AXIS_NAMES
+from lca_sim.ros.simulator_params import JOINT_COMMAND_EFFORTS, check_topic
 
 S, INT = ParamKind.STRING, ParamKind.INTEGER
 
@@ -82,6 +84,16 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
                   "configure and start the drives at start-up (else: ~/init)", live=False),
         ParamSpec("auto_enable", ParamKind.BOOL, False,
                   "enable operation after init (else: ~/enable)", live=False),
+        ParamSpec("joint_command_topic", S, ROBOT_JOINT_COMMANDS,
+                  "sensor_msgs/JointState commands by joint name (ros2_control's topic-based "
+                  "hardware interface, docs/ros2_control.md); empty: off", live=False),
+        ParamSpec("joint_state_topic", S, ROBOT_JOINT_STATES,
+                  "joint_states' message again on this topic (ros2_control's "
+                  "joint_states_topic); empty: off", live=False),
+        ParamSpec("joint_command_effort", S, "current",
+                  "what a JointState command's effort is: current (A) or torque (joint side, "
+                  "N m; N for the lift: current = effort / (k_t N))",
+                  choices=JOINT_COMMAND_EFFORTS, live=False),
         positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
     )
 )  # fmt: skip
@@ -113,6 +125,9 @@ class CanBridgeNodeParams:
     max_send_failures: int
     auto_init: bool
     auto_enable: bool
+    joint_command_topic: str
+    joint_state_topic: str
+    joint_command_effort: str
     diagnostics_period_s: float
 
 
@@ -142,5 +157,7 @@ def validate_can_bridge_params(values: Mapping[str, Any]) -> CanBridgeNodeParams
     modes: tuple[str, ...] = v["modes"]
     if modes and len(modes) != len(joints):
         raise ParameterError("modes", f"{len(joints)} modes (one per joint) or none", modes)
+    for name in ("joint_command_topic", "joint_state_topic"):
+        check_topic(name, v[name])
     fields = {k: v[k] for k in v if k != "command_interface"}
     return CanBridgeNodeParams(**fields)

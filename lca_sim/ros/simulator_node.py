@@ -65,6 +65,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.node import Node
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
@@ -82,7 +83,13 @@ from lca_sim.ros.node_util import (
     set_enabled_by_service,
     status,
 )
-from lca_sim.ros.plant_contract import PlantPublisher, qos_profile, worst_first
+from lca_sim.ros.plant_contract import (
+    JointCommand,
+    PlantPublisher,
+    qos_profile,
+    read_joint_command,
+    worst_first,
+)
 from lca_sim.ros.simulator_params import (
     ENDED_KEY,
     SIMULATOR_PARAMETERS,
@@ -161,7 +168,9 @@ class SimulatorNode(Node):
         self._moving_speed = np.zeros(n_axes)  # |joint velocity| when last published moving
         self._contact_speed = np.zeros(n_axes)  # that speed when the end stop was reached
         self._at_end_stop = np.zeros(n_axes, dtype=bool)
-        self._plant = PlantPublisher(self, self.sim.axis_names, clock=self._lockstep)
+        self._plant = PlantPublisher(
+            self, self.sim.axis_names, clock=self._lockstep, joint_state_topic=p.joint_state_topic
+        )
         self._bind_snapshot_rows()
         command_qos = qos_profile(ri.COMMAND_QOS)
         active, other = (
@@ -171,6 +180,20 @@ class SimulatorNode(Node):
         )
         self.create_subscription(Float64MultiArray, active, self._on_command, command_qos)
         self.create_subscription(Float64MultiArray, other, self._on_wrong_interface, command_qos)
+        # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N).
+        axes = [self.sim.robot.axes[self.sim.axis_names.index(j)] for j in p.joints]
+        self._joint_index = [self.sim.axis_names.index(j) for j in p.joints]
+        self._effort_to_command = {
+            j: 1.0
+            if p.joint_command_effort == "current"
+            else 1.0 / (a.motor.torque_constant_nm_per_a * a.gear_ratio)
+            for j, a in zip(p.joints, axes, strict=True)
+        }
+        self.joint_command_counts = {"accepted": 0, "refused": 0, "unknown_names": 0}
+        if p.joint_command_topic:
+            self.create_subscription(
+                JointState, p.joint_command_topic, self._on_joint_command, command_qos
+            )
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(Trigger, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/resume", self._on_resume)
@@ -242,7 +265,72 @@ class SimulatorNode(Node):
     # --- commands ------------------------------------------------------------------------
 
     def _on_command(self, msg: Float64MultiArray) -> None:
-        reason = self.plant.command(list(msg.data))
+        self._take_command(list(msg.data))
+
+    def _on_joint_command(self, msg: JointState) -> None:
+        """A JointState command (docs/ros2_control.md): effort per joint, by name.
+
+        Effort is this node's command (A, or joint torque per `joint_command_effort`) on the
+        joints named with a finite entry; every other joint keeps its command. The simulator
+        has no velocity loop, so a non-zero velocity entry is refused (counted, warned); a
+        zero one is what the interface sends for a velocity interface no controller claims.
+        In voltage mode effort has no meaning here and the message is refused. In lockstep
+        the message is the period's command either way, as a refused array is.
+        """
+        p = self.params
+        counts = self.joint_command_counts
+        cmd = read_joint_command(msg.name, msg.velocity, msg.effort, p.joints)
+        counts["unknown_names"] += len(cmd.unknown)
+        problems = self._joint_command_problems(cmd)
+        values: list[float] | None = None
+        if cmd.effort and not cmd.error and p.command_interface != "voltage":
+            target = self.plant.target
+            values = [float(target[a]) for a in self._joint_index]
+            for k, joint in enumerate(p.joints):
+                if joint in cmd.effort:
+                    values[k] = cmd.effort[joint] * self._effort_to_command[joint]
+            counts["accepted"] += 1
+        else:
+            counts["refused"] += 1
+        if problems:
+            self._warn_joint_command(problems)
+        self._take_command(values)
+
+    def _joint_command_problems(self, cmd: JointCommand) -> list[str]:
+        """What to warn about in a JointState command (empty: nothing)."""
+        p = self.params
+        problems: list[str] = []
+        if cmd.unknown:
+            problems.append(f"unknown joints {list(cmd.unknown)} (this node's: {list(p.joints)})")
+        if cmd.error:
+            problems.append(cmd.error)
+        moving = sorted(j for j, v in cmd.velocity.items() if v != 0.0)
+        if moving:
+            problems.append(
+                f"velocity commands for {moving}: the simulator has no velocity loop (command "
+                "effort, or use the CAN bridge with the axis in csv mode)"
+            )
+        if cmd.effort and p.command_interface == "voltage":
+            problems.append("effort refused: the simulator takes voltages (command_interface)")
+        return problems
+
+    def _warn_joint_command(self, problems: list[str]) -> None:
+        counts = self.joint_command_counts
+        self.get_logger().warning(
+            f"{self.params.joint_command_topic}: {'; '.join(problems)} ({counts['refused']} "
+            f"refused, {counts['unknown_names']} unknown names so far)",
+            throttle_duration_sec=1.0,
+        )
+
+    def _take_command(self, values: list[float] | None) -> None:
+        """One command array (joints order): in force, and in lockstep the period's command.
+
+        None: a refused JointState command, which in lockstep still runs the period (in
+        realtime it is no command: the timeout runs on).
+        """
+        if values is None and not self._lockstep:
+            return
+        reason = None if values is None else self.plant.command(values)
         if reason is not None:
             self.get_logger().warning(
                 f"command rejected ({self.plant.counters.rejected} so far): {reason}",
@@ -495,7 +583,7 @@ class SimulatorNode(Node):
         if self._command_losses:
             message = "commands again" if self.plant.enabled else "disabled; commands again"
         counters = self.plant.counters
-        if counters.rejected or self._wrong_interface:
+        if counters.rejected or self._wrong_interface or self.joint_command_counts["refused"]:
             level, message = DiagnosticStatus.WARN, "commands rejected"
         command_age_s = time.monotonic() - self._last_command_wall
         ended = self.ended  # no commands are wanted any more: not a peer problem
@@ -517,6 +605,9 @@ class SimulatorNode(Node):
             "overrun_steps": self._overrun_steps,
             "command_age_s": command_age_s,
             "commands_wrong_interface": self._wrong_interface,
+            "joint_commands_accepted": self.joint_command_counts["accepted"],
+            "joint_commands_refused": self.joint_command_counts["refused"],
+            "joint_command_unknown_names": self.joint_command_counts["unknown_names"],
             "command_losses": self._command_losses,
             "lockstep_end_s": p.lockstep_end_s,
             ENDED_KEY: ended,

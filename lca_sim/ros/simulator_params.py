@@ -8,11 +8,13 @@ rules, and a read-only parameter is refused while the node runs.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from lca_control.cascade import CONTROL_PERIOD_S
+from lca_control.contract import ROBOT_JOINT_COMMANDS, ROBOT_JOINT_STATES
 from lca_control.parameters import (
     ParameterError,
     ParameterTable,
@@ -29,6 +31,7 @@ TIMING_MODES = ("realtime", "lockstep")
 SIMULATOR_STATUS = "lca_hil/simulator"
 ENDED_KEY = "ended"
 COMMAND_INTERFACES = ("voltage", "current")
+JOINT_COMMAND_EFFORTS = ("current", "torque")
 
 S, D_ARRAY = ParamKind.STRING, ParamKind.DOUBLE_ARRAY
 
@@ -73,6 +76,16 @@ SIMULATOR_PARAMETERS = ParameterTable(
         non_negative("lockstep_end_s", 0.0,
                      "lockstep: simulated time of the run's last state, s (a whole multiple of "
                      "dt_s); no state after it (0: no end)", high=1e6),
+        ParamSpec("joint_command_topic", S, ROBOT_JOINT_COMMANDS,
+                  "sensor_msgs/JointState commands by joint name (ros2_control's topic-based "
+                  "hardware interface, docs/ros2_control.md); empty: off", live=False),
+        ParamSpec("joint_state_topic", S, ROBOT_JOINT_STATES,
+                  "joint_states' message again on this topic (ros2_control's "
+                  "joint_states_topic); empty: off", live=False),
+        ParamSpec("joint_command_effort", S, "current",
+                  "what a JointState command's effort is: current (A) or torque (joint side, "
+                  "N m; N for the lift: current = effort / (k_t N))",
+                  choices=JOINT_COMMAND_EFFORTS, live=False),
         positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
         positive("realtime_factor", 1.0,
                  "realtime: simulated time advances this many times the wall time (lockstep: "
@@ -107,6 +120,9 @@ class SimulatorNodeParams:
     lockstep_subscribers: int
     lockstep_resend_s: float
     lockstep_end_s: float
+    joint_command_topic: str
+    joint_state_topic: str
+    joint_command_effort: str
     diagnostics_period_s: float
     realtime_factor: float
     step_periods: int
@@ -156,4 +172,17 @@ def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
         _whole_multiple(name, v[name], dt_s)
     if v["lockstep_end_s"] > 0.0:
         _whole_multiple("lockstep_end_s", v["lockstep_end_s"], dt_s)
+    for name in ("joint_command_topic", "joint_state_topic"):
+        check_topic(name, v[name])
     return SimulatorNodeParams(**v)
+
+
+def check_topic(name: str, topic: str) -> str:
+    """A topic parameter: empty (off) or a ROS name (letters, digits, `_`, `/`, `~`).
+
+    Raises:
+        ParameterError: anything else.
+    """
+    if (topic and not re.fullmatch(r"[~/]?[A-Za-z_][A-Za-z0-9_/]*", topic)) or "//" in topic:
+        raise ParameterError(name, "empty or a ROS topic name such as /robot_joint_states", topic)
+    return topic
