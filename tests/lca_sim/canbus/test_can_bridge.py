@@ -2,7 +2,7 @@
 
 Each test gets its own virtual channel: a rack on one bus instance, the bridge's canopen network
 on another, and where a test injects frames (EMCY, error frames, NMT) a third. Nothing sleeps a
-fixed time: `wait_for` polls a condition up to a deadline.
+fixed time: `support.wait_until` polls a condition up to a deadline.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import Any
 import can
 import canopen
 import pytest
+from support import wait_until
 
 from lca_sim.canbus import emcy
 from lca_sim.canbus.master import (
@@ -36,15 +37,6 @@ EDS = config_dir() / "can" / "lca_drive.eds"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)
 _channels = itertools.count()
-
-
-def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    """Poll `condition` until it holds; fail with `what` after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"not within {timeout_s} s: {what}")
-        time.sleep(0.002)
 
 
 @dataclass
@@ -135,7 +127,7 @@ def _enabled(rig: Rig, feed: bool = True) -> Rig:
     rig.feeding.set() if feed else rig.feeding.clear()
     rig.bridge.set_currents(rig.currents_a)
     assert rig.bridge.enable(True) == "enabling"
-    wait_for(lambda: rig.all_in(PowerState.OPERATION_ENABLED), 5.0, "all drives enabled")
+    wait_until(lambda: rig.all_in(PowerState.OPERATION_ENABLED), "all drives enabled", 5.0)
     return rig
 
 
@@ -144,13 +136,13 @@ def test_init_configures_and_enable_walks_every_drive(
 ) -> None:
     rig = rig_factory()
     # Not enabled yet: the bridge walks the drives to ready to switch on (0x06), no further.
-    wait_for(lambda: rig.all_in(PowerState.READY_TO_SWITCH_ON), 5.0, "drives ready to switch on")
+    wait_until(lambda: rig.all_in(PowerState.READY_TO_SWITCH_ON), "drives ready to switch on", 5.0)
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 more cycles")
+    wait_until(lambda: len(rig.snapshots) >= n + 25, "25 more cycles", 5.0)
     assert rig.all_in(PowerState.READY_TO_SWITCH_ON)
     _enabled(rig)
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 50, 5.0, "50 more complete cycles")
+    wait_until(lambda: len(rig.snapshots) >= n + 50, "50 more complete cycles", 5.0)
     assert rig.bridge.sdo_read("pivot", 0x6060, 0) == 10  # CST, set over SDO by init
     assert rig.bridge.sdo_read("pivot", 0x1006, 0) == 4000  # 250 Hz cycle, us
 
@@ -159,10 +151,10 @@ def test_current_command_becomes_drive_current(rig_factory: Callable[..., Rig]) 
     """2 A on the pivot: per mille of the rated torque through k_t, the drive's loop follows."""
     rig = _enabled(rig_factory())
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
-    wait_for(
+    wait_until(
         lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05,
-        5.0,
         "pivot current at 2 A",
+        5.0,
     )
     # no other axis got current
     assert all(abs(rig.bridge.axis_state(j).current_a) < 0.05 for j in ("l_arm", "c_arc", "lift"))
@@ -172,11 +164,11 @@ def test_command_above_max_torque_is_clamped(rig_factory: Callable[..., Rig]) ->
     """0x6072 = 2000 per mille of the rated torque (20 A at a 10 A rating): 50 A gets 20 A."""
     rig = _enabled(rig_factory())
     rig.currents_a = [0.0, 0.0, 0.0, 50.0]  # the lift: its current loop reaches the setpoint
-    wait_for(lambda: rig.bridge.counters.commands_clamped > 10, 5.0, "clamped commands counted")
-    wait_for(
+    wait_until(lambda: rig.bridge.counters.commands_clamped > 10, "clamped commands counted", 5.0)
+    wait_until(
         lambda: abs(rig.bridge.axis_state("lift").current_a - 20.0) < 0.5,
-        5.0,
         "lift current at the 20 A clamp",
+        5.0,
     )
 
 
@@ -186,18 +178,18 @@ def test_no_torque_unless_enabled(rig_factory: Callable[..., Rig]) -> None:
     rig.feeding.set()
     rig.bridge.set_currents(rig.currents_a)
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 50, 5.0, "50 cycles while disabled")
+    wait_until(lambda: len(rig.snapshots) >= n + 50, "50 cycles while disabled", 5.0)
     assert max(abs(s.axes[1].current_a) for s in rig.snapshots[n:]) == 0.0
 
 
 def test_controller_silence_halts_then_quick_stops(rig_factory: Callable[..., Rig]) -> None:
     rig = _enabled(rig_factory(command_timeout_s=0.05, quick_stop_after_s=0.2))
     rig.currents_a = [0.0, 3.0, 0.0, 0.0]
-    wait_for(lambda: rig.bridge.axis_state("pivot").current_a > 2.5, 5.0, "3 A flowing")
+    wait_until(lambda: rig.bridge.axis_state("pivot").current_a > 2.5, "3 A flowing", 5.0)
     rig.feeding.clear()  # the controller falls silent
-    wait_for(lambda: abs(rig.bridge.axis_state("pivot").current_a) < 0.1, 2.0, "current to 0")
+    wait_until(lambda: abs(rig.bridge.axis_state("pivot").current_a) < 0.1, "current to 0", 2.0)
     assert rig.bridge.counters.silence_halts == 1
-    wait_for(lambda: rig.all_in(PowerState.SWITCH_ON_DISABLED), 2.0, "quick stop done")
+    wait_until(lambda: rig.all_in(PowerState.SWITCH_ON_DISABLED), "quick stop done", 2.0)
     # Not before timeout + quick-stop delay, counted from the last command the bridge received
     # (the feeder may answer one more state after `feeding` is cleared).
     assert time.monotonic() - rig.last_fed_s >= 0.25
@@ -205,7 +197,7 @@ def test_controller_silence_halts_then_quick_stops(rig_factory: Callable[..., Ri
     rig.feeding.set()
     rig.bridge.set_currents(rig.currents_a)
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles after the comeback")
+    wait_until(lambda: len(rig.snapshots) >= n + 25, "25 cycles after the comeback", 5.0)
     assert rig.all_in(PowerState.SWITCH_ON_DISABLED)
     _enabled(rig)
 
@@ -222,11 +214,11 @@ def test_a_frozen_bridge_does_not_blame_the_controller_or_the_drives(
     """
     rig = _enabled(rig_factory(command_timeout_s=0.05, stale_timeout_s=0.1))
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles enabled")
+    wait_until(lambda: len(rig.snapshots) >= n + 25, "25 cycles enabled", 5.0)
     with rig.rack._lock, rig.bridge._lock:
         time.sleep(0.3)  # the freeze under test: a stimulus, not a wait for a condition
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles after the freeze")
+    wait_until(lambda: len(rig.snapshots) >= n + 25, "25 cycles after the freeze", 5.0)
     assert rig.bridge.counters.process_freezes >= 1
     assert rig.bridge.counters.silence_halts == 0
     assert rig.bridge.latched_reason() == ""
@@ -244,8 +236,8 @@ def test_bridge_killed_drives_react_and_send_emcy(rig_factory: Callable[..., Rig
     codes = {(m.arbitration_id - 0x80, int.from_bytes(m.data[:2], "little")) for m in emcy}
     assert {node for node, _ in codes} == set(NODE_IDS), codes
     assert all(code in (0x8130, 0x8250, 0x8700) for _, code in codes), codes
-    wait_for(
-        lambda: all(rig.rack.power_state(j).name == "FAULT" for j in JOINTS), 2.0, "drives faulted"
+    wait_until(
+        lambda: all(rig.rack.power_state(j).name == "FAULT" for j in JOINTS), "drives faulted", 2.0
     )
 
 
@@ -260,21 +252,21 @@ def test_recover_starts_drives_that_a_communication_error_took_to_pre_operationa
     """
     rig = _enabled(rig_factory())
     rig.bridge.stop()
-    wait_for(
+    wait_until(
         lambda: all(rig.rack.nmt_state(j) == "PRE-OPERATIONAL" for j in JOINTS),
-        5.0,
         "every drive in PRE-OPERATIONAL after its communication error",
+        5.0,
     )
     rig.bridge.start()
-    wait_for(lambda: "stale drive" in rig.bridge.latched_reason(), 5.0, "the drives stale")
+    wait_until(lambda: "stale drive" in rig.bridge.latched_reason(), "the drives stale", 5.0)
     rig.bridge.recover()
-    wait_for(
+    wait_until(
         lambda: all(rig.rack.nmt_state(j) == "OPERATIONAL" for j in JOINTS),
-        5.0,
         "every drive OPERATIONAL again after recover",
+        5.0,
     )
     reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
-    wait_for(lambda: all(v in reset for v in rig.states().values()), 5.0, "faults reset")
+    wait_until(lambda: all(v in reset for v in rig.states().values()), "faults reset", 5.0)
     _enabled(rig)
     assert rig.bridge.latched_reason() == ""
 
@@ -291,14 +283,14 @@ def _collect(bus: can.BusABC, out: list[can.Message], duration_s: float) -> None
 def test_one_drive_silenced_stops_every_axis(rig_factory: Callable[..., Rig]) -> None:
     rig = _enabled(rig_factory(stale_timeout_s=0.05))
     rig.injector.send(can.Message(arbitration_id=0x000, data=[0x02, 3], is_extended_id=False))
-    wait_for(lambda: "c_arc" in rig.bridge.latched_reason(), 2.0, "c_arc reported stale")
+    wait_until(lambda: "c_arc" in rig.bridge.latched_reason(), "c_arc reported stale", 2.0)
     others = ("l_arm", "pivot", "lift")
-    wait_for(
+    wait_until(
         lambda: all(
             rig.bridge.axis_state(j).power_state is PowerState.SWITCH_ON_DISABLED for j in others
         ),
-        2.0,
         "the other axes quick-stopped",
+        2.0,
     )
     assert "not enabled" in rig.bridge.enable(True)
 
@@ -310,11 +302,11 @@ def test_emcy_latches_until_recover(rig_factory: Callable[..., Rig]) -> None:
             arbitration_id=0x80 + 2, data=[0x30, 0x55, 0x01, 0, 0, 0, 0, 0], is_extended_id=False
         )
     )
-    wait_for(lambda: rig.bridge.emcy_codes()["pivot"] == 0x5530, 2.0, "EMCY latched")
-    wait_for(lambda: rig.all_in(PowerState.SWITCH_ON_DISABLED), 2.0, "every axis stopped")
+    wait_until(lambda: rig.bridge.emcy_codes()["pivot"] == 0x5530, "EMCY latched", 2.0)
+    wait_until(lambda: rig.all_in(PowerState.SWITCH_ON_DISABLED), "every axis stopped", 2.0)
     assert "EMCY pivot 0x5530" in rig.bridge.enable(True)
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles later")
+    wait_until(lambda: len(rig.snapshots) >= n + 25, "25 cycles later", 5.0)
     assert rig.bridge.emcy_codes()["pivot"] == 0x5530  # still latched
     rig.bridge.recover()
     assert rig.bridge.latched_reason() == ""
@@ -326,10 +318,10 @@ def test_bus_off_stops_cyclic_transmission(rig_factory: Callable[..., Rig]) -> N
     rig.injector.send(
         can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, dlc=8, data=bytes(8))
     )
-    wait_for(lambda: "bus-off" in rig.bridge.latched_reason(), 2.0, "bus-off latched")
+    wait_until(lambda: "bus-off" in rig.bridge.latched_reason(), "bus-off latched", 2.0)
     sent = rig.bridge.counters.frames_sent
     cycles = rig.bridge.counters.cycles
-    wait_for(lambda: rig.rack.power_state("pivot").name == "FAULT", 2.0, "SYNC loss in the drive")
+    wait_until(lambda: rig.rack.power_state("pivot").name == "FAULT", "SYNC loss in the drive", 2.0)
     assert rig.bridge.counters.frames_sent == sent  # not one frame more
     assert rig.bridge.counters.cycles == cycles
     assert rig.bridge.counters.error_frames == 1
@@ -338,7 +330,7 @@ def test_bus_off_stops_cyclic_transmission(rig_factory: Callable[..., Rig]) -> N
 def test_send_failures_are_counted_and_halt_the_axes(rig_factory: Callable[..., Rig]) -> None:
     rig = _enabled(rig_factory(max_send_failures=5))
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
-    wait_for(lambda: rig.bridge.axis_state("pivot").current_a > 1.5, 5.0, "2 A flowing")
+    wait_until(lambda: rig.bridge.axis_state("pivot").current_a > 1.5, "2 A flowing", 5.0)
     real_send = rig.network.send_message
     failures = {"left": 5}
 
@@ -349,9 +341,9 @@ def test_send_failures_are_counted_and_halt_the_axes(rig_factory: Callable[..., 
         real_send(can_id, data, remote)
 
     rig.network.send_message = flaky_send  # type: ignore[method-assign]
-    wait_for(lambda: rig.bridge.counters.send_failures == 5, 2.0, "5 failures counted")
+    wait_until(lambda: rig.bridge.counters.send_failures == 5, "5 failures counted", 2.0)
     assert "5 send failures in a row" in rig.bridge.latched_reason()
-    wait_for(lambda: abs(rig.bridge.axis_state("pivot").current_a) < 0.1, 2.0, "halted: 0 A")
+    wait_until(lambda: abs(rig.bridge.axis_state("pivot").current_a) < 0.1, "halted: 0 A", 2.0)
     assert math.isfinite(rig.bridge.axis_state("pivot").position)
 
 
@@ -391,10 +383,10 @@ def test_stopped_axis_reports_nan_efficiency(rig_factory: Callable[..., Rig]) ->
     """0xFFFF in 0x2012 / 0x2013 (eq. 10 idle: the axis is stopped) decodes to NaN, not 65.535."""
     rig = rig_factory()
     assert _first_frame(rig.injector, 0x382, 5.0)[2:6] == b"\xff\xff\xff\xff"  # pivot's TPDO3
-    wait_for(
+    wait_until(
         lambda: all(rig.bridge.axis_state(j).drive_state >= 0 for j in JOINTS),
-        5.0,
         "every drive's TPDO3 decoded",
+        5.0,
     )
     for joint in JOINTS:
         state = rig.bridge.axis_state(joint)
@@ -409,10 +401,10 @@ def test_bridge_decodes_load_friction_and_voltage(rig_factory: Callable[..., Rig
     rig = rig_factory()
     extras = {"load_torque_nm", "friction_torque_nm", "voltage_v"}
     assert extras <= rig.bridge.decoded_fields()
-    wait_for(
+    wait_until(
         lambda: all(math.isfinite(rig.bridge.axis_state(j).voltage_v) for j in JOINTS),
-        5.0,
         "every drive's TPDO4 decoded",
+        5.0,
     )
     pivot = JOINTS.index("pivot")
     with rig.rack._lock:  # at rest, no current: the plant's signals stand still
@@ -423,10 +415,10 @@ def test_bridge_decodes_load_friction_and_voltage(rig_factory: Callable[..., Rig
     assert (state.friction_torque_nm, state.voltage_v) == (0.0, 0.0)
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
     _enabled(rig)
-    wait_for(
+    wait_until(
         lambda: abs(rig.bridge.axis_state("pivot").voltage_v - 2.0) < 0.02,
-        5.0,
         "the pivot's amplifier at 2 V (2 A, 1 ohm, standing still)",
+        5.0,
     )
     held = rig.bridge.axis_state("pivot")
     assert held.motion_state == 0
@@ -463,10 +455,10 @@ def test_a_drive_mapping_only_cia402_objects_is_accepted(
         "current_a",
     }
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
-    wait_for(
+    wait_until(
         lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05,
-        5.0,
         "pivot current at 2 A",
+        5.0,
     )
     state = rig.bridge.axis_state("pivot")
     assert (state.drive_state, state.motion_state) == (-1, 0)
@@ -514,11 +506,11 @@ def test_an_advisory_emcy_is_reported_with_its_text_and_the_axes_go_on(
     )
     rig.injector.send(frame)
     rig.injector.send(frame)
-    wait_for(lambda: rig.bridge.advisory_emcy()["pivot"] == (0x8210, 2), 2.0, "two advisories")
+    wait_until(lambda: rig.bridge.advisory_emcy()["pivot"] == (0x8210, 2), "two advisories", 2.0)
     assert rig.bridge.emcy_codes()["pivot"] == 0
     assert rig.bridge.latched_reason() == ""
     n = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= n + 25, 5.0, "25 cycles later")
+    wait_until(lambda: len(rig.snapshots) >= n + 25, "25 cycles later", 5.0)
     assert rig.all_in(PowerState.OPERATION_ENABLED)
     assert emcy.describe(0x8210) == "0x8210 PDO not processed due to length error"
     rig.bridge.recover()
@@ -585,10 +577,10 @@ def test_a_drive_with_the_controlword_in_its_own_rpdo_runs_and_gets_it_on_change
     n = len(rig.snapshots)
     _enabled(rig)
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
-    wait_for(
+    wait_until(
         lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05,
-        5.0,
         "pivot current at 2 A through the torque-only RPDO1",
+        5.0,
     )
     watcher = can.Bus(interface="virtual", channel=rig.channel)  # from here on
     try:
@@ -622,7 +614,7 @@ def test_the_compact_layout_sends_one_frame_per_axis_and_direction_each_cycle(
     assert rig.bridge.params.slow_tpdo_every == 5
     _enabled(rig)
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
-    wait_for(lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05, 5.0, "2 A")
+    wait_until(lambda: abs(rig.bridge.axis_state("pivot").current_a - 2.0) < 0.05, "2 A", 5.0)
     watcher = can.Bus(interface="virtual", channel=rig.channel)
     counts: dict[int, int] = {}
     try:
@@ -708,19 +700,19 @@ def test_csv_the_drive_closes_the_velocity_loop_on_the_target_velocity(
     target_rad_s = 0.02
     assert rig.bridge.set_velocities([0.0, target_rad_s, 0.0, 0.0]) is None
     _enabled(rig)
-    wait_for(
+    wait_until(
         lambda: abs(rig.bridge.axis_state("pivot").velocity - target_rad_s) < 2e-4,
-        10.0,
         "the pivot at its commanded speed",
+        10.0,
     )
     first = len(rig.snapshots)
-    wait_for(lambda: len(rig.snapshots) >= first + 50, 5.0, "0.2 s more at 250 Hz")
+    wait_until(lambda: len(rig.snapshots) >= first + 50, "0.2 s more at 250 Hz", 5.0)
     speeds = [s.axes[1].velocity for s in rig.snapshots[first : first + 50]]
     assert max(abs(v - target_rad_s) for v in speeds) < 0.05 * target_rad_s
     assert rig.bridge.axis_state("pivot").statusword & 0x1000  # bit 12: follows the target
     assert all(abs(rig.bridge.axis_state(j).current_a) < 0.05 for j in ("l_arm", "c_arc", "lift"))
     rig.bridge.set_velocities([0.0, 0.0, 0.0, 0.0])
-    wait_for(lambda: abs(rig.bridge.axis_state("pivot").velocity) < 1e-3, 10.0, "stopped")
+    wait_until(lambda: abs(rig.bridge.axis_state("pivot").velocity) < 1e-3, "stopped", 10.0)
 
 
 def test_csv_refused_when_the_drive_maps_no_target_velocity(
@@ -741,7 +733,7 @@ def test_a_drive_that_restarts_behind_the_masters_back_stops_the_axes_until_init
     """
     rig = _enabled(rig_factory())
     rig.injector.send(can.Message(arbitration_id=0x000, data=[0x81, 2], is_extended_id=False))
-    wait_for(lambda: "restarted (boot-up)" in rig.bridge.latched_reason(), 2.0, "restart seen")
+    wait_until(lambda: "restarted (boot-up)" in rig.bridge.latched_reason(), "restart seen", 2.0)
     assert "drive pivot restarted" in rig.bridge.latched_reason()
     assert rig.bridge.counters.drive_restarts == 1
     rig.bridge.recover()
@@ -751,7 +743,7 @@ def test_a_drive_that_restarts_behind_the_masters_back_stops_the_axes_until_init
     rig.bridge.init()
     rig.bridge.start()
     rig.bridge.recover()
-    wait_for(lambda: rig.bridge.latched_reason() == "", 5.0, "latches cleared after init")
+    wait_until(lambda: rig.bridge.latched_reason() == "", "latches cleared after init", 5.0)
     reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
-    wait_for(lambda: all(v in reset for v in rig.states().values()), 5.0, "faults reset")
+    wait_until(lambda: all(v in reset for v in rig.states().values()), "faults reset", 5.0)
     _enabled(rig)

@@ -27,6 +27,7 @@ import canopen
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support import wait_until
 
 from lca_sim.canbus import remote
 from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
@@ -40,15 +41,6 @@ NODE_IDS = (1, 2, 3, 4)
 START_TIMEOUT_S = 120.0  # a cold rack (numba, pinocchio) on a shared, loaded 2-core machine
 NMT_PRE_OPERATIONAL_STATE = 0x7F
 NMT_OPERATIONAL_STATE = 0x05
-
-
-def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    """Poll `condition` until it holds; fail with `what` after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"not within {timeout_s} s: {what}")
-        time.sleep(0.005)
 
 
 def _stop_process(proc: subprocess.Popen[str], timeout_s: float = 20.0) -> int:
@@ -165,10 +157,10 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
     bridge: Cia402Master | None = None
     try:
         t_boot = time.monotonic() - START_TIMEOUT_S
-        wait_for(
+        wait_until(
             heartbeats.each_at_least(2, t_boot, NMT_PRE_OPERATIONAL_STATE),
-            START_TIMEOUT_S,
             "every drive's heartbeat in PRE-OPERATIONAL over the relay",
+            START_TIMEOUT_S,
         )
         network = canopen.Network(can.Bus(interface="lca_remote", channel=relay))
         network.connect()
@@ -185,20 +177,20 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
         t_started = time.monotonic()
         bridge.start()
         # The heartbeat keeps coming after the NMT start (0x05 = OPERATIONAL), at its period.
-        wait_for(
+        wait_until(
             heartbeats.each_at_least(10, t_started, NMT_OPERATIONAL_STATE),
-            30.0,
             "10 OPERATIONAL heartbeats from every drive after NMT start",
+            30.0,
         )
         assert time.monotonic() - t_started > 0.8  # 0x1017 = 100 ms: not a burst
 
         assert bridge.enable(True) == "enabling"
-        wait_for(
+        wait_until(
             lambda: all(
                 bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED for j in JOINTS
             ),
-            30.0,
             "every drive OPERATION ENABLED",
+            30.0,
         )
         for j in JOINTS:
             assert bridge.axis_state(j).statusword & 0x6F == 0x27  # CiA 402: operation enabled
@@ -206,18 +198,18 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
         pivot = bridge.axis_state("pivot")
         p0 = pivot.position
         currents[1] = 3.0
-        wait_for(
+        wait_until(
             lambda: bridge.axis_state("pivot").position > p0 + 0.01,
-            30.0,
             "the pivot moving forward under +3 A",
+            30.0,
         )
         assert abs(bridge.axis_state("pivot").current_a - 3.0) < 0.3
         p1 = bridge.axis_state("pivot").position
         currents[1] = -3.0
-        wait_for(
+        wait_until(
             lambda: bridge.axis_state("pivot").position < p1 - 0.01,
-            30.0,
             "the pivot moving back under -3 A",
+            30.0,
         )
         assert abs(bridge.axis_state("pivot").current_a + 3.0) < 0.3
         for j in ("l_arm", "c_arc", "lift"):  # nothing commanded there
@@ -225,14 +217,14 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
 
         currents[1] = 0.0
         assert bridge.enable(False) == "disabling"
-        wait_for(
+        wait_until(
             lambda: all(
                 bridge.axis_state(j).power_state
                 in (PowerState.READY_TO_SWITCH_ON, PowerState.SWITCH_ON_DISABLED)
                 for j in JOINTS
             ),
-            30.0,
             "every drive disabled",
+            30.0,
         )
         assert abs(bridge.axis_state("pivot").current_a) < 0.05
         assert len(snapshots) > 50
@@ -246,17 +238,17 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
         # NMT pre-operational and start again, broadcast: the heartbeat follows each state.
         t_pre = time.monotonic()
         monitor.send(can.Message(arbitration_id=0, is_extended_id=False, data=b"\x80\x00"))
-        wait_for(
+        wait_until(
             heartbeats.each_at_least(5, t_pre, NMT_PRE_OPERATIONAL_STATE),
-            30.0,
             "5 PRE-OPERATIONAL heartbeats from every drive after NMT enter pre-operational",
+            30.0,
         )
         t_op = time.monotonic()
         monitor.send(can.Message(arbitration_id=0, is_extended_id=False, data=b"\x01\x00"))
-        wait_for(
+        wait_until(
             heartbeats.each_at_least(5, t_op, NMT_OPERATIONAL_STATE),
-            30.0,
             "5 OPERATIONAL heartbeats from every drive after NMT start",
+            30.0,
         )
         assert rack.poll() is None, "the rack died"
     finally:

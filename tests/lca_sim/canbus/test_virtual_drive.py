@@ -17,12 +17,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
 import canopen
 import pytest
+from support import wait_until as wait_until  # noqa: PLC0414  # re-exported to the rack tests
 
 from lca_sim import RobotParams
 from lca_sim.canbus.virtual_rack import (
@@ -40,15 +41,6 @@ PIVOT = 2  # node ids of the shipped rack.yaml
 L_ARM = 1
 TIMEOUT_S = 5.0  # generous: the machine is shared
 _channels = itertools.count()
-
-
-def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = TIMEOUT_S) -> None:
-    """Poll `condition` until it holds; fail naming `what` after `timeout_s`."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"not within {timeout_s} s: {what}")
-        time.sleep(0.002)
 
 
 class Probe:
