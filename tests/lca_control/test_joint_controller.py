@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import pytest
 
+from lca_control.cascade import CONTROL_PERIOD_S
 from lca_control.controller import (
     PLANT_TIME_TOLERANCE_S,
     JointController,
     validate_controller_params,
 )
 
-DT_S = 0.004
+DT_S = CONTROL_PERIOD_S  # the plant's state period, s
+STEPS_1_S = round(1.0 / DT_S)  # one second of states
 POSITIONS = [0.0, 0.6, 0.0, 0.0]
 
 
@@ -47,14 +49,14 @@ def test_time_going_back_restarts_loops_and_profile_like_a_new_controller(
 ) -> None:
     """Plant time back (a restarted plant): counted once, then exactly a fresh controller."""
     ctl = _controller()
-    _run(ctl, restart_at_s + 2.0, 250)  # 1 s at t0 + 2 s: integrators and profile wound up
+    _run(ctl, restart_at_s + 2.0, STEPS_1_S)  # 1 s at t0 + 2 s: integrators and profile wound up
     assert ctl.elapsed_s > 0.9
     after = _run(ctl, restart_at_s, 100)
     fresh = _run(_controller(), restart_at_s, 100)
     assert after == fresh  # the first command and every one after it
     assert all(command is not None for command in after)
     assert ctl.plant_restarts == 1
-    assert ctl.last_restart_from_s == pytest.approx(restart_at_s + 2.0 + 249 * DT_S)
+    assert ctl.last_restart_from_s == pytest.approx(restart_at_s + 2.0 + (STEPS_1_S - 1) * DT_S)
     assert ctl.elapsed_s == pytest.approx(99 * DT_S)
 
 
@@ -90,8 +92,8 @@ def test_a_forward_jump_beyond_the_plant_timeout_restarts_like_a_new_controller(
     whole gap (dt = gap_s), winding the integrators far past anything a period can.
     """
     ctl = _controller()
-    _run(ctl, 100.0, 250)
-    last_s = 100.0 + 249 * DT_S
+    _run(ctl, 100.0, STEPS_1_S)
+    last_s = 100.0 + (STEPS_1_S - 1) * DT_S
     after = _run(ctl, last_s + gap_s, 100)
     fresh = _run(_controller(), last_s + gap_s, 100)
     assert after == fresh
@@ -102,8 +104,8 @@ def test_a_forward_jump_beyond_the_plant_timeout_restarts_like_a_new_controller(
 def test_a_gap_within_the_plant_timeout_is_one_long_period_not_a_restart() -> None:
     """A late state (a gap under plant_timeout_s, 0.5 s by default) is no restart."""
     ctl = _controller()
-    _run(ctl, 100.0, 250)
-    last_s = 100.0 + 249 * DT_S
+    _run(ctl, 100.0, STEPS_1_S)
+    last_s = 100.0 + (STEPS_1_S - 1) * DT_S
     assert ctl.update(last_s + 0.4, POSITIONS, [0.0] * 4, None) is not None
     assert ctl.plant_restarts == 0
-    assert ctl.elapsed_s == pytest.approx(249 * DT_S + 0.4)
+    assert ctl.elapsed_s == pytest.approx((STEPS_1_S - 1) * DT_S + 0.4)

@@ -23,10 +23,12 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 from support import spin_until
 
+from lca_control.cascade import CONTROL_PERIOD_S
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.simulator_node import SimulatorNode
 
 PIVOT_START_RAD = math.radians(35.0)
+CONTROL_PERIOD_NS = round(CONTROL_PERIOD_S * 1e9)  # the simulator's default period
 
 
 ros_context = support.domain_contexts(60, 40)
@@ -125,10 +127,12 @@ def test_lockstep_clock_advances_one_control_period_per_state() -> None:
         spin_until(executor, lambda: sim.sim_time_s >= 1.0, timeout_s=60.0)
         spin_until(executor, lambda: len(set(clocks)) >= 200)
         ticks = np.array(sorted(set(clocks)))
-        np.testing.assert_array_equal(np.diff(ticks), 4_000_000)  # ns: exactly one period
+        np.testing.assert_array_equal(np.diff(ticks), CONTROL_PERIOD_NS)  # exactly one period
         joint_stamps = {_stamp_ns(m.header.stamp) for m in recorder.states}
         assert set(ticks.tolist()) <= joint_stamps  # every tick is an instant published
-        assert ctl.get_clock().now().nanoseconds >= ticks[-1] - 8_000_000  # it follows /clock
+        assert (
+            ctl.get_clock().now().nanoseconds >= ticks[-1] - 2 * CONTROL_PERIOD_NS
+        )  # it follows /clock
 
 
 def _lockstep_run(seconds: float) -> np.ndarray:
@@ -136,7 +140,7 @@ def _lockstep_run(seconds: float) -> np.ndarray:
         sim, _ = _lockstep_pair(ctx, executor)
         recorder = Recorder(ctx, executor)
         spin_until(executor, lambda: sim.sim_time_s >= seconds, timeout_s=120.0)
-        spin_until(executor, lambda: len(recorder.states) >= round(seconds / 0.004))
+        spin_until(executor, lambda: len(recorder.states) >= round(seconds / CONTROL_PERIOD_S))
         rows = {
             (m.header.stamp.sec, m.header.stamp.nanosec): (*m.position, *m.velocity)
             for m in recorder.states
