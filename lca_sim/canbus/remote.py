@@ -63,6 +63,8 @@ import can
 from can_remote.client import RemoteClientProtocol  # type: ignore[import-untyped]
 from can_remote.websocket import WebSocket  # type: ignore[import-untyped]
 
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
+
 logger = logging.getLogger(__name__)
 
 INTERFACE_NAME = "lca_remote"
@@ -600,7 +602,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"lca-can-server: error: cannot listen on {args.host}:{args.port}: {exc}",
             file=sys.stderr,
         )
-        return 2
+        return EXIT_BAD_INPUT
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         server.stop()
@@ -614,7 +616,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     server.serve()
     print(f"lca-can-server: stopped; {server.stats}", file=sys.stderr, flush=True)
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -77,13 +77,12 @@ from lca_control.contract import (
     VOLTAGE_COMMANDS,
 )
 from lca_sim.cli.output import save_png
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
 from lca_sim.model.state_machine import StopState
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
 NS_PER_S = 1_000_000_000
 TIME_BASES = ("auto", "header", "bag")
 # Joints whose position is a length (m); the others are angles (rad, plotted in degrees).

@@ -42,11 +42,10 @@ from rclpy.qos import ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
 from lca_sim.ros.record import RecorderError, first_line, import_message_class, subscription_qos
 from lca_sim.ros.tool_args import echo_parser
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
 NODE_NAME = "lca_echo"
 
 # YAML scalars a message field can hold; everything else is converted.
