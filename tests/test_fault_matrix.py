@@ -422,29 +422,69 @@ def test_item_07_fig15_ends_exactly_at_the_duration_under_load(tmp_path: Path) -
 # --- 8 ----------------------------------------------------------------------------------------
 
 PUBLISH_PERIOD_S = 0.005  # 200 Hz asked; the rate is measured, not trusted
-RUN_BEFORE_KILL_S = 1.5  # several flush periods, and far below one 1 MiB chunk of JointStates
-# Beyond the flush period: DDS delivery and the recorder's executor on a shared 2-core machine.
-LOSS_MARGIN_S = 0.25
+RUN_BEFORE_KILL_S = 1.5  # many flush intervals, and far below one 1 MiB chunk of JointStates
 RECORD_TIMEOUT_S = 30.0
+NS = 1_000_000_000
 
 
-@pytest.mark.slow
-def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_a_flush_period(
-    tmp_path: Path,
-) -> None:
-    """Item 8: "`kill -9` of `lca-record` left a bag that no tool of ours could open"."""
-    from lca_sim.cli.bagplot import BagReadError, read_bag
+class FileGrowth(threading.Thread):
+    """When the bag's MCAP file grew (wall clock, ns), watched every 2 ms while it runs.
 
-    lca_record = str(BIN / "lca-record")
-    bag = tmp_path / "killed"
-    args = [lca_record, RECORDED_TOPIC, "-o", str(bag), "--wait-s", "30"]
+    The file grows only when the recorder closes and flushes a chunk (messages wait in the open
+    chunk in memory), so these are the moments from which a SIGKILL keeps what came before.
+    """
+
+    def __init__(self, bag: Path) -> None:
+        super().__init__(daemon=True)
+        self.bag = bag
+        self.grew_ns: list[int] = []
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        """Watch until `stop()`."""
+        size = 0
+        while not self._stop_event.wait(0.002):
+            files = list(self.bag.glob("*.mcap"))
+            now_size = files[0].stat().st_size if files else 0
+            if now_size > size:
+                size = now_size
+                self.grew_ns.append(time.time_ns())
+
+    def stop(self) -> None:
+        """Stop watching (and wait for the thread)."""
+        self._stop_event.set()
+        if self.is_alive():
+            self.join()
+
+
+def _recorded_with_times(bag: Path) -> list[tuple[int, int]]:
+    """(sequence number, the recorder's reception stamp in ns) of the bag's numbered states."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == RECORDED_TOPIC]
+        return [
+            (int(typestore.deserialize_cdr(raw, c.msgtype).header.stamp.nanosec), stamp_ns)
+            for c, stamp_ns, raw in reader.messages(connections=conns)
+        ]
+
+
+def _run_and_kill_recorder(bag: Path) -> tuple[subprocess.Popen[str], list[int], int]:
+    """lca-record of numbered states, SIGKILLed after RUN_BEFORE_KILL_S of publishing.
+
+    Returns the killed process, the wall time (ns) each state was published, and the kill's.
+    """
+    args = [str(BIN / "lca-record"), RECORDED_TOPIC, "-o", str(bag), "--wait-s", "30"]
     stderr_lines: list[str] = []
     proc = subprocess.Popen(
         args, env=support.ros_env(_domain_id(8)), stderr=subprocess.PIPE, text=True
     )
     pump = threading.Thread(target=lambda: stderr_lines.extend(proc.stderr or ()), daemon=True)
     pump.start()
-    publish_s: list[float] = []  # publish_s[seq]: when message seq was published (monotonic)
+    publish_ns: list[int] = []  # publish_ns[seq]: when message seq was published
+    kill_ns: list[int] = []
     try:
         with ros_context(8) as (ctx, executor):
             node = Node("test_kill_publisher", context=ctx)
@@ -459,26 +499,42 @@ def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_a_flush_perio
                 "the recorder to subscribe",
                 RECORD_TIMEOUT_S,
             )
-            kill_s: list[float] = []
 
             def tick() -> None:
-                if kill_s:
+                if kill_ns:
                     return
-                now_s = time.monotonic()
-                if publish_s and now_s - publish_s[0] >= RUN_BEFORE_KILL_S:
+                now_ns = time.time_ns()
+                if publish_ns and now_ns - publish_ns[0] >= RUN_BEFORE_KILL_S * NS:
+                    kill_ns.append(time.time_ns())
                     proc.kill()  # SIGKILL: no handler, no close, no metadata.yaml
-                    kill_s.append(now_s)
                     return
-                pub.publish(support.numbered_joint_state(len(publish_s)))
-                publish_s.append(time.monotonic())
+                pub.publish(support.numbered_joint_state(len(publish_ns)))
+                publish_ns.append(time.time_ns())
 
             node.create_timer(PUBLISH_PERIOD_S, tick)
-            spin_until(executor, lambda: bool(kill_s), "the kill", RECORD_TIMEOUT_S)
+            spin_until(executor, lambda: bool(kill_ns), "the kill", RECORD_TIMEOUT_S)
             kill(executor, node)
     finally:
         if proc.poll() is None:
             proc.kill()
         proc.wait(timeout=RECORD_TIMEOUT_S)
+    return proc, publish_ns, kill_ns[0]
+
+
+@pytest.mark.slow
+def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_the_bound(
+    tmp_path: Path,
+) -> None:
+    """Item 8: "`kill -9` of `lca-record` left a bag that no tool of ours could open"."""
+    from lca_sim.cli.bagplot import BagReadError, read_bag
+
+    bag = tmp_path / "killed"
+    growth = FileGrowth(bag)
+    growth.start()
+    try:
+        proc, publish_ns, kill_ns = _run_and_kill_recorder(bag)
+    finally:
+        growth.stop()
     assert proc.returncode == -9
     assert not (bag / "metadata.yaml").exists()  # the recorder did not close the bag
     with pytest.raises(BagReadError, match="lca-record --recover"):
@@ -488,22 +544,43 @@ def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_a_flush_perio
     assert recovered.returncode == 0, recovered.stderr
     assert "lca-record: recovered" in recovered.stderr
 
-    seqs = support.recorded_sequences(bag)
+    survived = _recorded_with_times(bag)
+    seqs = [seq for seq, _ in survived]
     assert seqs, "nothing recovered"
     assert seqs == list(range(len(seqs)))  # a prefix of what was published, nothing skipped
+    assert seqs == support.recorded_sequences(bag)
     data = read_bag(bag)  # lca-plot's reader
     assert data.topics == [RECORDED_TOPIC]
     metadata = yaml.safe_load((bag / "metadata.yaml").read_text(encoding="utf-8"))
     assert metadata["rosbag2_bagfile_information"]["message_count"] == len(seqs)
 
-    n_published = len(publish_s)
-    rate_hz = (n_published - 1) / (publish_s[-1] - publish_s[0])
-    lost = n_published - len(seqs)
-    lost_s = kill_s[0] - publish_s[len(seqs) - 1]  # since the last recovered one was published
-    print(f"published {n_published} at {rate_hz:.0f} Hz; lost {lost} ({lost_s:.3f} s)")
-    budget_s = RECORD_FLUSH_PERIOD_S + LOSS_MARGIN_S
-    assert lost <= budget_s * rate_hz + 1, f"lost {lost} of {n_published} ({lost_s:.3f} s)"
-    assert lost_s <= budget_s, f"lost {lost} of {n_published} ({lost_s:.3f} s)"
+    # The recorder's guarantee (lca_sim.ros.record, "Crash safety"): what it received is on disk
+    # within RECORD_FLUSH_PERIOD_S (the default bound). Measured at the recorder, from each
+    # message's reception stamp (in the bag) to the file's next growth (the chunk flush that
+    # holds it): a SIGKILL at any moment of the run loses at most the largest of these.
+    # Publisher stalls and DDS delivery on the loaded machine are outside it.
+    budget_ns = RECORD_FLUSH_PERIOD_S * NS
+    to_disk_ns = []
+    for seq, received_ns in survived:
+        flushed_ns = next((g for g in growth.grew_ns if g >= received_ns), None)
+        assert flushed_ns is not None, f"state {seq} is in the bag but the file never grew"
+        to_disk_ns.append(flushed_ns - received_ns)
+    worst = max(range(len(seqs)), key=to_disk_ns.__getitem__)
+    n_published = len(publish_ns)
+    rate_hz = (n_published - 1) * NS / (publish_ns[-1] - publish_ns[0])
+    # And at the kill: the first lost state was received after both its publication and the
+    # last survivor's reception (one reliable topic, in order); whatever arrived before that
+    # is on disk, so the kill lost at most kill - that of what the recorder held.
+    last_ns = survived[-1][1]
+    first_lost_ns = max(publish_ns[len(seqs)], last_ns) if len(seqs) < n_published else kill_ns
+    report = (
+        f"published {n_published} at {rate_hz:.0f} Hz, {len(seqs)} survived; on disk at worst "
+        f"{to_disk_ns[worst] / NS:.3f} s after reception (state {worst}); the kill lost what "
+        f"came in during the last {(kill_ns - first_lost_ns) / NS:.3f} s"
+    )
+    print(report)
+    assert to_disk_ns[worst] <= budget_ns, report
+    assert kill_ns - first_lost_ns <= budget_ns, report
 
     again = support.run_tool("lca-record", "--recover", str(bag), timeout_s=RECORD_TIMEOUT_S)
     assert again.returncode == 0

@@ -33,20 +33,25 @@ lost. (A publisher that sees the recorder in `get_subscription_count()` is *not*
 matching is two-sided, and messages sent before the recorder's side has matched are dropped by
 its volatile subscription.) `--verbose` adds the counts every second.
 
-Crash safety: the writer closes the open MCAP chunk and flushes it to the file every
-`--flush-period-s` (default 0.25 s; at the first message after the period, and from a
-steady-clock timer when messages stop), so a recorder killed with SIGKILL loses at most that
-much of what it had received. Such a bag has no summary, footer or metadata.yaml; `lca-record
---recover BAG` (`lca_sim.ros.bag_recover`, no ROS needed) rewrites it from its complete chunks
-so that lca-plot, rosbags and mcap readers open it. Without the periodic flush rosbags closes a
-chunk only at 1 MiB and buffers the file, and a killed recording lost everything after the last
-full chunk.
+Crash safety: a recorder killed with SIGKILL loses at most `--flush-period-s` (default 0.25 s)
+of what it had received. The writer closes the open MCAP chunk and flushes it to the file every
+`FLUSH_SHARE` (0.4) of that bound, 0.1 s by default: at the first message after that interval,
+and from a steady-clock timer of the same interval when messages stop. What was received just
+after a flush is thus on disk one interval later plus the delay of the callback or timer that
+flushes it, and the rest of the bound (0.15 s by default) is left for that delay on a loaded
+machine. (A flush every full bound would lose the bound plus that delay.) Such a bag has no
+summary, footer or metadata.yaml; `lca-record --recover BAG` (`lca_sim.ros.bag_recover`, no ROS
+needed) rewrites it from its complete chunks as a standard MCAP file with a fresh
+metadata.yaml. Tested on a recovered bag: rosbags' reader and lca-plot's (`read_bag`); lca-echo
+reads live topics, not bags, and the `mcap` package's readers are not installed here, so not
+tried. Without the periodic flush rosbags closes a chunk only at 1 MiB and buffers the file,
+and a killed recording lost everything after the last full chunk.
 
 Stopping: SIGINT (Ctrl-C), SIGTERM or `--max-duration-s`. The recorder then takes the messages
 already received by the middleware, closes the bag (metadata.yaml is written) and prints the
-number of messages per topic. Exit codes: 0 stopped normally (also on a signal), 2 bad
-arguments, an existing output folder, or none of the named topics could be recorded (did not
-appear within `--wait-s`, or an unknown type); errors are one line on stderr.
+number of messages per topic. Exit codes (from `lca_sim.errors`): 0 stopped normally (also on a
+signal), 2 bad arguments, an existing output folder, or none of the named topics could be
+recorded (did not appear within `--wait-s`, or an unknown type); errors are one line on stderr.
 
 Embedding (the recorder shares a node and its executor; nothing here spins)::
 
@@ -125,15 +130,12 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from lca_control.contract import CLOCK, STATE_QOS_DEPTH
-from lca_sim.errors import LcaHilError
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, LcaHilError
 from lca_sim.ros.bag_recover import recover_main
 from lca_sim.ros.node_util import make_executor
-from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S as DEFAULT_FLUSH_PERIOD_S
+from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S as DEFAULT_MAX_LOSS_S
 from lca_sim.ros.tool_args import RECORD_WAIT_S as DEFAULT_WAIT_S
 from lca_sim.ros.tool_args import record_parser
-
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
 
 NODE_NAME = "lca_record"
 # Recorded by --all only when named: every node publishes them, the recorder itself included.
@@ -145,6 +147,9 @@ DRAIN_QUIET_S = 0.05
 DRAIN_MAX_S = 0.5
 PROGRESS_PERIOD_S = 1.0
 NS_PER_S = 1_000_000_000
+# The open chunk is flushed every FLUSH_SHARE of the loss bound; the rest of the bound is left
+# for the callback or timer that does it to come late (module doc, "Crash safety").
+FLUSH_SHARE = 0.4
 
 
 class RecorderError(LcaHilError):
@@ -261,8 +266,8 @@ class BagRecorder:
         depth: Keep-last depth of the subscriptions.
         graph_poll_period_s: Period of the graph check for new topics and publishers (steady
             clock, so it runs even while simulated time stands still).
-        flush_period_s: Close and flush the open MCAP chunk at least this often (steady
-            clock): what a killed recorder can lose.
+        max_loss_s: The most a killed recorder may lose of what it received, s: the open
+            MCAP chunk is closed and flushed every `FLUSH_SHARE` of it (steady clock).
         log: Where warnings go (default: the node's logger at warning level).
         note: Where the one-line "recording <topic>" notes go (default: the node's logger at
             info level). A topic is noted once its subscription has matched a publisher.
@@ -278,7 +283,7 @@ class BagRecorder:
         wait_s: float = DEFAULT_WAIT_S,
         depth: int = STATE_QOS_DEPTH,
         graph_poll_period_s: float = GRAPH_POLL_PERIOD_S,
-        flush_period_s: float = DEFAULT_FLUSH_PERIOD_S,
+        max_loss_s: float = DEFAULT_MAX_LOSS_S,
         log: Callable[[str], None] | None = None,
         note: Callable[[str], None] | None = None,
     ) -> None:
@@ -288,9 +293,10 @@ class BagRecorder:
         self._wait_s = wait_s
         self._depth = depth
         self._poll_period_s = graph_poll_period_s
-        if not flush_period_s > 0 or math.isinf(flush_period_s):
-            raise RecorderError(f"flush period must be > 0 and finite, not {flush_period_s}")
-        self._flush_period_s = flush_period_s
+        if not max_loss_s > 0 or math.isinf(max_loss_s):
+            raise RecorderError(f"the loss bound must be > 0 and finite, not {max_loss_s}")
+        self.max_loss_s = max_loss_s
+        self.flush_interval_s = FLUSH_SHARE * max_loss_s
         self._next_flush_s = math.inf
         self._flush_timer: Timer | None = None
         self._log: Callable[[str], None] = log or node.get_logger().warning
@@ -367,12 +373,12 @@ class BagRecorder:
             writer.abort()
             raise RecorderError("rosbags' MCAP writer has changed; cannot flush chunks")
         self._writer = writer
-        self._next_flush_s = time.monotonic() + self._flush_period_s
+        self._next_flush_s = time.monotonic() + self.flush_interval_s
         self._waiting = {name: _Waiting(name) for name in self._named}
         self.poll_graph()
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self._node.create_timer(self._poll_period_s, self.poll_graph, clock=steady)
-        self._flush_timer = self._node.create_timer(self._flush_period_s, self.flush, clock=steady)
+        self._flush_timer = self._node.create_timer(self.flush_interval_s, self.flush, clock=steady)
 
     def flush(self) -> None:
         """Close the open MCAP chunk (if it holds anything) and flush the file to the OS.
@@ -390,7 +396,7 @@ class BagRecorder:
         if storage.chunk.bio.tell():
             storage.close_chunk()
         storage.bio.flush()
-        self._next_flush_s = time.monotonic() + self._flush_period_s
+        self._next_flush_s = time.monotonic() + self.flush_interval_s
 
     def stop_discovery(self) -> None:
         """Stop looking for new topics (recording of subscribed topics goes on)."""
@@ -660,7 +666,7 @@ def _record(context: Context, args: argparse.Namespace, output: Path, stop: _Sto
             record_all=args.all,
             wait_s=args.wait_s,
             depth=args.depth,
-            flush_period_s=args.flush_period_s,
+            max_loss_s=args.flush_period_s,
             log=_warn,
             note=_note,
         )
