@@ -465,10 +465,11 @@ def _recorded_with_times(bag: Path) -> list[tuple[int, int]]:
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
         conns = [c for c in reader.connections if c.topic == RECORDED_TOPIC]
-        return [
-            (int(typestore.deserialize_cdr(raw, c.msgtype).header.stamp.nanosec), stamp_ns)
+        stamped: list[tuple[Any, int]] = [
+            (typestore.deserialize_cdr(raw, c.msgtype), stamp_ns)
             for c, stamp_ns, raw in reader.messages(connections=conns)
         ]
+    return [(int(msg.header.stamp.nanosec), stamp_ns) for msg, stamp_ns in stamped]
 
 
 def _run_and_kill_recorder(bag: Path) -> tuple[subprocess.Popen[str], list[int], int]:
