@@ -200,6 +200,8 @@ DRIVE_STATUS_PREFIX = "drive_chain/"
 MOTION = "motion"  # DriveKey.kind of a motion-state name
 DRIVE = "drive"  # DriveKey.kind of a drive-state name
 NUMBER = "number"  # DriveKey.kind of a float, in repr form ('nan' for NaN)
+TEXT = "text"  # DriveKey.kind of free text (never empty)
+NO_FAULTS = "none"  # the `faults` value of a joint with no injected fault
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,6 +282,12 @@ DRIVE_KEYS: tuple[DriveKey, ...] = (
         "amplifier output voltage (within the axis's voltage_limit_v)",
         nan=_NOT_REPORTED,
     ),
+    DriveKey(
+        "faults",
+        TEXT,
+        "",
+        "injected faults acting on the joint (docs/faults.md), `kind=value, ...`; 'none'",
+    ),
 )
 DRIVE_KEY = {key.name: key for key in DRIVE_KEYS}
 # Keys of each per-joint DiagnosticStatus on `drive_chain_states`, in message order (values are
@@ -295,7 +303,8 @@ def drive_value_problems(
     """What is wrong with one `drive_chain/<joint>` status's key/values; [] if nothing.
 
     Checks the key set and order against DRIVE_STATE_KEYS, names against their vocabulary
-    (with UNKNOWN only if `allow_unknown`), and numbers against their range and NaN rule.
+    (with UNKNOWN only if `allow_unknown`), numbers against their range and NaN rule, and that
+    text is not empty.
     """
     problems: list[str] = []
     if tuple(values) != DRIVE_STATE_KEYS:
@@ -303,23 +312,32 @@ def drive_value_problems(
     for key in DRIVE_KEYS:
         if key.name not in values:
             continue
-        text = values[key.name]
-        if key.kind != NUMBER:
-            vocabulary = tuple(MOTION_STATE_CODES) if key.kind == MOTION else tuple(state_names)
-            if text not in vocabulary and not (allow_unknown and text == UNKNOWN):
-                problems.append(f"{key.name} {text!r} not in {list(vocabulary)}")
-            continue
-        try:
-            number = float(text)
-        except ValueError:
-            problems.append(f"{key.name} {text!r} is not a number")
-            continue
-        if math.isnan(number):
-            if not key.nan:
-                problems.append(f"{key.name} is NaN, which it must never be")
-        elif not key.low <= number <= key.high:
-            problems.append(f"{key.name} {text} outside [{key.low:g}, {key.high:g}] {key.unit}")
+        problem = _drive_value_problem(key, values[key.name], state_names, allow_unknown)
+        if problem:
+            problems.append(problem)
     return problems
+
+
+def _drive_value_problem(
+    key: DriveKey, text: str, state_names: Sequence[str], allow_unknown: bool
+) -> str:
+    """What is wrong with one value of `key`; "" if nothing."""
+    if key.kind == TEXT:
+        return "" if text else f"{key.name} is empty"
+    if key.kind != NUMBER:
+        vocabulary = tuple(MOTION_STATE_CODES) if key.kind == MOTION else tuple(state_names)
+        if text not in vocabulary and not (allow_unknown and text == UNKNOWN):
+            return f"{key.name} {text!r} not in {list(vocabulary)}"
+        return ""
+    try:
+        number = float(text)
+    except ValueError:
+        return f"{key.name} {text!r} is not a number"
+    if math.isnan(number):
+        return "" if key.nan else f"{key.name} is NaN, which it must never be"
+    if not key.low <= number <= key.high:
+        return f"{key.name} {text} outside [{key.low:g}, {key.high:g}] {key.unit}"
+    return ""
 
 
 # --- the snapshot a backend fills --------------------------------------------------------
@@ -347,6 +365,8 @@ class PlantSnapshot:
         eta_m, eta_l: eq. (10) coefficients (1), NaN while stopped.
         motor_torque_nm, load_torque_nm, friction_torque_nm: motor side (N m).
         voltage_v: amplifier voltage (V).
+        faults: injected faults per joint as text (`drive_chain/<joint>` key `faults`); empty:
+            none on any joint.
     """
 
     stamp_s: float
@@ -366,6 +386,7 @@ class PlantSnapshot:
     load_torque_nm: FloatArray
     friction_torque_nm: FloatArray
     voltage_v: FloatArray
+    faults: tuple[str, ...] = ()  # per joint, the `faults` key; () for NO_FAULTS on every joint
 
     @property
     def motion_state_names(self) -> tuple[str, ...]:

@@ -155,6 +155,10 @@ class JointController:
         self.rejected_references = 0
         self.plant_restarts = 0
         self.last_restart_from_s = 0.0  # the stamp before the latest restart, s
+        # States with a NaN or infinite reading (a lost encoder sample): the last commands are
+        # sent again and the loops are not updated, so one bad sample cannot poison an integral.
+        self.bad_states = 0
+        self._last_commands: list[float] | None = None
 
     @property
     def elapsed_s(self) -> float:
@@ -253,6 +257,11 @@ class JointController:
                 self._restart()
             elif t_s <= self._last_t_s:
                 return None
+        readings = [*positions, *velocities, *(currents_a or ())]
+        if not all(math.isfinite(v) for v in readings):
+            self.bad_states += 1
+            self._last_t_s = t_s
+            return list(self._last_commands or [0.0] * len(p.joints))
         dt_s = p.nominal_period_s if self._last_t_s is None else t_s - self._last_t_s
         if self._t0_s is None:
             self._t0_s = t_s
@@ -270,4 +279,5 @@ class JointController:
                 commands.append(current_ref)
             else:
                 commands.append(cascade.voltage_command(current_ref, currents_a[i], dt_s))
+        self._last_commands = commands
         return commands

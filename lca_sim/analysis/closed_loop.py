@@ -41,6 +41,7 @@ from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
 from lca_sim.errors import UnknownNameError
 from lca_sim.model.commanded_plant import VOLTAGE, CommandedPlant
+from lca_sim.model.faults import LINK, FaultInjector, ScheduledFault
 from lca_sim.model.params import RobotParams
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
 
@@ -88,6 +89,10 @@ class ClosedLoopConfig:
             or `max_command_voltage_v`, by the interface).
         initial_position: the pose at t = 0, one value per robot axis (rad, m for the lift).
         plant_enabled: the simulator's `enabled`: false puts 0 V on every axis.
+        faults: a fault schedule (lca_sim.model.faults; the simulator node's
+            `fault_schedule`): switched at each period's start as the node does, the sensor
+            faults on what the controller reads. The link faults (dropped, delayed, stale
+            messages) need the node: a schedule naming them is refused here.
 
     Raises:
         ParameterError: a value the lockstep loop could not run with (named as the node's
@@ -107,6 +112,7 @@ class ClosedLoopConfig:
     max_abs_command: float
     initial_position: tuple[float, ...]
     plant_enabled: bool = True
+    faults: tuple[ScheduledFault, ...] = ()
 
     def __post_init__(self) -> None:
         if self.controller.command_interface != self.command_interface:
@@ -122,6 +128,9 @@ class ClosedLoopConfig:
             steps = value / self.dt_s if math.isfinite(value) else math.nan
             if not (round(steps) >= 1 and abs(steps - round(steps)) <= 1e-6 * steps):
                 raise ParameterError(name, f"a whole multiple of dt_s = {self.dt_s:g}", value)
+        link = sorted({f.kind for f in self.faults if f.owner == LINK})
+        if link:
+            raise ParameterError("fault_schedule", "no link faults in a composed run", link)
         if len(self.initial_position) != len(self.robot.axes):
             raise ParameterError(
                 "initial_position",
@@ -220,6 +229,11 @@ class ClosedLoop:
             max_abs_command=c.max_abs_command,
             enabled=c.plant_enabled,
         )
+        self.faults: FaultInjector | None = None
+        if c.faults:
+            self.faults = FaultInjector(self.sim, period_s=c.control_period_s)
+            self.faults.set_schedule(c.faults)
+            self.plant.faults = self.faults
         self._index = [axes.index(j) for j in c.controller.joints]
 
     def run(self) -> ClosedLoopResult:
@@ -233,6 +247,11 @@ class ClosedLoop:
         axes = sim.axis_names
         sim.reset(position=dict(zip(axes, c.initial_position, strict=True)))
         plant.hold_zero()
+        faults = self.faults
+        sensed = None
+        if faults is not None:
+            faults.restart()
+            sensed = (np.zeros(sim.n_axes), np.zeros(sim.n_axes), np.zeros(sim.n_axes))
         rejected_before = plant.counters.rejected
         controller = JointController(c.controller)
         n, n_axes, n_joints = c.n_states, sim.n_axes, len(c.controller.joints)
@@ -262,11 +281,16 @@ class ClosedLoop:
         for k in range(n):
             t_s = stamp_time_s(0.0 + done * dt_s)  # the node's time base is 0 in lockstep
             q, v = q_row.tolist(), v_row.tolist()  # what JointState carries: Python floats
+            amps_row = i_row
+            if sensed is not None and faults is not None and faults.any_active:
+                faults.measure(q_row, v_row, i_row, sensed)  # what the faulty sensors report
+                q, v = sensed[0].tolist(), sensed[1].tolist()
+                amps_row = sensed[2]
             positions = [q[i] for i in index]
             velocities = [v[i] for i in index]
             currents = None
             if voltage_interface:
-                amps = i_row.tolist()
+                amps = amps_row.tolist()
                 currents = [amps[i] for i in index]
             out = update(t_s, positions, velocities, currents)
             if out is None:  # never: the stamps rise by a control period every time
@@ -283,6 +307,8 @@ class ClosedLoop:
             if done >= end:
                 break
             take(out)  # refused: the last good command stays in force, as in lockstep
+            if faults is not None:
+                faults.at(done * dt_s)  # the node's _switch_faults: at the period's start
             steps = min(period, end - done)
             advance(steps)
             done += steps

@@ -18,6 +18,7 @@ from numba import njit
 
 from lca_control.pi import PIParams, pi_law, pi_rebase
 from lca_sim.model import kernel
+from lca_sim.model.faults import FaultInjector
 from lca_sim.model.simulator import Simulator
 
 FloatArray = npt.NDArray[np.float64]
@@ -64,6 +65,25 @@ def _current_loops_steps(n_steps, volts, loops, gains, mass, nle, work, model, d
     """Model steps, each under the current loops' voltages (`Simulator.advance_with`)."""
     for k in range(n_steps):
         _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
+        if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
+            return k
+    return n_steps
+
+
+@njit(cache=True)
+def _sensed_current_loops_steps(  # type: ignore[no-untyped-def]
+    n_steps, volts, loops, gains, sense, noise, mass, nle, work, model, dt_s
+):
+    """`_current_loops_steps` with a faulty current sensor (lca_sim.model.faults).
+
+    The loops regulate the measured current gain * i + offset + noise[k] (sense rows 0 and 1,
+    noise one row per step) instead of the true one.
+    """
+    measured = np.empty(volts.shape[0])
+    for k in range(n_steps):
+        for a in range(volts.shape[0]):
+            measured[a] = sense[0, a] * work[kernel.X_CURRENT, a] + sense[1, a] + noise[k, a]
+        _run_current_loops(loops, measured, gains, volts)
         if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
             return k
     return n_steps
@@ -120,6 +140,7 @@ class CommandedPlant:
     current_limit_a: float = 20.0
     enabled: bool = True
     counters: CommandCounters = field(default_factory=CommandCounters)
+    faults: FaultInjector | None = None  # injected faults (lca_sim.model.faults); None: none
 
     def __post_init__(self) -> None:
         self._index = [self.sim.axis_names.index(j) for j in self.joints]
@@ -219,9 +240,41 @@ class CommandedPlant:
             return
         if self.interface == VOLTAGE:
             volts[:] = self._target
+            if self.faults is not None and self.faults.any_active:
+                self.faults.thermal(
+                    sim.state_array[kernel.X_CURRENT],
+                    sim.state_array[kernel.X_CURRENT],
+                    n_steps * sim.dt_s,
+                )
             sim.advance(n_steps, volts)
             return
         loops = self._loops
         gains = self._gains
+        if self.faults is not None and self.faults.any_active:
+            self._advance_faulted(n_steps, self.faults)
+            return
         loops[_L_TARGET_A] = self._target
         sim.advance_with(n_steps, _current_loops_steps, volts, loops, gains)
+
+    def _advance_faulted(self, n_steps: int, faults: FaultInjector) -> None:
+        """`advance` of the current interface with injected faults in force.
+
+        The I2t monitors see the interval first (a trip takes effect in it); the drive's
+        current limit clamps the setpoints; safe torque off holds the loops at rest (no
+        wind-up while the power stage is off); a sagging supply lowers the loops' voltage
+        limit as it lowers the amplifier's; the loops regulate the current sensor's reading.
+        """
+        sim, loops = self.sim, self._loops
+        faults.thermal(sim.state_array[kernel.X_CURRENT], self._target, n_steps * sim.dt_s)
+        target = np.clip(self._target, -faults.current_limit, faults.current_limit)
+        target[faults.sto] = 0.0
+        loops[_L_TARGET_A] = target
+        for row in (_L_INTEGRAL, _L_OUTPUT, _L_LAST_ERROR):
+            loops[row, faults.sto] = 0.0
+        loops[_L_LIMIT_V] = sim.model_array[kernel.P_VOLTAGE_LIMIT_V]
+        sense = np.vstack((faults.sense_gain, faults.sense_offset))
+        noise = faults.current_noise(n_steps)
+        sim.advance_with(
+            n_steps, _sensed_current_loops_steps, self._volts, loops, self._gains, sense, noise
+        )
+        loops[_L_LIMIT_V] = self._voltage_limits

@@ -68,8 +68,11 @@ class LiveParameters(Generic[Validated]):
         values: Mapping[str, Any],
         validate: Callable[[Mapping[str, Any]], Validated],
         apply: Callable[[Validated, Validated, frozenset[str]], None],
+        owned_elsewhere: Callable[[str], bool] | None = None,
     ) -> None:
         self._table = table
+        # Parameters another on-set callback owns (the fault injection's): not this one's.
+        self._elsewhere = owned_elsewhere or (lambda _name: False)
         self._values = dict(values)
         self._validate = validate
         self._apply = apply
@@ -82,6 +85,9 @@ class LiveParameters(Generic[Validated]):
         return dict(self._values)
 
     def _on_set(self, changes: Sequence[Parameter]) -> SetParametersResult:
+        changes = [c for c in changes if not self._elsewhere(c.name)]
+        if not changes:
+            return accepted()
         names = frozenset(c.name for c in changes)
         fixed = sorted(n for n in names if n in self._table.read_only)
         if fixed:

@@ -40,6 +40,7 @@ _RELIABILITY = {
 _MOTION_AT = pc.DRIVE_STATE_KEYS.index("motion_state")
 _DRIVE_AT = pc.DRIVE_STATE_KEYS.index("drive_state")
 _NUMBERS_AT = tuple(pc.DRIVE_STATE_KEYS.index(name) for name in pc.DRIVE_NUMBER_KEYS)
+_FAULTS_AT = pc.DRIVE_STATE_KEYS.index("faults")
 
 
 # The topics only the plant publishes: a second publisher of any of them is a second plant.
@@ -91,6 +92,7 @@ def fill_drive_chain(array: DiagnosticArray, snap: PlantSnapshot) -> None:
         kv[_DRIVE_AT].value = drive_state
         for k, column in zip(_NUMBERS_AT, columns, strict=True):
             kv[k].value = repr(column[a])
+        kv[_FAULTS_AT].value = snap.faults[a] if snap.faults else pc.NO_FAULTS
 
 
 class PlantPublisher:

@@ -58,6 +58,7 @@ then the next N - 1 commands through, one period each.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -75,7 +76,9 @@ from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
 from lca_sim.model.commanded_plant import CommandedPlant
+from lca_sim.model.faults import LINK, FaultInjector, StateLink
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
+from lca_sim.ros.fault_params import FaultParameters, is_fault_parameter
 from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
@@ -115,10 +118,16 @@ class SimulatorNode(Node):
             declare_table(self, SIMULATOR_PARAMETERS),
             validate_simulator_params,
             self._apply_params,
+            owned_elsewhere=is_fault_parameter,
         )
         p = self.params
         robot = load_robot(p.robot)
         self.sim = Simulator(robot, dt_s=p.dt_s, rigid_body_update_steps=p.rigid_body_update_steps)
+        # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
+        self.faults = FaultInjector(self.sim, period_s=p.control_period_s)
+        self._fault_params = FaultParameters(self, self.faults)
+        self._link = StateLink(self.faults)
+        self._measured = tuple(np.zeros(self.sim.n_axes) for _ in range(3))
         self.plant = CommandedPlant(
             sim=self.sim,
             joints=p.joints,
@@ -130,6 +139,7 @@ class SimulatorNode(Node):
                 else p.max_command_current_a
             ),
             enabled=p.enabled,
+            faults=self.faults,
         )
         self._reset_pose()
         self._lockstep = p.timing_mode == "lockstep"
@@ -261,6 +271,7 @@ class SimulatorNode(Node):
             ) from exc
         if not keep_command:
             self.plant.hold_zero()
+        self.faults.restart()
 
     # --- commands ------------------------------------------------------------------------
 
@@ -364,6 +375,7 @@ class SimulatorNode(Node):
         end = self.params.lockstep_end_steps
         if end is not None:
             steps = min(steps, end - self._steps_done)
+        self._switch_faults()
         self.plant.advance(steps)
         self._steps_done += steps
         self._publish_state()
@@ -411,6 +423,7 @@ class SimulatorNode(Node):
             self._wall_start += (due - cap) * p.dt_s / factor
             due = cap
         if due > 0:
+            self._switch_faults()
             self.plant.advance(due)
             self._steps_done += due
         self._publish_state()
@@ -482,13 +495,48 @@ class SimulatorNode(Node):
             voltage_v=rows["voltage_v"],
         )
 
+    def _switch_faults(self) -> None:
+        """The scheduled faults for the time the next step starts at (logged when they switch)."""
+        for change in self.faults.at(self.sim_time_s):
+            self.get_logger().warning(f"fault schedule at {self.sim_time_s:.4f} s: {change}")
+
+    def _faulted(self, snap: PlantSnapshot) -> list[PlantSnapshot]:
+        """The snapshot as the faulty sensors report it, routed through the faulty link."""
+        q, v, i = self._measured
+        self.faults.measure(snap.position, snap.velocity, snap.current_a, (q, v, i))
+        measured = dataclasses.replace(
+            snap,
+            position=q.copy(),
+            velocity=v.copy(),
+            current_a=i.copy(),
+            motor_position_rad=q * self._gear_ratio,
+            faults=tuple(self.faults.describe(j) for j in snap.joints),
+            motor_velocity_rad_s=snap.motor_velocity_rad_s.copy(),
+            effort=snap.effort.copy(),
+            motion_state=snap.motion_state.copy(),
+            drive_state=snap.drive_state.copy(),
+            eta_m=snap.eta_m.copy(),
+            eta_l=snap.eta_l.copy(),
+            motor_torque_nm=snap.motor_torque_nm.copy(),
+            load_torque_nm=snap.load_torque_nm.copy(),
+            friction_torque_nm=snap.friction_torque_nm.copy(),
+            voltage_v=snap.voltage_v.copy(),
+        )
+        return self._link.route(snap.stamp_s, measured)
+
     def _publish_state(self) -> None:
         """Publish one instant through the contract's builder (joint_states first).
 
         joint_states is what a current-commanding controller waits for: its next command is
-        being computed while motor_states, /clock and the drive-chain states go out.
+        being computed while motor_states, /clock and the drive-chain states go out. With
+        faults injected, what goes out is what the faulty sensors and link deliver.
         """
-        self._plant.publish(self._snapshot())
+        snap = self._snapshot()
+        if self.faults.any_active:
+            for delivered in self._faulted(snap):
+                self._plant.publish(delivered)
+        else:
+            self._plant.publish(snap)
         self._published += 1
         self._track_end_stops()
         self._last_publish_wall = time.monotonic()
@@ -616,10 +664,24 @@ class SimulatorNode(Node):
             "command_pending": self._pending,
             "step_periods_left": self._step_budget,
             "realtime_factor_set": p.realtime_factor,
+            "link_faults": self.faults.describe(LINK),
+            "states_dropped": self._link.dropped,
+            "states_stale": self._link.stale_sent,
             **counters.as_dict(),
         }
+        if self.faults.active(LINK):
+            found_link = (
+                DiagnosticStatus.WARN,
+                f"injected link faults: {self.faults.describe(LINK)}",
+            )
+        else:
+            found_link = None
         found = [(level, message)]
-        for health in (self._timing_health(values), self._plant.graph_health(values)):
+        for health in (
+            self._timing_health(values),
+            self._plant.graph_health(values),
+            found_link,
+        ):
             if health is not None:
                 found.append(health)
         level, message = worst_first(found)
@@ -639,7 +701,13 @@ class SimulatorNode(Node):
         uncommanded = not self.plant.enabled or self.plant.target[a] == 0.0
         moving = abs(float(signals[_ROW["motor_velocity_rad_s"], a])) > self._velocity_eps_rad_s
         level, message, fault = DiagnosticStatus.OK, drive_state, "none"
-        if self._at_limit()[a]:
+        injected = self.faults.active(name) if self.faults.any_active else []
+        if injected:
+            tripped = "i2t_trip" in injected
+            level = DiagnosticStatus.ERROR if tripped else DiagnosticStatus.WARN
+            fault = f"injected: {self.faults.describe(name)}"
+            message = fault + (" (I2t trip: torque off, latched)" if tripped else "")
+        elif self._at_limit()[a]:
             level, fault = DiagnosticStatus.WARN, "at end stop"
             message = f"end stop hit at {self._contact_speed[a]:.3g} {unit}"
         elif moving and uncommanded:
@@ -658,6 +726,7 @@ class SimulatorNode(Node):
                 "current_a": float(self.sim.state_array[2, a]),
                 "end_stop_contact_speed": float(self._contact_speed[a]),
                 "fault": fault,
+                "faults": self.faults.describe(name),
             },
         )
 

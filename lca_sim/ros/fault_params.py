@@ -1,0 +1,110 @@
+"""Fault injection on a plant node: the `faults.<joint>.<kind>` parameters and the schedule.
+
+Every fault kind of `lca_sim.model.faults` is a live parameter of the simulator node,
+`faults.<joint>.<kind>` (`faults.link.<kind>` for the state link), off by default: a set takes
+effect from the next model step or is refused with the reason. `fault_schedule` (read-only)
+names a YAML file of timed entries (docs/faults.md), switched at simulated time. Active faults
+show on /diagnostics (the joint's status goes WARN with them listed, ERROR for a trip) and in
+`drive_chain_states` (the `faults` key), so a recorded bag keeps when each was on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from lca_control.parameters import ParameterError, ParameterTable, ParamKind, ParamSpec
+from lca_sim.config.loader import read_yaml, resolve
+from lca_sim.errors import USER_ERRORS
+from lca_sim.model.faults import (
+    FaultInjector,
+    ScheduledFault,
+    fault_table,
+    parse_fault_schedule,
+    split_name,
+)
+from lca_sim.ros.node_util import accepted, declare_table, rejected
+
+FAULT_SCHEDULE = "fault_schedule"
+
+
+def is_fault_parameter(name: str) -> bool:
+    """True for the names `FaultParameters` owns (`faults.*`, `fault_schedule`)."""
+    return name.startswith("faults.") or name == FAULT_SCHEDULE
+
+
+def node_fault_table(joints: Sequence[str]) -> ParameterTable:
+    """The fault parameters of a node with these joints, with `fault_schedule`."""
+    schedule = ParamSpec(
+        FAULT_SCHEDULE,
+        ParamKind.STRING,
+        "",
+        "YAML file of timed faults (docs/faults.md): entries joint, kind, value, start_s, "
+        "end_s in simulated time; empty: none",
+        live=False,
+    )
+    return ParameterTable((*fault_table(joints), schedule))
+
+
+class FaultParameters:
+    """Declares a node's fault parameters and applies every set of them to `injector`."""
+
+    def __init__(self, node: Node, injector: FaultInjector) -> None:
+        self._node = node
+        self.injector = injector
+        self.table = node_fault_table(injector.joints)
+        values = declare_table(node, self.table)
+        path = str(values.pop(FAULT_SCHEDULE))
+        self.schedule: tuple[ScheduledFault, ...] = load_fault_schedule(path, injector.joints)
+        injector.set_schedule(self.schedule)
+        for name, value in values.items():
+            owner, kind = split_name(name)
+            if value != self.table[name].default:
+                injector.set(owner, kind, value)
+        node.add_on_set_parameters_callback(self._on_set)
+
+    @property
+    def names(self) -> frozenset[str]:
+        """Every parameter name this object owns."""
+        return frozenset(self.table.names)
+
+    def _on_set(self, changes: Sequence[Parameter]) -> SetParametersResult:
+        mine = [c for c in changes if c.name in self.table]
+        if not mine:
+            return accepted()
+        if any(c.name == FAULT_SCHEDULE for c in mine):
+            return rejected(f"{FAULT_SCHEDULE}: read-only while running; restart the node")
+        injector = self.injector
+        try:
+            checked = [(c.name, self.table[c.name].check(c.value)) for c in mine]
+        except ParameterError as exc:
+            return rejected(str(exc))
+        before = dict(injector.values)
+        try:
+            for name, value in checked:
+                owner, kind = split_name(name)
+                injector.set(owner, kind, value)
+        except USER_ERRORS as exc:
+            injector.values.clear()
+            injector.values.update(before)
+            injector.apply()
+            return rejected(str(exc))
+        self._node.get_logger().info(  # type: ignore[no-untyped-call]  # rclpy is untyped
+            "faults: " + "; ".join(f"{name} = {value}" for name, value in checked)
+        )
+        return accepted()
+
+
+def load_fault_schedule(path: str, joints: Sequence[str]) -> tuple[ScheduledFault, ...]:
+    """The schedule in the YAML file at `path` (a path, or a name in config/faults/); () for "".
+
+    Raises:
+        ConfigError: unreadable file, or the first bad entry, named by its key path.
+    """
+    if not path:
+        return ()
+    file = resolve(path, "faults")
+    return parse_fault_schedule(read_yaml(file), str(file), joints)
