@@ -5,11 +5,14 @@ a read-only one must be refused with a reason that says to restart, and the valu
 must not move; a live one must be accepted and its effect must be visible in the running node
 (a probe per parameter; a live parameter without a probe fails the test). Each live parameter
 is also set to a value outside its documented range, which must be refused with its name.
+The simulator is walked twice, lockstep on voltages and realtime on currents: a parameter of
+one timing mode or interface shows its effect on the node of that mode.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -20,6 +23,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray
 
+from lca_control.controller import JointController
 from lca_control.parameters import ParamKind, ParamSpec
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.can_bridge_node import CanBridgeNode
@@ -123,8 +127,105 @@ def _disabled_applies_zero_volts(sim: SimulatorNode) -> bool:
     return not sim.plant.enabled and bool(np.all(sim.sim.signal_array[2] == 0.0))
 
 
+def _stored(name: str, value: Any) -> Probe:
+    """The value in force, for a parameter of the other timing mode or command interface.
+
+    Its effect is shown by the walk of the other node (`STORED_IN_...`).
+    """
+    return value, lambda n: getattr(n.params, name) == value
+
+
+def _resends_after(sim: SimulatorNode, resend_s: float) -> bool:
+    """lockstep_resend_s: the last state is published again after that silence, not before."""
+    published = sim._published
+    sim._last_command_wall = sim._last_publish_wall = time.monotonic() - 0.6 * resend_s
+    sim._lockstep_kick()
+    quiet = sim._published == published
+    sim._last_command_wall = sim._last_publish_wall = time.monotonic() - 1.1 * resend_s
+    sim._lockstep_kick()
+    return quiet and sim._published == published + 1
+
+
+def _command(sim: SimulatorNode, pivot: float) -> None:
+    """A command array that moves only the pivot (its unit is the node's interface's)."""
+    sim._on_command(
+        Float64MultiArray(data=[pivot if j == "pivot" else 0.0 for j in sim.params.joints])
+    )
+
+
+def _pivot_target(sim: SimulatorNode) -> float:
+    return float(sim.plant.target[sim.sim.axis_names.index("pivot")])
+
+
+def _silence_drops_the_command_after(sim: SimulatorNode, executor: Any, timeout_s: float) -> bool:
+    """command_timeout_s (realtime): that long without a command and the current drops to 0."""
+    timeouts = sim.plant.counters.timeouts
+    _command(sim, 1.0)
+    commanded_s = time.monotonic()
+    assert _pivot_target(sim) == 1.0
+    # the node started with 30 s: without the new value nothing drops within this deadline
+    support.spin_until(
+        executor, lambda: not np.any(sim.plant.target), "the command dropped to 0", timeout_s=10.0
+    )
+    silent_s = time.monotonic() - commanded_s
+    return sim.plant.counters.timeouts == timeouts + 1 and silent_s >= timeout_s
+
+
+def _current_above_refused(sim: SimulatorNode, limit_a: float) -> bool:
+    """max_command_current_a: a command above it is refused (counted), one below it taken."""
+    counters = sim.plant.counters
+    rejected = counters.rejected_absurd
+    _command(sim, 1.0)
+    _command(sim, limit_a + 1.0)  # within the old limit (100 A)
+    refused = counters.rejected_absurd == rejected + 1 and _pivot_target(sim) == 1.0
+    _command(sim, limit_a - 1.0)
+    return refused and _pivot_target(sim) == limit_a - 1.0
+
+
+def _common_simulator_probes() -> dict[str, Probe]:
+    """Probes of the parameters that act the same in either timing mode and interface."""
+    return {
+        "current_kp_v_per_a": (20.0, lambda n: n.plant.current_pi.kp == 20.0),
+        "current_ti_s": (2e-3, lambda n: n.plant.current_pi.ti_s == 2e-3),
+        "initial_position": (
+            [0.0, 0.5, 0.0, 0.0],
+            lambda n: (n._reset_pose(), n.sim.state_array[0, 1])[1] == 0.5,
+        ),
+        "enabled": (False, _disabled_applies_zero_volts),
+        "diagnostics_period_s": (0.5, lambda n: _timer_period_s(n._diag_timer) == 0.5),
+        # its effect on a realtime node: test_sim_control; in lockstep it is stored
+        "realtime_factor": (0.5, lambda n: n.params.realtime_factor == 0.5),
+    }
+
+
+# What each walk can only store (the value set): its effect shows on the other walk's node.
+# Disjoint, so each live parameter's effect is probed by one of the two walks.
+STORED_IN_LOCKSTEP_VOLTAGE: dict[str, Any] = {
+    "publish_rate_hz": 100.0,
+    "command_timeout_s": 0.05,
+    "max_command_current_a": 5.0,
+}
+STORED_IN_REALTIME_CURRENT: dict[str, Any] = {
+    "control_period_s": 0.008,
+    "max_command_voltage_v": 50.0,
+    "lockstep_resend_s": 2.0,
+    "lockstep_end_s": 0.05,
+    "step_periods": 3,
+}
+
+
+def test_every_simulator_parameter_has_its_effect_probed_in_one_walk() -> None:
+    """No live parameter is merely stored in both walks (realtime_factor: test_sim_control)."""
+    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+
+    assert not STORED_IN_LOCKSTEP_VOLTAGE.keys() & STORED_IN_REALTIME_CURRENT.keys()
+    assert STORED_IN_LOCKSTEP_VOLTAGE.keys() | STORED_IN_REALTIME_CURRENT.keys() <= {
+        s.name for s in SIMULATOR_PARAMETERS if s.live
+    }
+
+
 def test_simulator_applies_or_rejects_every_parameter() -> None:
-    """The simulator's whole table, on a lockstep node whose loop is driven by the test."""
+    """The simulator's whole table, on a lockstep voltage node whose loop the test drives."""
     from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 
     with ros_context() as (ctx, executor):
@@ -138,29 +239,48 @@ def test_simulator_applies_or_rejects_every_parameter() -> None:
         executor.add_node(sim)
         sim._started = True  # lockstep without a controller: the test sends the commands
         probes: dict[str, Probe] = {
-            # realtime only; in lockstep the rate is stored for a later realtime restart
-            "publish_rate_hz": (100.0, lambda n: n.params.publish_rate_hz == 100.0),
+            **_common_simulator_probes(),
+            **{name: _stored(name, v) for name, v in STORED_IN_LOCKSTEP_VOLTAGE.items()},
             "control_period_s": (0.008, lambda n: math.isclose(_lockstep_advance_s(n), 0.008)),
-            "command_timeout_s": (0.05, lambda n: n.params.command_timeout_s == 0.05),
             "max_command_voltage_v": (
                 50.0,
                 lambda n: n.plant.command([0.0, 60.0, 0.0, 0.0]) is not None,  # refused now
             ),
-            "max_command_current_a": (5.0, lambda n: n.params.max_command_current_a == 5.0),
-            "current_kp_v_per_a": (20.0, lambda n: n.plant.current_pi.kp == 20.0),
-            "current_ti_s": (2e-3, lambda n: n.plant.current_pi.ti_s == 2e-3),
-            "initial_position": (
-                [0.0, 0.5, 0.0, 0.0],
-                lambda n: (n._reset_pose(), n.sim.state_array[0, 1])[1] == 0.5,
-            ),
-            "enabled": (False, _disabled_applies_zero_volts),
-            "lockstep_resend_s": (2.0, lambda n: n.params.lockstep_resend_s == 2.0),
+            # 1.2 s of silence: past the old 1 s, before the new 2 s
+            "lockstep_resend_s": (2.0, lambda n: _resends_after(n, 2.0)),
             # not a whole number of 8 ms periods: the last period is cut short at the end
             "lockstep_end_s": (0.0502, lambda n: _lockstep_ends_at(n, 0.0502)),
-            "diagnostics_period_s": (0.5, lambda n: _timer_period_s(n._diag_timer) == 0.5),
-            # realtime only (its effect: test_sim_control); in lockstep it is stored
-            "realtime_factor": (0.5, lambda n: n.params.realtime_factor == 0.5),
             "step_periods": (3, lambda n: _step_runs_periods(n, 3)),
+        }
+        _walk(sim, SIMULATOR_PARAMETERS, probes, lambda name: sim.get_parameter(name).value)
+
+
+def test_realtime_current_simulator_applies_or_rejects_every_parameter() -> None:
+    """The simulator's whole table again, on a realtime node taking currents.
+
+    The realtime- and current-only parameters show their effect here; a command timeout of
+    30 s at start makes a drop within the probe's deadline the new value's doing.
+    """
+    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+
+    with ros_context() as (ctx, executor):
+        sim = SimulatorNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("command_interface", value="current"),
+                Parameter("command_timeout_s", value=30.0),
+            ],
+        )
+        executor.add_node(sim)
+        probes: dict[str, Probe] = {
+            **_common_simulator_probes(),
+            **{name: _stored(name, v) for name, v in STORED_IN_REALTIME_CURRENT.items()},
+            "publish_rate_hz": (100.0, lambda n: _timer_period_s(n._tick_timer) == 0.01),
+            "command_timeout_s": (
+                0.2,
+                lambda n: _silence_drops_the_command_after(n, executor, 0.2),
+            ),
+            "max_command_current_a": (5.0, lambda n: _current_above_refused(n, 5.0)),
         }
         _walk(sim, SIMULATOR_PARAMETERS, probes, lambda name: sim.get_parameter(name).value)
 
@@ -182,6 +302,36 @@ def test_an_initial_position_outside_the_end_stops_is_refused_live() -> None:
         result = sim.set_parameters([Parameter("initial_position", value=[0.0, 9.0, 0.0, 0.0])])
         assert not result[0].successful and "end stops" in result[0].reason
         assert sim.params.initial_position == (0.0, 0.0, 0.0, 0.0)
+
+
+def _topic_reference_expires_after(ctl: ControllerNode, timeout_s: float) -> bool:
+    """reference_timeout_s: a topic reference counts until it is that old, then as zero."""
+    assert ctl.set_parameters([Parameter("reference_source", value="topic")])[0].successful
+    core = ctl.core
+    positions = [0.0] * 4
+    core.set_topic_reference([0.0, 0.05, 0.0, 0.0], 10.0)  # within the velocity limit
+    fresh = core.velocity_references(10.0 + 0.8 * timeout_s, positions)[1]
+    # 0.3 s old: still counted under the old timeout (0.5 s)
+    stale = core.velocity_references(10.0 + 1.2 * timeout_s, positions)[1]
+    return math.isclose(fresh, 0.05) and stale == 0.0
+
+
+def _first_step_dt_is(ctl: ControllerNode, period_s: float) -> bool:
+    """nominal_period_s: the first state after a restart integrates its error over that dt.
+
+    The node's first command (plant time gone back: a restart) must equal a fresh controller's
+    second one, `period_s` after a first state without any error. The error is small enough
+    that no loop saturates (a saturated output would hide the dt).
+    """
+    assert ctl.set_parameters([Parameter("reference_source", value="hold")])[0].successful
+    still, creeping = [0.0] * 4, [1e-6] * 4  # rad/s
+    core = ctl.core
+    core.update(1e6, still, still, still)
+    first = core.update(0.0, still, creeping, still)  # time back: a restart
+    fresh = JointController(core.params)
+    fresh.update(0.0, still, still, still)  # no error: nothing integrated
+    second = fresh.update(period_s, still, creeping, still)
+    return first is not None and first == second and 0.0 < abs(first[0]) < 1.0
 
 
 def test_controller_applies_or_rejects_every_parameter() -> None:
@@ -241,8 +391,8 @@ def test_controller_applies_or_rejects_every_parameter() -> None:
                 lambda n: all(c.params.position_kp_per_s == 2.0 for c in n.core.cascades),
             ),
             "velocity_limit": (0.1, lambda n: n.core.params.cascade.velocity_limit == 0.1),
-            "reference_timeout_s": core("reference_timeout_s", 0.25),
-            "nominal_period_s": core("nominal_period_s", 0.002),
+            "reference_timeout_s": (0.25, lambda n: _topic_reference_expires_after(n, 0.25)),
+            "nominal_period_s": (0.002, lambda n: _first_step_dt_is(n, 0.002)),
             "plant_timeout_s": core("plant_timeout_s", 0.25),
             "enabled": (
                 False,
