@@ -398,6 +398,9 @@ def plotjuggler_series(curve: str, bag: BagSample) -> Series | str:
     return found
 
 
+_PJ_NODES = ("DockSplitter", "DockArea")
+
+
 def _splitter_problems(splitter: ET.Element) -> list[str]:
     """PlotJuggler's PlotDocker::restoreSplitter reads count children and count sizes."""
     children = list(splitter)
@@ -411,9 +414,6 @@ def _splitter_problems(splitter: ET.Element) -> list[str]:
         problems.append(f"splitter sizes {sizes} do not add up to 1")
     problems += [f"<{c.tag}> in a splitter" for c in children if c.tag not in _PJ_NODES]
     return problems
-
-
-_PJ_NODES = ("DockSplitter", "DockArea")
 
 
 def _area_problems(area: ET.Element, bag: BagSample) -> list[str]:
