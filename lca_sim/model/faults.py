@@ -416,7 +416,12 @@ class FaultInjector:
                 the robot does not have.
         """
         spec = self._spec(owner, kind)
-        checked = spec.check(value)
+        try:
+            checked = spec.check(value)
+        except ParameterError as exc:
+            raise ParameterError(
+                parameter_name(owner, kind), f"{spec.kind.value} {spec.range_text()}", value
+            ).with_traceback(exc.__traceback__) from None
         if kind == "drift_state" and checked and checked not in self._moving_states():
             raise ParameterError(
                 parameter_name(owner, kind), f"'' or one of {self._moving_states()}", checked
