@@ -131,7 +131,8 @@ CAN_BRIDGE = NodeScript(
     summary=(
         "Replaces the simulator with CiA 402 drives on a CAN bus (the virtual drive rack with\n"
         "interface virtual): current commands become torque set-points, each SYNC cycle one set\n"
-        "of plant states of lca_control.contract."
+        "of plant states of lca_control.contract. A managed (lifecycle) node: with autostart\n"
+        "it configures and activates itself; docs/can.md."
     ),
     publishes=_PLANT_STATES,
     subscribes=(
@@ -143,6 +144,8 @@ CAN_BRIDGE = NodeScript(
         "(std_srvs/srv/Trigger)",
         "~/sdo_read (rcl_interfaces/srv/GetParameters): names <joint>/<index>[/<subindex>]",
         "~/sdo_write (rcl_interfaces/srv/SetParameters): the same names",
+        "~/change_state, ~/get_state, ... (lifecycle_msgs/srv/...): configure, activate, "
+        "deactivate, cleanup, shutdown (`ros2 lifecycle set`)",
     ),
     table=CAN_BRIDGE_PARAMETERS,
 )

@@ -20,6 +20,11 @@ Services (std_srvs/Trigger, named like ros2_canopen's CiA 402 driver): `~/init`,
 rcl_interfaces types (an ament_python package cannot define its own): `~/sdo_read`
 (GetParameters; names `<joint>/<index>[/<subindex>]`, e.g. `pivot/0x6041`, `lift/0x1400/5`)
 and `~/sdo_write` (SetParameters; the same names, integer or double values).
+
+A managed node (lifecycle_msgs services `~/change_state`, `~/get_state`, ...): configure opens
+the bus and configures the drives over SDO, activate enables them, deactivate takes them out of
+operation with zero torque, cleanup closes the bus. With `autostart` (the default) it configures
+and activates itself at start-up; docs/can.md ("The bridge as a managed node").
 """
 
 from __future__ import annotations
@@ -28,10 +33,10 @@ import contextlib
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 import canopen
@@ -39,7 +44,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterType, ParameterValue, SetParametersResult
 from rcl_interfaces.srv import GetParameters, SetParameters
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -55,9 +60,11 @@ from lca_sim.canbus.master import (
     Cia402Master,
     Snapshot,
 )
+from lca_sim.cia402 import objects as od
+from lca_sim.cia402.device import MODE_CST, PowerState
 from lca_sim.cia402.master import bus_load_pct
 from lca_sim.config.loader import config_dir, load_robot
-from lca_sim.errors import ConfigError
+from lca_sim.errors import USER_ERRORS, ConfigError
 from lca_sim.ros.can_bridge_params import (
     CAN_BRIDGE_PARAMETERS,
     CanBridgeNodeParams,
@@ -73,7 +80,13 @@ from lca_sim.ros.plant_contract import (
 )
 from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 
+if TYPE_CHECKING:
+    from lca_sim.canbus.virtual_rack import VirtualDriveRack
+
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
+# How long shutdown and error processing wait for the drives to leave OPERATION ENABLED: a
+# disable is one cycle, its statusword the next slow TPDO (50 Hz by default).
+TORQUE_FREE_TIMEOUT_S = 0.5
 
 
 def _parameter_value(raw: object) -> ParameterValue:
@@ -184,11 +197,27 @@ def parse_object_name(name: str) -> tuple[str, int, int]:
     return parts[0], index, subindex
 
 
-class CanBridgeNode(Node):
-    """Publishes the drives' states and sends them the controller's current commands."""
+class CanBridgeNode(LifecycleNode):
+    """Publishes the drives' states and sends them the controller's current commands.
+
+    A managed node (ROS 2 "Managed nodes" design, rclpy.lifecycle): configure opens the bus
+    (and, with `interface: virtual`, starts the rack), starts the CANopen master and configures
+    the drives over SDO; activate enables them and starts publishing and commanding; deactivate
+    takes them out of operation with zero torque and stops both; cleanup closes the bus;
+    shutdown and error processing leave the drives torque-free and close it. With `autostart`
+    (the default) the node configures and activates itself at start-up, so a plain start comes
+    up active; `auto_init` and `auto_enable` then say whether that start configures and enables
+    the drives, as before there was a lifecycle. The services, topics and parameters exist in
+    every state; a service that needs the drives says so when they are not there.
+    """
 
     def __init__(self, node_name: str = "can_bridge", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
+        self._master: Cia402Master | None = None  # the CANopen master, while configured
+        self.network: canopen.Network | None = None
+        self._bus: can.BusABC | None = None
+        self._rack: VirtualDriveRack | None = None
+        self._rack_bus: can.BusABC | None = None
         self._live = LiveParameters(
             self,
             CAN_BRIDGE_PARAMETERS,
@@ -201,62 +230,46 @@ class CanBridgeNode(Node):
         # with the executor; Python's default 5 ms switch interval lets one of them hold it
         # for several CAN periods. 0.5 ms keeps the 500 Hz cycle regular.
         sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-        robot = load_robot(p.robot)
-        axes = {a.name: a for a in robot.axes}
-        eds = Path(p.eds) if p.eds else config_dir() / "can" / "lca_drive.eds"
-        if not eds.is_file():
-            raise ConfigError("parameters", "eds", f"no such file: {eds}")
-        self._rack: Any = None
-        self._rack_bus: can.BusABC | None = None
-        bus = open_bus(p.interface, p.channel, p.bitrate)
-        try:
-            if p.interface == "virtual":
-                self._start_rack(p)
-            self.network = canopen.Network(bus)
-            self.network.connect()
-            self.bridge = Cia402Master(
-                self.network,
-                BridgeParams(
-                    joints=p.joints,
-                    node_ids=p.node_ids,
-                    torque_constants_nm_per_a=tuple(
-                        axes[j].motor.torque_constant_nm_per_a for j in p.joints
-                    ),
-                    gear_ratios=tuple(axes[j].gear_ratio for j in p.joints),
-                    drive_state_names=robot.state_machine.state_names,
-                    master_node_id=p.master_node_id,
-                    cycle_hz=p.cycle_hz,
-                    bitrate_bit_s=float(p.bitrate),
-                    command_timeout_s=p.command_timeout_s,
-                    quick_stop_after_s=p.quick_stop_after_s,
-                    stale_timeout_s=p.stale_timeout_s,
-                    heartbeat_producer_ms=p.heartbeat_producer_ms,
-                    heartbeat_consumer_ms=p.heartbeat_consumer_ms,
-                    rpdo_deadline_ms=p.rpdo_deadline_ms,
-                    max_send_failures=p.max_send_failures,
-                    pdo_layout=p.pdo_layout,
-                    modes=p.modes,
-                    slow_tpdo_rate_hz=p.slow_tpdo_rate_hz,
-                ),
-                eds,
-                on_state=self._on_state,
-            )
-        except Exception:
-            self._close_bus(bus)
-            raise
-        self._bus = bus
-        self._state_names = robot.state_machine.state_names
+        self._robot = load_robot(p.robot)
+        self._eds = Path(p.eds) if p.eds else config_dir() / "can" / "lca_drive.eds"
+        if not self._eds.is_file():
+            raise ConfigError("parameters", "eds", f"no such file: {self._eds}")
+        axes = {a.name: a for a in self._robot.axes}
+        self._torque_constants = np.array(
+            [axes[j].motor.torque_constant_nm_per_a for j in p.joints], dtype=np.float64
+        )
+        self._gear_ratios = np.array([axes[j].gear_ratio for j in p.joints], dtype=np.float64)
+        self._state_names = self._robot.state_machine.state_names
+        self._velocity_axes = tuple(
+            j for j, m in zip(p.joints, p.modes, strict=False) if m == "csv"
+        )
+        self._active = False  # lifecycle ACTIVE: states published, commands passed on
+        self._autostarting = False  # inside the start-up's configure and activate
+        self._startup_error: Exception | None = None  # a user error of that start-up
+        self._drives_configured = False  # the last init() succeeded
+        self._init_error = ""  # why the last init() failed
+        self._transition_error = ""  # why the last transition failed, until one succeeds
         self._published = 0
         self._wrong_interface = 0
+        self._ignored_inactive = 0  # commands that came while not active
         self._commands_lost = False  # the controller peer, as /diagnostics reports it
         self._command_losses = 0
         self._last_diag_t = time.monotonic()
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
         self._init_lock = threading.Lock()
+        self._create_interfaces(p)
+        drives = dict(zip(p.joints, p.node_ids, strict=True))
+        self.get_logger().info(
+            f"{p.interface} bus {p.channel!r}, drives {drives}, {p.cycle_hz:g} Hz, EDS {self._eds}"
+        )
+        if p.autostart:
+            self._autostart()
+        else:
+            self.get_logger().info("unconfigured: waiting for a lifecycle manager (configure)")
 
+    def _create_interfaces(self, p: CanBridgeNodeParams) -> None:
+        """Publishers, subscriptions, services and the diagnostics timer (every state)."""
         self._plant = PlantPublisher(self, p.joints, joint_state_topic=p.joint_state_topic)
-        self._torque_constants = np.array(self.bridge.params.torque_constants_nm_per_a)
-        self._gear_ratios = np.array(self.bridge.params.gear_ratios)
         command_qos = qos_profile(ri.COMMAND_QOS)
         self.create_subscription(
             Float64MultiArray, ri.CURRENT_COMMANDS, self._on_command, command_qos
@@ -264,7 +277,7 @@ class CanBridgeNode(Node):
         self.create_subscription(
             Float64MultiArray, ri.VOLTAGE_COMMANDS, self._on_voltage_command, command_qos
         )
-        if self.bridge.velocity_axes:  # CSV axes close their velocity loop in the drive
+        if self._velocity_axes:  # CSV axes close their velocity loop in the drive
             self.create_subscription(
                 Float64MultiArray, ri.VELOCITY_COMMANDS, self._on_velocity_command, command_qos
             )
@@ -294,21 +307,39 @@ class CanBridgeNode(Node):
         self.create_service(GetParameters, "~/sdo_read", self._srv_sdo_read)
         self.create_service(SetParameters, "~/sdo_write", self._srv_sdo_write)
         self._diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
-        drives = dict(zip(p.joints, p.node_ids, strict=True))
-        self.get_logger().info(
-            f"{p.interface} bus {p.channel!r}, drives {drives}, {p.cycle_hz:g} Hz, EDS {eds}"
-        )
-        if p.auto_init:
-            message = self._init()
-            if message:
-                self.get_logger().error(f"init failed: {message} (retry with ~/init)")
-            elif p.auto_enable:
-                self.get_logger().info(self.bridge.enable(True))
 
     @property
     def params(self) -> CanBridgeNodeParams:
         """The parameters in force (a live set replaces them as a whole)."""
         return self._live.params
+
+    @property
+    def lifecycle_state(self) -> str:
+        """The lifecycle state's label (unconfigured, inactive, active, finalized).
+
+        While a transition runs, its own label (configuring, activating, ...).
+        """
+        label: str = self._state_machine.current_state[1]
+        return label
+
+    @property
+    def bridge(self) -> Cia402Master:
+        """The CANopen master (configured: inactive or active).
+
+        Raises:
+            RuntimeError: the node is not configured (no bus open).
+        """
+        return self._configured()
+
+    @property
+    def master(self) -> Cia402Master | None:
+        """The CANopen master while configured, else None."""
+        return self._master
+
+    @property
+    def rack(self) -> VirtualDriveRack | None:
+        """The virtual drive rack this node runs (`interface: virtual`, while configured)."""
+        return self._rack
 
     def _apply_params(
         self, old: CanBridgeNodeParams, new: CanBridgeNodeParams, changed: frozenset[str]
@@ -316,9 +347,10 @@ class CanBridgeNode(Node):
         """A live set of the bridge's safety timing: in force from the next cycle.
 
         The cycle thread reads `Cia402Master.params` once per cycle, so one reference swap
-        hands it the new values whole. Read-only parameters never get here.
+        hands it the new values whole. Read-only parameters never get here. Unconfigured, the
+        next configure builds the master from the new values.
         """
-        bridge = getattr(self, "bridge", None)
+        bridge = getattr(self, "_master", None)
         if bridge is not None:
             try:
                 bridge.params = replace(
@@ -338,6 +370,230 @@ class CanBridgeNode(Node):
                 new.diagnostics_period_s, self._publish_diagnostics
             )
 
+    # --- the lifecycle -------------------------------------------------------------------
+
+    def _autostart(self) -> None:
+        """Configure, then activate: a plain start without a lifecycle manager (`autostart`).
+
+        A user error on the way (a bus that cannot be opened) is raised from here, so the
+        console script reports it in one line and exits 2, as before the lifecycle.
+        """
+        self._autostarting = True
+        try:
+            if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+                self.trigger_activate()
+        finally:
+            self._autostarting = False
+        error, self._startup_error = self._startup_error, None
+        if error is not None:
+            self.destroy_node()
+            raise error
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Open the bus (and start the virtual rack), start the master, configure the drives."""
+        return self._transition("configure", self._configure)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Enable the drives (CiA 402 enable operation); publish states, pass commands on."""
+        return self._transition("activate", self._activate)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop commanding; the drives leave operation with zero torque."""
+        return self._transition("deactivate", self._deactivate)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop the cycle, close the master's network and the bus, stop the rack."""
+        return self._transition("cleanup", self._teardown)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Leave the drives torque-free and close the bus, from any state."""
+        return self._transition("shutdown", self._teardown_torque_free, clears_error=False)
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """A transition raised: leave the drives torque-free, close the bus: unconfigured."""
+        return self._transition("error processing", self._teardown_torque_free, False)
+
+    def _transition(
+        self, name: str, body: Callable[[], str], clears_error: bool = True
+    ) -> TransitionCallbackReturn:
+        """Run one transition: its body returns '' (done) or why it failed.
+
+        Failures are logged and shown on /diagnostics (ERROR) until a transition succeeds.
+        An exception that is not a user error is logged here (rclpy would turn it into ERROR
+        without a word) and returns ERROR, which runs `on_error`.
+        """
+        try:
+            reason = body()
+        except USER_ERRORS as exc:
+            reason = str(exc)
+            if self._autostarting:
+                self._startup_error = exc  # raised by _autostart: one line, exit 2
+        except Exception as exc:  # logged here, then rclpy's error processing
+            self._transition_error = f"{name} raised {type(exc).__name__}: {exc}"
+            self.get_logger().error(self._transition_error)
+            return TransitionCallbackReturn.ERROR
+        if reason:
+            self._transition_error = f"{name} failed: {reason}"
+            if self._startup_error is None:
+                self.get_logger().error(f"lifecycle: {self._transition_error}")
+            return TransitionCallbackReturn.FAILURE
+        if clears_error:
+            self._transition_error = ""
+        self.get_logger().info(f"lifecycle: {name} done")
+        return TransitionCallbackReturn.SUCCESS
+
+    def _configure(self) -> str:
+        p = self.params
+        try:
+            self._open(p)
+        except Exception:
+            self._teardown()
+            raise
+        if self._autostarting and not p.auto_init:
+            self.get_logger().info("auto_init false: the drives wait for ~/init")
+            return ""
+        message = self._init()
+        if not message:
+            return ""
+        if self._autostarting:  # a plain start stays up as it always did, to retry ~/init
+            self.get_logger().error(f"init failed: {message} (retry with ~/init)")
+            return ""
+        self._teardown()
+        return f"init failed: {message}"
+
+    def _open(self, p: CanBridgeNodeParams) -> None:
+        bus = open_bus(p.interface, p.channel, p.bitrate)
+        self._bus = bus
+        if p.interface == "virtual":
+            self._start_rack(p)
+        self.network = canopen.Network(bus)
+        self.network.connect()
+        self._master = Cia402Master(
+            self.network, self._bridge_params(p), self._eds, on_state=self._on_state
+        )
+
+    def _bridge_params(self, p: CanBridgeNodeParams) -> BridgeParams:
+        return BridgeParams(
+            joints=p.joints,
+            node_ids=p.node_ids,
+            torque_constants_nm_per_a=tuple(float(k) for k in self._torque_constants),
+            gear_ratios=tuple(float(n) for n in self._gear_ratios),
+            drive_state_names=self._state_names,
+            master_node_id=p.master_node_id,
+            cycle_hz=p.cycle_hz,
+            bitrate_bit_s=float(p.bitrate),
+            command_timeout_s=p.command_timeout_s,
+            quick_stop_after_s=p.quick_stop_after_s,
+            stale_timeout_s=p.stale_timeout_s,
+            heartbeat_producer_ms=p.heartbeat_producer_ms,
+            heartbeat_consumer_ms=p.heartbeat_consumer_ms,
+            rpdo_deadline_ms=p.rpdo_deadline_ms,
+            max_send_failures=p.max_send_failures,
+            pdo_layout=p.pdo_layout,
+            modes=p.modes,
+            slow_tpdo_rate_hz=p.slow_tpdo_rate_hz,
+        )
+
+    def _activate(self) -> str:
+        """Enable the drives, then pass commands on and publish.
+
+        CiA 402-2 (IEC 61800-7-201) drive state machine: the master walks each drive with the
+        controlwords shutdown 0x0006, switch on 0x0007, enable operation 0x000F (transitions
+        2, 3, 4) to OPERATION ENABLED, one legal step per cycle
+        (`lca_sim.cia402.master.next_controlword`).
+        """
+        bridge = self._configured()
+        if self._autostarting and not (self.params.auto_enable and self._drives_configured):
+            self._active = True  # a plain start without auto_enable: ~/enable later
+            return ""
+        if not self._drives_configured:
+            return "the drives are not configured: ~/init first"
+        message = bridge.enable(True)
+        if message != "enabling" and not self._autostarting:
+            return message  # a latch (EMCY, stale drive, bus-off): ~/recover first
+        self.get_logger().info(message)
+        self._active = True
+        return ""
+
+    def _deactivate(self) -> str:
+        """Stop passing commands on; take the drives out of operation with zero torque.
+
+        CiA 402-2 drive state machine transition 5, disable operation (controlword 0x0007):
+        OPERATION ENABLED to SWITCHED ON, the drive function off (CST: no torque; a real drive
+        brakes per its 0x605C), then transition 6, shutdown (0x0006), to READY TO SWITCH ON,
+        where the master holds the drives until the next activate. Unlike `~/halt`
+        (controlword bit 8, the drive still enabled) this leaves no enabled drive waiting for
+        commands, so the master's command-silence watch, which would quick-stop a halted but
+        enabled drive, stays quiet while the node is inactive.
+        """
+        self._active = False
+        self._configured().enable(False)
+        return ""
+
+    def _configured(self) -> Cia402Master:
+        if self._master is None:
+            raise RuntimeError("the CANopen master is not running (node unconfigured)")
+        return self._master
+
+    def _teardown_torque_free(self) -> str:
+        self._torque_free()
+        return self._teardown()
+
+    def _torque_free(self) -> None:
+        """Disable every drive and wait, bounded, until none is in OPERATION ENABLED.
+
+        CiA 402-2 transition 5 (disable operation, controlword 0x0007), then 6 (shutdown): no
+        torque. A drive that does not answer is left to its own watchdogs (heartbeat consumer,
+        RPDO deadline: its 0x6007 reaction once the cycle stops).
+        """
+        self._active = False
+        bridge = self._master
+        if bridge is None or not self._drives_configured:
+            return
+        bridge.enable(False)
+        # Judged on statuswords sent after the disable: the slow TPDO that carries them goes
+        # every `slow_tpdo_every`-th SYNC, so a state read before that may predate it.
+        fresh_from = bridge.counters.cycles + bridge.params.slow_tpdo_every + 2
+        deadline = time.monotonic() + TORQUE_FREE_TIMEOUT_S
+        while True:
+            enabled = [
+                j
+                for j in self.params.joints
+                if bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
+            ]
+            fresh = bridge.counters.cycles >= fresh_from
+            if (fresh and not enabled) or time.monotonic() > deadline:
+                break
+            time.sleep(0.005)
+        if enabled:
+            self.get_logger().warning(
+                f"drives {enabled} still report operation enabled after "
+                f"{TORQUE_FREE_TIMEOUT_S:g} s; their watchdogs take over"
+            )
+
+    def _teardown(self) -> str:
+        """Stop the cycle (the drives' watchdogs then react), close the bus, stop the rack."""
+        self._active = False
+        self._drives_configured = False
+        bridge, self._master = self._master, None
+        network, self.network = self.network, None
+        bus, self._bus = self._bus, None
+        rack, self._rack = self._rack, None
+        rack_bus, self._rack_bus = self._rack_bus, None
+        try:
+            if bridge is not None:
+                bridge.stop()
+            if network is not None and network.bus is not None:
+                network.disconnect()  # its notifier, then the bus
+            elif bus is not None:
+                self._close_bus(bus)
+        finally:
+            if rack is not None:
+                rack.stop()
+            if rack_bus is not None:
+                self._close_bus(rack_bus)
+        return ""
+
     # --- set-up and tear-down ------------------------------------------------------------
 
     def _start_rack(self, p: CanBridgeNodeParams) -> None:
@@ -350,26 +606,23 @@ class CanBridgeNode(Node):
 
     def _init(self) -> str:
         """Configure and start the drives, then the cycle; '' or the error."""
+        bridge = self._configured()
         with self._init_lock:
-            self.bridge.stop()
+            bridge.stop()
             try:
-                self.bridge.init()
+                bridge.init()
             except BridgeError as exc:
+                self._drives_configured, self._init_error = False, str(exc)
                 return str(exc)
             settle_heap()  # before the cycle runs: a full collection would stall it
-            self.bridge.start()
+            bridge.start()
+            self._drives_configured, self._init_error = True, ""
             return ""
 
     def destroy_node(self) -> None:
-        """Stop the cycle (the drives' watchdogs take over), the rack, and close the buses."""
-        bridge = getattr(self, "bridge", None)
-        if bridge is not None:
-            bridge.stop()
-            self.network.disconnect()
-        if self._rack is not None:
-            self._rack.stop()
-        if self._rack_bus is not None:
-            self._rack_bus.shutdown()
+        """Leave the drives torque-free and close the buses (as on shutdown), then destroy."""
+        self._torque_free()
+        self._teardown()
         super().destroy_node()
 
     @staticmethod
@@ -379,30 +632,45 @@ class CanBridgeNode(Node):
 
     # --- topics --------------------------------------------------------------------------
 
-    def _on_command(self, msg: Float64MultiArray) -> None:
-        self._set_currents(list(msg.data))
+    def _commanding(self) -> Cia402Master | None:
+        """The master, when the node is active; else None, the command counted and warned."""
+        if self._active and self._master is not None:
+            return self._master
+        self._ignored_inactive += 1
+        self.get_logger().warning(
+            f"ignoring commands while {self.lifecycle_state} ({self._ignored_inactive} so far): "
+            "activate the node",
+            throttle_duration_sec=5.0,
+        )
+        return None
 
-    def _set_currents(self, currents_a: list[float]) -> None:
-        reason = self.bridge.set_currents(currents_a)
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        bridge = self._commanding()
+        if bridge is not None:
+            self._set_currents(bridge, list(msg.data))
+
+    def _set_currents(self, bridge: Cia402Master, currents_a: list[float]) -> None:
+        reason = bridge.set_currents(currents_a)
         if reason is None:
             self._held_current_a[:] = currents_a
         else:
             self.get_logger().warning(
-                f"command rejected ({self.bridge.counters.commands_rejected} so far): {reason}",
+                f"command rejected ({bridge.counters.commands_rejected} so far): {reason}",
                 throttle_duration_sec=1.0,
             )
 
     def _on_velocity_command(self, msg: Float64MultiArray) -> None:
-        self._set_velocities(list(msg.data))
+        bridge = self._commanding()
+        if bridge is not None:
+            self._set_velocities(bridge, list(msg.data))
 
-    def _set_velocities(self, velocities: list[float]) -> None:
-        reason = self.bridge.set_velocities(velocities)
+    def _set_velocities(self, bridge: Cia402Master, velocities: list[float]) -> None:
+        reason = bridge.set_velocities(velocities)
         if reason is None:
             self._held_velocity[:] = velocities
         else:
             self.get_logger().warning(
-                f"velocity command rejected ({self.bridge.counters.commands_rejected} so far): "
-                f"{reason}",
+                f"velocity command rejected ({bridge.counters.commands_rejected} so far): {reason}",
                 throttle_duration_sec=1.0,
             )
 
@@ -414,11 +682,14 @@ class CanBridgeNode(Node):
         NaN, keep their command. The entry of the other field is ignored when zero (what the
         interface sends for an interface no controller claims) and refused when not.
         """
+        bridge = self._commanding()
+        if bridge is None:
+            return
         p = self.params
         counts = self.joint_command_counts
         cmd = read_joint_command(msg.name, msg.velocity, msg.effort, p.joints)
         counts["unknown_names"] += len(cmd.unknown)
-        csv = set(self.bridge.velocity_axes)
+        csv = set(self._velocity_axes)
         problems = self._joint_command_problems(cmd, csv)
         efforts = [j for j in p.joints if j in cmd.effort and j not in csv]
         velocities = [j for j in p.joints if j in cmd.velocity and j in csv]
@@ -431,13 +702,13 @@ class CanBridgeNode(Node):
                 for k, joint in enumerate(p.joints):
                     if joint in efforts:
                         currents[k] = cmd.effort[joint] * float(self._effort_to_current[k])
-                self._set_currents(currents)
+                self._set_currents(bridge, currents)
             if velocities:
                 wanted = self._held_velocity.tolist()
                 for k, joint in enumerate(p.joints):
                     if joint in velocities:
                         wanted[k] = cmd.velocity[joint]
-                self._set_velocities(wanted)
+                self._set_velocities(bridge, wanted)
         if problems:
             self.get_logger().warning(
                 f"{p.joint_command_topic}: {'; '.join(problems)} ({counts['refused']} refused, "
@@ -471,7 +742,14 @@ class CanBridgeNode(Node):
         )
 
     def _on_state(self, snap: Snapshot) -> None:
-        """A complete cycle (notifier thread): publish it. rclpy publishers are thread-safe."""
+        """A complete cycle (notifier thread): publish it while active.
+
+        rclpy publishers are thread-safe. Inactive, the node publishes nothing but
+        /diagnostics, as a LifecyclePublisher would.
+        """
+        bridge = self._master
+        if not self._active or bridge is None:
+            return
         self._plant.publish(
             plant_snapshot(
                 snap,
@@ -479,47 +757,73 @@ class CanBridgeNode(Node):
                 self._torque_constants,
                 self._gear_ratios,
                 self._state_names,
-                self.bridge.decoded_fields(),
+                bridge.decoded_fields(),
             )
         )
         self._published += 1
 
     # --- services ------------------------------------------------------------------------
 
+    def _need_bridge(self, res: Trigger.Response) -> Cia402Master | None:
+        """The master, or None with the response saying the node is not configured."""
+        if self._master is None:
+            res.success = False
+            res.message = f"node {self.lifecycle_state}: configure it first (lifecycle)"
+        return self._master
+
     def _srv_init(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        if self._need_bridge(res) is None:
+            return res
         message = self._init()
         res.success = not message
         res.message = message or "drives configured and operational; call ~/enable"
         return res
 
     def _srv_enable(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        res.message = self.bridge.enable(True)
+        bridge = self._need_bridge(res)
+        if bridge is None:
+            return res
+        if not self._active:  # an inactive node does not run the drives
+            res.success = False
+            res.message = f"node {self.lifecycle_state}: activate it (lifecycle) to enable"
+            return res
+        res.message = bridge.enable(True)
         res.success = res.message == "enabling"
         return res
 
     def _srv_disable(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        res.message = self.bridge.enable(False)
-        res.success = True
+        bridge = self._need_bridge(res)
+        if bridge is not None:
+            res.message = bridge.enable(False)
+            res.success = True
         return res
 
     def _srv_halt(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        self.bridge.halt()
-        res.success, res.message = True, "halted: zero torque until the next ~/enable"
+        bridge = self._need_bridge(res)
+        if bridge is not None:
+            bridge.halt()
+            res.success, res.message = True, "halted: zero torque until the next ~/enable"
         return res
 
     def _srv_recover(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        self.bridge.recover()
-        res.success, res.message = True, "latches cleared, faults reset; call ~/enable"
+        bridge = self._need_bridge(res)
+        if bridge is not None:
+            bridge.recover()
+            res.success, res.message = True, "latches cleared, faults reset; call ~/enable"
         return res
 
     def _srv_cst(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        bridge = self._need_bridge(res)
+        if bridge is None:
+            return res
         try:
             for joint in self.params.joints:
-                self.bridge.sdo_write(joint, 0x6060, 0, 10)
+                bridge.sdo_write(joint, od.MODES_OF_OPERATION, 0, MODE_CST)
         except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
-            res.success, res.message = False, f"mode 10 refused: {exc}"
+            res.success, res.message = False, f"mode {MODE_CST} refused: {exc}"
             return res
-        res.success, res.message = True, "cyclic synchronous torque (mode 10) on every drive"
+        res.success = True
+        res.message = f"cyclic synchronous torque (mode {MODE_CST}) on every drive"
         return res
 
     def _srv_sdo_read(
@@ -528,11 +832,17 @@ class CanBridgeNode(Node):
         for name in req.names:
             try:
                 joint, index, subindex = parse_object_name(name)
-                raw = self.bridge.sdo_read(joint, index, subindex)
+                raw = self._sdo_master().sdo_read(joint, index, subindex)
             except SDO_ERRORS as exc:
                 raw = f"error: {exc}"
             res.values.append(_parameter_value(raw))
         return res
+
+    def _sdo_master(self) -> Cia402Master:
+        """The master for SDO access; ValueError (an SDO error to the caller) unconfigured."""
+        if self._master is None:
+            raise ValueError(f"node {self.lifecycle_state}: configure it first (lifecycle)")
+        return self._master
 
     def _srv_sdo_write(
         self, req: SetParameters.Request, res: SetParameters.Response
@@ -543,9 +853,9 @@ class CanBridgeNode(Node):
                 joint, index, subindex = parse_object_name(param.name)
                 v = param.value
                 if v.type == ParameterType.PARAMETER_INTEGER:
-                    self.bridge.sdo_write(joint, index, subindex, int(v.integer_value))
+                    self._sdo_master().sdo_write(joint, index, subindex, int(v.integer_value))
                 elif v.type == ParameterType.PARAMETER_DOUBLE:
-                    self.bridge.sdo_write(joint, index, subindex, float(v.double_value))
+                    self._sdo_master().sdo_write(joint, index, subindex, float(v.double_value))
                 else:
                     raise ValueError("only integer or double values can be written")
             except SDO_ERRORS as exc:
@@ -555,17 +865,19 @@ class CanBridgeNode(Node):
 
     # --- diagnostics ---------------------------------------------------------------------
 
-    def _axis_status(self, joint: str, latched: int, advisory: tuple[int, int]) -> DiagnosticStatus:
+    def _axis_status(
+        self, bridge: Cia402Master, joint: str, latched: int, advisory: tuple[int, int]
+    ) -> DiagnosticStatus:
         """One drive: ERROR with the latched EMCY's text, WARN for an advisory EMCY, else OK.
 
         The message is the power state, then the EMCY decoded to text (`emcy.describe`).
         """
-        s = self.bridge.axis_state(joint)
+        s = bridge.axis_state(joint)
         power = s.power_state
         message = power.name.lower() if power else f"statusword 0x{s.statusword:04X}"
         level = DiagnosticStatus.OK
         code, count = advisory
-        ours = self.bridge.has_drive_state()  # lca_hil's drive: its own codes have text
+        ours = bridge.has_drive_state()  # lca_hil's drive: its own codes have text
         if code:
             level = DiagnosticStatus.WARN
             message += f"; EMCY {emcy.describe(code, ours)} ({count} received)"
@@ -587,28 +899,63 @@ class CanBridgeNode(Node):
             },
         )
 
-    def _command_health(self, now: float) -> tuple[bytes, str] | None:
+    def _command_health(self, bridge: Cia402Master, now: float) -> tuple[bytes, str] | None:
         """The controller peer: WARN while the drives are halted for want of commands.
 
         ERROR once the silence has lasted into the quick stop, which holds until ~/enable.
         Nothing while the drives are not enabled. The loss is logged once when it begins (by
         the master, with its reaction) and once here when commands return.
         """
-        silence = self.bridge.command_silence(now)
+        silence = bridge.command_silence(now)
         if silence is None:
             if self._commands_lost:
                 self._commands_lost = False
                 self.get_logger().info("commands again")
             return None
         latched, why = silence
-        if not self._commands_lost and self.bridge.counters.commands_accepted:
+        if not self._commands_lost and bridge.counters.commands_accepted:
             self._commands_lost = True
             self._command_losses += 1
             self.get_logger().warning(f"{why}; is the controller running?")
         return (DiagnosticStatus.ERROR if latched else DiagnosticStatus.WARN), why
 
+    def _lifecycle_findings(self) -> list[tuple[bytes, str]]:
+        """What the lifecycle adds to the bridge's status: a failed transition or init, ERROR."""
+        found: list[tuple[bytes, str]] = []
+        if self._transition_error:
+            found.append((DiagnosticStatus.ERROR, self._transition_error))
+        if self._init_error and self._master is not None:
+            found.append((DiagnosticStatus.ERROR, f"init failed: {self._init_error} (~/init)"))
+        return found
+
     def _publish_diagnostics(self) -> None:
-        bridge = self.bridge
+        bridge = self._master
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        if bridge is None:
+            array.status.append(self._unconfigured_status())
+        else:
+            array.status.append(self._bridge_status(bridge))
+            codes = bridge.emcy_codes()
+            advisory = bridge.advisory_emcy()
+            for joint in self.params.joints:
+                array.status.append(self._axis_status(bridge, joint, codes[joint], advisory[joint]))
+        self._plant.publish_diagnostics(array)
+
+    def _unconfigured_status(self) -> DiagnosticStatus:
+        """The bridge's status with no bus open: the lifecycle state, or the failure."""
+        state = self.lifecycle_state
+        found = [(DiagnosticStatus.OK, f"{state}: no bus open; configure (lifecycle) to start")]
+        level, message = worst_first([*found, *self._lifecycle_findings()])
+        values: dict[str, object] = {
+            "lifecycle_state": state,
+            "interface": self.params.interface,
+            "channel": self.params.channel,
+            "cycle_hz": self.params.cycle_hz,
+        }
+        return status("lca_hil/can_bridge", level, message, values)
+
+    def _bridge_status(self, bridge: Cia402Master) -> DiagnosticStatus:
         c = bridge.counters
         now = time.monotonic()
         span = max(now - self._last_diag_t, 1e-6)
@@ -619,11 +966,17 @@ class CanBridgeNode(Node):
         bits_per_s = (bits - last_bits) / span
         self._last_diag_t, self._last_frames_bits = now, (frames, bits)
         latched = bridge.latched_reason()
-        found: list[tuple[bytes, str]] = [
-            (DiagnosticStatus.ERROR, latched)
-            if latched
-            else (DiagnosticStatus.OK, "commands again" if self._command_losses else "running")
-        ]
+        if latched:
+            first = (DiagnosticStatus.ERROR, latched)
+        elif not self._active:
+            first = (
+                DiagnosticStatus.OK,
+                f"{self.lifecycle_state}: drives out of operation, commands ignored; activate "
+                "(lifecycle) to run",
+            )
+        else:
+            first = (DiagnosticStatus.OK, "commands again" if self._command_losses else "running")
+        found: list[tuple[bytes, str]] = [first, *self._lifecycle_findings()]
         if (
             c.commands_rejected
             or c.send_failures
@@ -631,10 +984,11 @@ class CanBridgeNode(Node):
             or self.joint_command_counts["refused"]
         ):
             found.append((DiagnosticStatus.WARN, "rejected commands or failed sends"))
-        peer = self._command_health(now)
+        peer = self._command_health(bridge, now)
         if peer is not None:
             found.append(peer)
         values: dict[str, object] = {
+            "lifecycle_state": self.lifecycle_state,
             "interface": self.params.interface,
             "channel": self.params.channel,
             "cycle_hz": self.params.cycle_hz,
@@ -643,6 +997,7 @@ class CanBridgeNode(Node):
             "command_age_s": bridge.command_age_s(now),
             "states_published": self._published,
             "commands_wrong_interface": self._wrong_interface,
+            "commands_ignored_inactive": self._ignored_inactive,
             "joint_commands_accepted": self.joint_command_counts["accepted"],
             "joint_commands_refused": self.joint_command_counts["refused"],
             "joint_command_unknown_names": self.joint_command_counts["unknown_names"],
@@ -653,14 +1008,7 @@ class CanBridgeNode(Node):
         if graph is not None:
             found.append(graph)
         level, message = worst_first(found)
-        array = DiagnosticArray()
-        array.header.stamp = self.get_clock().now().to_msg()
-        array.status.append(status("lca_hil/can_bridge", level, message, values))
-        codes = bridge.emcy_codes()
-        advisory = bridge.advisory_emcy()
-        for joint in self.params.joints:
-            array.status.append(self._axis_status(joint, codes[joint], advisory[joint]))
-        self._plant.publish_diagnostics(array)
+        return status("lca_hil/can_bridge", level, message, values)
 
 
 def main(args: Sequence[str] | None = None) -> int:

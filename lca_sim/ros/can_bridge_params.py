@@ -80,10 +80,14 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
                   0, 65535, live=False),
         ParamSpec("max_send_failures", INT, 10,
                   "consecutive failed sends after which the axes halt", 1, 1_000_000),
+        ParamSpec("autostart", ParamKind.BOOL, True,
+                  "configure and activate at start-up (auto_init, auto_enable apply), as a "
+                  "plain start; false: wait unconfigured for a lifecycle manager", live=False),
         ParamSpec("auto_init", ParamKind.BOOL, True,
-                  "configure and start the drives at start-up (else: ~/init)", live=False),
+                  "autostart: configure and start the drives at start-up (else: ~/init)",
+                  live=False),
         ParamSpec("auto_enable", ParamKind.BOOL, False,
-                  "enable operation after init (else: ~/enable)", live=False),
+                  "autostart: enable operation after init (else: ~/enable)", live=False),
         ParamSpec("joint_command_topic", S, ROBOT_JOINT_COMMANDS,
                   "sensor_msgs/JointState commands by joint name (ros2_control's topic-based "
                   "hardware interface, docs/ros2_control.md); empty: off", live=False),
@@ -123,6 +127,7 @@ class CanBridgeNodeParams:
     slow_tpdo_rate_hz: float
     rpdo_deadline_ms: int
     max_send_failures: int
+    autostart: bool
     auto_init: bool
     auto_enable: bool
     joint_command_topic: str
