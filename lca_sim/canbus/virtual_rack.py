@@ -22,7 +22,9 @@ Public API::
 
 plus `rack.node(axis)` (the `canopen.LocalNode`), `rack.nmt_state(axis)`, `rack.faults`
 (0x603F per axis, 0 = none), `rack.counters`, `rack.plant_state()`, `rack.simulator`,
-`rack.plant`. The console script `lca-virtual-drive` (`main`) runs a rack on a real interface.
+`rack.plant`, and fault injection: `rack.set_fault(axis, kind, value)`, `rack.active_faults`,
+`rack.fault_log`, `rack.time_s`. The console script `lca-virtual-drive` (`main`) runs a rack on
+a real interface (`--faults FILE`: a fault schedule).
 
 What a master must know (CiA 301 / 402 behaviour of these drives):
 
@@ -65,6 +67,12 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   `FREEZE_THRESHOLD_S`: the GIL held, the host paused) is not counted against the master, up
   to `max_stall_discount_s`: the armed deadlines move on by it; every stall is counted
   (`process_freezes`, 0x2020, longest in 0x2021) and one beyond the bound sends EMCY 0xFF02.
+* Fault injection (lca_hil object 0x2030, SDO-writable, or rack.yaml's `faults:` schedule
+  timed by the rack's plant time): lost TPDOs (sub 1, bit mask), heartbeat off (sub 2), an
+  EMCY with any code (sub 3), a drive fault (sub 4: CiA 402 FAULT, 0x603F), bus-off (sub 5,
+  ms: no frame sent or taken; 0x1029 / 0x6007 apply; EMCY 0x8140 on recovery). Everything
+  goes through the drive logic and the plant as a real fault would; with none configured the
+  rack's frames are what they were without it (docs/can.md, "Fault injection").
 * PDO remapping over SDO, the standard way: set COB-ID bit 31, mapping sub 0 = 0, write the
   entries, sub 0 = their number, clear bit 31. Mapping writes while the PDO is valid, entries
   while sub 0 != 0, unmappable objects and more than 64 bits are refused with an SDO abort.
@@ -116,8 +124,13 @@ logger = logging.getLogger(__name__)
 
 SYNC_COB_ID = 0x080
 NMT_COB_ID = 0x000
+EMCY_COB_BASE = 0x080  # + node id (0x1014, read-only here)
 HEARTBEAT_COB_BASE = 0x700
 SDO_REQUEST_COB_BASE = 0x600  # CiA 301 pre-defined connection set: client -> server
+SDO_RESPONSE_COB_BASE = 0x580  # server -> client
+# CiA 301 EMCY 0x8140 "recovered from bus off": sent when a node is back on the bus, and the
+# 0x603F code of the bus-off while it lasts (as CANopenNode's CO_EM_CAN_TX_BUS_OFF reports it).
+EMCY_BUS_OFF_RECOVERED = 0x8140
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
@@ -181,6 +194,45 @@ class AxisConfig:
     initial_position: float
 
 
+# Fault kinds of the `faults:` schedule and of `VirtualDriveRack.set_fault`, each the sub-index
+# of the fault injection object 0x2030 it writes (docs/can.md, "Fault injection").
+FAULT_KINDS: dict[str, int] = {
+    "lost_tpdo": od.FAULT_LOST_TPDOS,
+    "heartbeat_off": od.FAULT_HEARTBEAT_OFF,
+    "emcy": od.FAULT_RAISE_EMCY,
+    "drive_fault": od.FAULT_DRIVE_FAULT,
+    "bus_off": od.FAULT_BUS_OFF,
+}
+# The value each kind may take while on (0 is "off" for every kind).
+_FAULT_VALUE_RANGE: dict[str, tuple[int, int]] = {
+    "lost_tpdo": (1, 0xFF),  # the TPDO bit mask
+    "heartbeat_off": (1, 1),
+    "emcy": (1, 0xFFFF),  # the EMCY code
+    "drive_fault": (1, 0xFFFF),  # the error code (0x603F)
+    "bus_off": (1, 1),  # on; the schedule's end_s (or `set_fault(..., 0)`) ends it
+}
+_FAULT_DEFAULT_VALUE = {"lost_tpdo": 0x0F, "heartbeat_off": 1, "bus_off": 1}
+
+
+@dataclass(frozen=True, slots=True)
+class FaultEntry:
+    """One scheduled fault (rack.yaml `faults:`), timed by the rack's plant time.
+
+    Attributes:
+        joint: the axis whose drive has it.
+        kind: one of `FAULT_KINDS`.
+        value: the TPDO mask (lost_tpdo), the code (emcy, drive_fault), 1 (the others).
+        start_s: it goes on at the first SYNC at which the plant's time is >= this.
+        end_s: it goes off likewise; None: it stays on.
+    """
+
+    joint: str
+    kind: str
+    value: int
+    start_s: float
+    end_s: float | None = None
+
+
 @dataclass(frozen=True, slots=True)
 class RackConfig:
     """A validated rack config (config/can/rack.yaml).
@@ -198,6 +250,8 @@ class RackConfig:
         eds_path: the EDS the nodes' object dictionaries are read from ("" = the shipped
             config/can/lca_drive.eds); it must declare the objects of `lca_sim.cia402.objects`.
         axes: the drives, in the robot's axis order.
+        faults: the fault schedule (none by default: the rack then behaves exactly as without
+            fault injection).
         source: the file it came from (for messages).
     """
 
@@ -213,6 +267,7 @@ class RackConfig:
     eds_path: str = ""
     velocity_kp_a_per_rad_s: float = PAPER_VELOCITY_KP_A_PER_RAD_S
     velocity_ti_s: float = PAPER_VELOCITY_TI_S
+    faults: tuple[FaultEntry, ...] = ()
     source: str = ""
 
     @property
@@ -238,6 +293,55 @@ def _integer(
             f"expected an integer in [{min_value}, {max_value}], got {value}",
         )
     return value
+
+
+def _fault_entry(item: object, source: str, path: str, joints: Sequence[str]) -> FaultEntry:
+    """One entry of a `faults:` list; ConfigError names the bad key."""
+    reader = MappingReader(item, source, path)
+    joint = reader.string("joint", choices=tuple(joints))
+    kind = reader.string("kind", choices=tuple(FAULT_KINDS))
+    low, high = _FAULT_VALUE_RANGE[kind]
+    default = _FAULT_DEFAULT_VALUE.get(kind)
+    value = _integer(reader, "value", low, high, default)
+    start_s = reader.number("start_s", min_value=0.0)
+    end_s = None
+    if reader.has("end_s"):
+        end_s = reader.number("end_s", min_value=start_s, min_exclusive=True)
+    reader.finish()
+    return FaultEntry(joint, kind, value, start_s, end_s)
+
+
+def parse_faults(
+    data: object, source: str, path: str, joints: Sequence[str]
+) -> tuple[FaultEntry, ...]:
+    """Validate a `faults:` list (rack.yaml, or the file of `lca-virtual-drive --faults`).
+
+    Args:
+        data: the parsed list.
+        source: its file, for messages.
+        path: the key it sits at ("faults").
+        joints: the rack's axes (an entry must name one).
+
+    Raises:
+        ConfigError: one line naming the file, the entry's key and what was expected; also
+            two entries of one joint and kind whose times overlap.
+    """
+    if not isinstance(data, list):
+        raise ConfigError(source, path, f"expected a list of faults, got {type(data).__name__}")
+    entries = [_fault_entry(item, source, f"{path}[{k}]", joints) for k, item in enumerate(data)]
+    for k, a in enumerate(entries):
+        for b in entries[k + 1 :]:
+            if (a.joint, a.kind) != (b.joint, b.kind):
+                continue
+            a_end = math.inf if a.end_s is None else a.end_s
+            b_end = math.inf if b.end_s is None else b.end_s
+            if a.start_s < b_end and b.start_s < a_end:
+                raise ConfigError(
+                    source,
+                    f"{path}[{entries.index(b)}]",
+                    f"overlaps an earlier {b.kind} fault of {b.joint} ({a.start_s:g}-{a_end:g} s)",
+                )
+    return tuple(entries)
 
 
 def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -> RackConfig:
@@ -300,6 +404,9 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         )
         axis.finish()
     axes_reader.finish()
+    faults: tuple[FaultEntry, ...] = ()
+    if top.has("faults"):
+        faults = parse_faults(top.raw("faults"), source, "faults", [a.name for a in axes])
     top.finish()
     ids = [a.node_id for a in axes]
     duplicate = next((i for i in ids if ids.count(i) > 1), None)
@@ -319,8 +426,24 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         eds_path=eds,
         velocity_kp_a_per_rad_s=velocity_kp,
         velocity_ti_s=velocity_ti_s,
+        faults=faults,
         source=source,
     )
+
+
+def load_faults(path: str | Path, config: RackConfig) -> RackConfig:
+    """`config` with the schedule of a faults file (a YAML mapping with one key, `faults:`).
+
+    Raises:
+        ConfigError: the file, the key and what was expected, in one line.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise ConfigError(str(file), "", "file not found")
+    top = MappingReader(read_yaml(file), str(file))
+    faults = parse_faults(top.raw("faults"), str(file), "faults", config.axis_names)
+    top.finish()
+    return replace(config, faults=faults)
 
 
 def load_rack_config(path: str | Path | None = None) -> RackConfig:
@@ -364,6 +487,8 @@ class RackCounters:
     handler_errors: int = 0
     process_freezes: int = 0  # stalls of this process (also 0x2020), each discounted ...
     stalls_beyond_discount: int = 0  # ... up to max_stall_discount_s; these longer (EMCY 0xFF02)
+    tpdos_lost: int = 0  # TPDOs not sent: fault injection 0x2030 sub 1
+    frames_dropped_bus_off: int = 0  # frames a node in (injected) bus-off did not send
 
     def as_dict(self) -> dict[str, int]:
         """The counters by name."""
@@ -428,6 +553,51 @@ def _number_format(obj: ODVariable) -> str:
 
 
 @dataclass
+class _AxisFaults:
+    """The faults injected into one drive (object 0x2030; docs/can.md "Fault injection")."""
+
+    lost_tpdos: int = 0  # bit n - 1: TPDO n is not sent
+    heartbeat_off: bool = False
+    emcy_code: int = 0  # the EMCY raised last (0: none)
+    drive_fault: int = 0  # a drive fault's code while its cause lasts (0: none)
+    bus_off: bool = False
+    bus_off_ms: int = 0  # 0x2030 sub 5 as written (0 while the schedule or the API set it)
+    bus_off_until_step: int | None = None  # plant step at which a timed bus-off ends
+
+    def active(self) -> dict[str, int]:
+        """The faults that are on, by kind (`FAULT_KINDS`), with their values."""
+        values = {
+            "lost_tpdo": self.lost_tpdos,
+            "heartbeat_off": int(self.heartbeat_off),
+            "emcy": self.emcy_code,
+            "drive_fault": self.drive_fault,
+            "bus_off": int(self.bus_off),
+        }
+        return {kind: value for kind, value in values.items() if value}
+
+
+@dataclass(frozen=True, slots=True)
+class FaultEvent:
+    """A fault going on (value != 0) or off (0) in one drive, at the rack's plant time."""
+
+    time_s: float
+    joint: str
+    kind: str
+    value: int
+    source: str  # "schedule", "sdo" or "api"
+
+
+class _NullTask:
+    """The heartbeat task of a node whose heartbeat is injected off: sends nothing."""
+
+    def stop(self) -> None:
+        """Nothing runs."""
+
+    def update(self, data: bytes) -> None:
+        """Nothing is sent."""
+
+
+@dataclass
 class _Axis:
     """One drive: its node, its object values and its CiA 402 state."""
 
@@ -455,6 +625,7 @@ class _Axis:
     velocity: Codec = field(init=False)  # motor rad/s <-> increments/s (0x606C, 0x60FF)
     velocity_loop: PIController | None = None  # CSV: target velocity -> current setpoint
     csv_permille: int = 0  # CSV: the velocity loop's output, per mille of 0x6075
+    faults: _AxisFaults = field(default_factory=_AxisFaults)
 
     def __post_init__(self) -> None:
         self.torque = codec.torque(self.units)
@@ -514,6 +685,36 @@ class _RackNetwork(canopen.Network):
         if self.notifier is not None:
             self.notifier.exception = None
 
+    def __init__(self, bus: can.BusABC) -> None:
+        super().__init__(bus)
+        # Fault injection (0x2030): the COB-IDs of frames that must not go out (a node in
+        # bus-off: its EMCY, SDO answers, boot-up and heartbeat) and of periodic ones that must
+        # not start (a heartbeat injected off). Replaced whole, so the sending threads read
+        # them without a lock.
+        self.muted: frozenset[int] = frozenset()
+        self.muted_periodic: frozenset[int] = frozenset()
+        self.on_dropped: Callable[[int], None] | None = None
+        # After the frame with this COB-ID goes out, call this once (bus-off set over SDO
+        # takes effect after its SDO answer, which is the node's last frame).
+        self.after_send: dict[int, Callable[[], None]] = {}
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """Send as canopen does, except the frames of a node that fault injection silenced."""
+        if can_id in self.muted:
+            if self.on_dropped is not None:
+                self.on_dropped(can_id)
+            return
+        super().send_message(can_id, data, remote)
+        then = self.after_send.pop(can_id, None) if self.after_send else None
+        if then is not None:
+            then()
+
+    def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
+        """Send periodically (the heartbeat) as canopen does, except a heartbeat injected off."""
+        if can_id in self.muted_periodic:
+            return _NullTask()
+        return super().send_periodic(can_id, data, period, remote)
+
 
 # --- the rack --------------------------------------------------------------------------------
 
@@ -548,8 +749,15 @@ class VirtualDriveRack:
             self._sim.reset({a.name: a.initial_position for a in config.axes})
         except InputError as exc:
             raise ConfigError(config.source, "axes", f"expected a valid pose ({exc})") from exc
+        k_t = {
+            a.name: robot.axes[self._sim.axis_names.index(a.name)].motor.torque_constant_nm_per_a
+            for a in config.axes
+        }
+        units = {a.name: self._units(a, k_t[a.name]) for a in config.axes}
+        # Rated torque is k_t x rated current, so 0x6072 (per mille of 0x6076) is the same per
+        # mille of 0x6075: the most current a drive may set (the codec's 0x6078 scaling).
         peak_current_a = max(
-            a.rated_current_a * a.max_torque_permille / 1000.0 for a in config.axes
+            codec.current(units[a.name]).decode(a.max_torque_permille) for a in config.axes
         )
         self._plant = CommandedPlant(
             sim=self._sim,
@@ -585,6 +793,17 @@ class VirtualDriveRack:
         self._longest_stall_s = 0.0  # 0x2021
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
+        # Fault injection: the plant steps run since start (the rack's time, which SYNCs
+        # advance), the schedule as (entry, first step on, first step off), which entries are
+        # on, and every fault going on or off.
+        self._steps_done = 0
+        self._schedule = [
+            (f, self._step_of(f.start_s), None if f.end_s is None else self._step_of(f.end_s))
+            for f in config.faults
+        ]
+        self._schedule_on = [False] * len(config.faults)
+        self._fault_log: list[FaultEvent] = []
+        self._network.on_dropped = self._dropped_bus_off
         eds = config.eds_path or str(eds_path())
         for joint_index, axis_config in enumerate(config.axes):
             plant_index = self._sim.axis_names.index(axis_config.name)
@@ -594,22 +813,20 @@ class VirtualDriveRack:
             # packed then: a segment request before any transfer raised instead of being
             # answered with an abort (CiA 301 7.2.4.3.17), found by tests/.../test_rack_fuzz.py.
             node.sdo._index, node.sdo._subindex = 0, 0
-            axis_params = robot.axes[plant_index]
-            k_t = axis_params.motor.torque_constant_nm_per_a
             axis = _Axis(
                 config=axis_config,
                 plant_index=plant_index,
                 joint_index=joint_index,
-                gear_ratio=axis_params.gear_ratio,
-                torque_constant_nm_per_a=k_t,
+                gear_ratio=robot.axes[plant_index].gear_ratio,
+                torque_constant_nm_per_a=k_t[axis_config.name],
                 node=node,
                 od=dictionary,
-                units=self._units(axis_config, k_t),
+                units=units[axis_config.name],
                 defaults={},
             )
             axis.defaults = self._defaults(axis)
             axis.live = self._live_objects(axis)
-            limit_a = axis_config.rated_current_a * axis_config.max_torque_permille / 1000.0
+            limit_a = axis.current.decode(axis_config.max_torque_permille)
             axis.velocity_loop = PIController(
                 PIParams(config.velocity_kp_a_per_rad_s, config.velocity_ti_s, -limit_a, limit_a)
             )
@@ -648,6 +865,7 @@ class VirtualDriveRack:
             for axis in self._axes:
                 self._reset(axis, communication_only=False, now=now)
                 self._boot(axis)
+                self._reassert_faults(axis, now)
         self._monitor_thread = threading.Thread(
             target=self._monitor, name="virtual-drive-monitor", daemon=True
         )
@@ -726,6 +944,46 @@ class VirtualDriveRack:
         with self._lock:
             return self._sim.state
 
+    @property
+    def time_s(self) -> float:
+        """The rack's time: plant steps run since start x dt_s (SYNCs advance it)."""
+        with self._lock:
+            return self._steps_done * self._sim.dt_s
+
+    @property
+    def active_faults(self) -> dict[str, dict[str, int]]:
+        """The injected faults that are on, per axis: {kind: value} (`FAULT_KINDS`)."""
+        with self._lock:
+            return {a.config.name: a.faults.active() for a in self._axes}
+
+    @property
+    def fault_log(self) -> tuple[FaultEvent, ...]:
+        """Every injected fault going on (value != 0) or off (0), in order."""
+        with self._lock:
+            return tuple(self._fault_log)
+
+    def set_fault(self, axis_name: str, kind: str, value: int) -> None:
+        """Switch a fault on (value != 0) or off (0) at once, as a write of 0x2030 would.
+
+        Args:
+            axis_name: the drive.
+            kind: one of `FAULT_KINDS`.
+            value: the TPDO mask (lost_tpdo), the code (emcy, drive_fault), 1 (heartbeat_off,
+                bus_off); 0 switches it off.
+
+        Raises:
+            UnknownNameError: an unknown axis or kind.
+            ValueError: a value out of the kind's range.
+        """
+        axis = self._axis(axis_name)
+        if kind not in FAULT_KINDS:
+            raise UnknownNameError("fault kind", kind, tuple(FAULT_KINDS))
+        high = _FAULT_VALUE_RANGE[kind][1]
+        if isinstance(value, bool) or not 0 <= value <= high:
+            raise ValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
+        with self._lock:
+            self._set_fault(axis, kind, value, "api", time.monotonic())
+
     def _axis(self, name: str) -> _Axis:
         try:
             return self._by_name[name]
@@ -794,6 +1052,13 @@ class VirtualDriveRack:
             (od.MOTION_STATE, 0): lambda: int(modes[0, a]),
             (od.PROCESS_STALLS, 0): lambda: min(self._counters.process_freezes, 0xFFFFFFFF),
             (od.LONGEST_STALL, 0): lambda: encode_stall(self._longest_stall_s),
+            (od.FAULT_INJECTION, od.FAULT_LOST_TPDOS): lambda: axis.faults.lost_tpdos,
+            (od.FAULT_INJECTION, od.FAULT_HEARTBEAT_OFF): lambda: int(axis.faults.heartbeat_off),
+            (od.FAULT_INJECTION, od.FAULT_RAISE_EMCY): lambda: axis.faults.emcy_code,
+            (od.FAULT_INJECTION, od.FAULT_DRIVE_FAULT): lambda: axis.faults.drive_fault,
+            (od.FAULT_INJECTION, od.FAULT_BUS_OFF): lambda: (
+                axis.faults.bus_off_ms or int(axis.faults.bus_off)
+            ),
         }
         for name, obj in od.SIGNAL_OBJECTS.items():  # eta_m, eta_l, load torque, ...
             live[obj.key] = _signal_getter(
@@ -873,6 +1138,9 @@ class VirtualDriveRack:
 
     def _write(self, axis: _Axis, index: int, subindex: int, value: int, now: float) -> None:
         """Validate and apply a write (SDO or RPDO); SdoAbortedError refuses it."""
+        if index == od.FAULT_INJECTION:
+            self._write_fault(axis, subindex, value, now)
+            return
         if index == od.CONTROLWORD:
             self._apply_controlword(axis, value, now)
             return
@@ -930,9 +1198,15 @@ class VirtualDriveRack:
         axis.drive = state
 
     def _apply_controlword(self, axis: _Axis, controlword: int, now: float) -> None:
-        if cia402.is_fault_reset_edge(controlword, axis.drive.controlword):
+        persisting = axis.faults.drive_fault  # an injected drive fault whose cause lasts
+        if cia402.is_fault_reset_edge(controlword, axis.drive.controlword) and not persisting:
             self._clear_errors(axis)
+            if axis.faults.emcy_code:  # the raised EMCY is reset with the other errors
+                self._set_fault(axis, "emcy", 0, "fault reset", now)
         state = cia402.apply_controlword(axis.drive, controlword, self._quick_stop_option(axis))
+        if persisting:
+            # CiA 402-2: a fault reset leaves FAULT only once the fault's cause is gone.
+            state = cia402.fault(state)
         self._set_drive(axis, state, now)
 
     def _clear_errors(self, axis: _Axis) -> None:
@@ -987,6 +1261,159 @@ class VirtualDriveRack:
         self._connection_lost(axis, None, now)
         if axis.drive.power is not before:
             self._set_error(axis, cia402.EMCY_LEFT_OPERATIONAL)
+
+    # --- fault injection (object 0x2030, the `faults:` schedule) ----------------------------
+
+    def _step_of(self, time_s: float) -> int:
+        """The first plant step count at which the rack's time is >= `time_s`."""
+        return math.ceil(time_s / self._sim.dt_s - 1e-9)
+
+    def _write_fault(self, axis: _Axis, subindex: int, value: int, now: float) -> None:
+        """An SDO write of 0x2030: switch the fault of that sub-index on or off."""
+        kind = next((k for k, sub in FAULT_KINDS.items() if sub == subindex), None)
+        if kind is None:
+            raise SdoAbortedError(ABORT_NO_SUBINDEX)
+        if kind == "heartbeat_off" and value not in (0, 1):
+            raise SdoAbortedError(ABORT_VALUE_RANGE)
+        if kind != "bus_off":
+            self._set_fault(axis, kind, value, "sdo", now)
+        elif value and not axis.faults.bus_off:
+            # Off the bus after this write's SDO answer, the node's last frame (the master
+            # sees the write succeed), for `value` ms of the rack's time.
+            def go_off() -> None:
+                with self._lock:
+                    self._set_fault(axis, "bus_off", 1, "sdo", time.monotonic())
+                    axis.faults.bus_off_ms = value
+                    axis.faults.bus_off_until_step = self._steps_done + self._step_of(value * 1e-3)
+
+            self._network.after_send[SDO_RESPONSE_COB_BASE + axis.config.node_id] = go_off
+
+    def _set_fault(self, axis: _Axis, kind: str, value: int, source: str, now: float) -> None:
+        """Switch one fault of one drive on (value != 0) or off (0), and log it."""
+        if kind == "lost_tpdo":
+            axis.faults.lost_tpdos = value
+        elif kind == "heartbeat_off":
+            axis.faults.heartbeat_off = bool(value)
+            self._update_silence(axis)
+        elif kind == "emcy":
+            self._raise_emcy(axis, value)
+        elif kind == "drive_fault":
+            self._drive_fault(axis, value, now)
+        else:
+            self._bus_off(axis, bool(value), now)
+        self._fault_log.append(
+            FaultEvent(self._steps_done * self._sim.dt_s, axis.config.name, kind, value, source)
+        )
+
+    def _raise_emcy(self, axis: _Axis, code: int) -> None:
+        """Send EMCY `code` with its 0x1001 bits set (CiA 301 7.2.7, 7.5.2.2); 0 clears them.
+
+        The drive's CiA 402 state and 0x603F do not change: an EMCY that is not a drive fault
+        (`_drive_fault` is). Clearing leaves 0x1001 as a drive error (0x603F) needs it, and
+        sends EMCY 0x0000 "error reset" when no error is left (CiA 301 7.2.7.1).
+        """
+        axis.faults.emcy_code = code
+        register = axis.value(od.ERROR_REGISTER)
+        if code:
+            axis.values[(od.ERROR_REGISTER, 0)] = register | od.error_register_for(code)
+            self._emcy(axis, code)
+        elif register and not axis.value(od.ERROR_CODE):
+            axis.values[(od.ERROR_REGISTER, 0)] = 0
+            self._emcy(axis, cia402.EMCY_ERROR_RESET)
+
+    def _drive_fault(self, axis: _Axis, code: int, now: float) -> None:
+        """A drive fault (CiA 402-2 transition 13): 0x603F = code, 0x1001, EMCY, FAULT.
+
+        The power stage goes off (no torque: a self-locking axis holds, a reversible one
+        moves under its load). 0 removes the fault's cause; the drive stays in FAULT until the
+        master's fault reset (controlword bit 7), which is refused while the cause lasts.
+        """
+        axis.faults.drive_fault = code
+        if not code:
+            return
+        axis.values[(od.ERROR_CODE, 0)] = code
+        axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | od.error_register_for(
+            code
+        )
+        self._emcy(axis, code)
+        self._set_drive(axis, cia402.fault(axis.drive), now)
+
+    def _bus_off(self, axis: _Axis, on: bool, now: float) -> None:
+        """A node's CAN controller goes bus-off (on) or recovers (off).
+
+        In bus-off a node takes no part in the bus (ISO 11898-1): it sends nothing (TPDO,
+        EMCY, SDO answer, heartbeat) and takes nothing (SDO, NMT, SYNC, RPDO, heartbeat).
+        Bus-off is a communication error: 0x603F = 0x8140, 0x1001, the CiA 402-2 0x6007
+        reaction and the CiA 301 0x1029 sub 1 NMT change (7.5.2.32 lists bus-off among the
+        communication errors) apply at once. On recovery the node resumes in the NMT state
+        that left it, with its configuration (no reset, no boot-up: CiA 301 asks none), and
+        sends EMCY 0x8140 "recovered from bus off" with 0x1001.
+        """
+        faults = axis.faults
+        if on == faults.bus_off:
+            return
+        faults.bus_off = on
+        node, network = axis.node, self._network
+        sdo_cob = SDO_REQUEST_COB_BASE + axis.config.node_id
+        if on:
+            network.unsubscribe(sdo_cob, node.sdo.on_request)
+            network.unsubscribe(NMT_COB_ID, node.nmt.on_command)
+            self._update_silence(axis)
+            for pdo in axis.rpdos:
+                pdo.latched = None
+            self._communication_error(axis, EMCY_BUS_OFF_RECOVERED, now)
+            return
+        faults.bus_off_ms, faults.bus_off_until_step = 0, None
+        network.subscribe(sdo_cob, node.sdo.on_request)
+        network.subscribe(NMT_COB_ID, node.nmt.on_command)
+        self._update_silence(axis)
+        self._emcy(axis, EMCY_BUS_OFF_RECOVERED)
+
+    def _update_silence(self, axis: _Axis) -> None:
+        """Mute the frames of bus-off nodes, stop or restart `axis`'s heartbeat producer."""
+        muted: set[int] = set()
+        periodic: set[int] = set()
+        for a in self._axes:
+            node_id = a.config.node_id
+            if a.faults.bus_off:
+                muted |= {
+                    EMCY_COB_BASE + node_id,
+                    SDO_RESPONSE_COB_BASE + node_id,
+                    HEARTBEAT_COB_BASE + node_id,
+                }
+            if a.faults.bus_off or a.faults.heartbeat_off:
+                periodic.add(HEARTBEAT_COB_BASE + node_id)
+        cob = HEARTBEAT_COB_BASE + axis.config.node_id
+        was_silent = cob in self._network.muted_periodic
+        self._network.muted = frozenset(muted)
+        self._network.muted_periodic = frozenset(periodic)
+        nmt = axis.node.nmt
+        if cob in periodic and not was_silent:
+            nmt.stop_heartbeat()  # type: ignore[no-untyped-call]
+        elif was_silent and cob not in periodic and self._started:
+            nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
+
+    def _dropped_bus_off(self, cob_id: int) -> None:
+        self._counters.frames_dropped_bus_off += 1
+
+    def _run_fault_clock(self, now: float) -> None:
+        """At a SYNC: the schedule's faults that start or end now, and timed bus-offs' ends."""
+        step = self._steps_done
+        for k, (entry, start, end) in enumerate(self._schedule):
+            on = step >= start and (end is None or step < end)
+            if on != self._schedule_on[k]:
+                self._schedule_on[k] = on
+                axis = self._by_name[entry.joint]
+                self._set_fault(axis, entry.kind, entry.value if on else 0, "schedule", now)
+        for axis in self._axes:
+            until = axis.faults.bus_off_until_step
+            if until is not None and step >= until:
+                self._set_fault(axis, "bus_off", 0, "sdo", now)
+
+    def _reassert_faults(self, axis: _Axis, now: float) -> None:
+        """After a reset node: a drive fault whose cause lasts faults the drive again."""
+        if axis.faults.drive_fault:
+            self._drive_fault(axis, axis.faults.drive_fault, now)
 
     # --- PDO configuration -----------------------------------------------------------------
 
@@ -1144,7 +1571,7 @@ class VirtualDriveRack:
             _NMT_PRE_OPERATIONAL: NMT_PRE_OPERATIONAL,
         }
         for axis in self._axes:
-            if node_id not in (0, axis.config.node_id):
+            if node_id not in (0, axis.config.node_id) or axis.faults.bus_off:
                 continue
             if command in states:
                 self._enter_nmt(axis, states[command], now)
@@ -1154,6 +1581,7 @@ class VirtualDriveRack:
                     self._nmt_reaction(axis, now)
                 self._reset(axis, communication_only, now)
                 self._boot(axis)
+                self._reassert_faults(axis, now)
 
     def _enter_nmt(self, axis: _Axis, state: str, now: float) -> None:
         """Move a node to an NMT state (its canopen NmtSlave is set by the caller).
@@ -1274,10 +1702,12 @@ class VirtualDriveRack:
             return
         for axis in self._axes:
             node_id, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
-            if node_id == producer and time_ms:
+            if node_id == producer and time_ms and not axis.faults.bus_off:
                 axis.heartbeat_last_rx_s = now
 
     def _on_rpdo(self, axis: _Axis, pdo: _Pdo, data: bytes, now: float) -> None:
+        if axis.faults.bus_off:
+            return  # its controller takes no frame
         self._counters.rpdos_received += 1
         if axis.nmt != NMT_OPERATIONAL or not pdo.valid:
             self._counters.pdos_ignored_not_operational += 1
@@ -1329,12 +1759,11 @@ class VirtualDriveRack:
             return
         self._sync_length_error = False
         self._counters.syncs += 1
-        operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL]
+        if self._schedule or self._fault_log:
+            self._run_fault_clock(now)
+        operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL and not a.faults.bus_off]
         for axis in operational:
-            for pdo in axis.rpdos:
-                if pdo.latched is not None:
-                    latched, pdo.latched = pdo.latched, None
-                    self._apply_rpdo(axis, pdo, latched, now)
+            self._apply_latched_rpdos(axis, now)
         for axis in self._axes:
             self._set_drive(axis, axis.drive, now)
             axis.sync_loss_reported = False
@@ -1350,6 +1779,13 @@ class VirtualDriveRack:
         self._service_event_tpdos(done)
         self._last_sync_done_s = done
 
+    def _apply_latched_rpdos(self, axis: _Axis, now: float) -> None:
+        """At a SYNC: the synchronous RPDOs received since the previous one (the latest wins)."""
+        for pdo in axis.rpdos:
+            if pdo.latched is not None:
+                latched, pdo.latched = pdo.latched, None
+                self._apply_rpdo(axis, pdo, latched, now)
+
     def _send_sync_tpdos(self, axis: _Axis, now: float) -> None:
         """At a SYNC: type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
         for pdo in axis.tpdos:
@@ -1358,12 +1794,12 @@ class VirtualDriveRack:
             if pdo.transmission_type == 0:
                 frame = self._encode(axis, pdo)
                 if frame != pdo.last_data:
-                    self._send_tpdo(pdo, frame, now)
+                    self._send_tpdo(axis, pdo, frame, now)
                 continue
             pdo.sync_count += 1
             if pdo.sync_count >= pdo.transmission_type:
                 pdo.sync_count = 0
-                self._send_tpdo(pdo, self._encode(axis, pdo), now)
+                self._send_tpdo(axis, pdo, self._encode(axis, pdo), now)
 
     def _cycle_period_s(self) -> float:
         return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
@@ -1436,6 +1872,7 @@ class VirtualDriveRack:
             self._plant.hold_zero()  # every power stage off: no current, loops reset
         if steps:
             self._plant.advance(steps)
+            self._steps_done += steps
 
     # --- transmission ----------------------------------------------------------------------
 
@@ -1451,8 +1888,13 @@ class VirtualDriveRack:
             return False
         return True
 
-    def _send_tpdo(self, pdo: _Pdo, frame: bytes, now: float) -> None:
-        if self._send(pdo.cob_id, frame):
+    def _send_tpdo(self, axis: _Axis, pdo: _Pdo, frame: bytes, now: float) -> None:
+        faults = axis.faults
+        if faults.bus_off:
+            self._counters.frames_dropped_bus_off += 1
+        elif faults.lost_tpdos >> (pdo.number - 1) & 1:
+            self._counters.tpdos_lost += 1  # injected: lost as if sent (0x2030 sub 1)
+        elif self._send(pdo.cob_id, frame):
             self._counters.tpdos_sent += 1
         pdo.last_data, pdo.last_sent_s = frame, now
 
@@ -1460,6 +1902,9 @@ class VirtualDriveRack:
         """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes."""
         if axis.nmt == NMT_STOPPED:
             return  # no EMCY in STOPPED (CiA 301)
+        if axis.faults.bus_off:
+            self._counters.frames_dropped_bus_off += 1
+            return
         register = axis.value(od.ERROR_REGISTER)
         try:
             axis.node.emcy.send(code, register, data)
@@ -1482,7 +1927,7 @@ class VirtualDriveRack:
                 changed = frame != pdo.last_data and since_s >= pdo.inhibit_100us * 1e-4
                 timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
                 if changed or timer_due:
-                    self._send_tpdo(pdo, frame, now)
+                    self._send_tpdo(axis, pdo, frame, now)
 
     # --- watchdogs -------------------------------------------------------------------------
 
@@ -1620,6 +2065,11 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--bitrate", type=int, default=None, help="bit/s, where settable")
     parser.add_argument("--config", default=None, help="rack YAML (default: config/can/rack.yaml)")
     parser.add_argument(
+        "--faults",
+        default=None,
+        help="YAML with a 'faults:' schedule, replacing the rack config's (docs/can.md)",
+    )
+    parser.add_argument(
         "--log-level", default="warning", choices=("debug", "info", "warning", "error")
     )
     return parser.parse_args(argv)
@@ -1632,6 +2082,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     prog = "lca-virtual-drive"
     try:
         config = load_rack_config(args.config)
+        if args.faults is not None:
+            config = load_faults(args.faults, config)
     except USER_ERRORS as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

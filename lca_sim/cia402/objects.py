@@ -7,9 +7,10 @@ the SI unit and scaling of its value, its default and its "undefined" marker whe
 the bridge (`lca_sim.canbus.master`) and the EDS test read this table instead of repeating it.
 
 Standard objects cite their definition: CiA 301 (communication profile, 0x1000-0x1FFF) or
-CiA 402-2 (drive profile, 0x6000-0x67FF). 0x2010-0x2016 are lca_hil's, in the
-manufacturer-specific area 0x2000-0x5FFF (CiA 301): the drive-chain state of the lca_sim plant,
-which only the virtual drive reports.
+CiA 402-2 (drive profile, 0x6000-0x67FF). 0x2010-0x2030 are lca_hil's, in the
+manufacturer-specific area 0x2000-0x5FFF (CiA 301): the drive-chain state of the lca_sim plant
+(0x2010-0x2016), the virtual drive's health (0x2020-0x2021) and its fault injection (0x2030),
+which only the virtual drive has.
 
     from lca_sim.cia402 import objects as od
 
@@ -52,6 +53,13 @@ FRICTION_TORQUE = 0x2015  # motor side, per mille of 0x6076
 VOLTAGE = 0x2016  # amplifier output voltage, 10 mV
 PROCESS_STALLS = 0x2020  # how often the virtual drive's process stood still (count)
 LONGEST_STALL = 0x2021  # the longest such stall, ms
+# lca_hil fault injection (virtual drive only): a RECORD, SDO-writable, one sub per fault kind
+FAULT_INJECTION = 0x2030
+FAULT_LOST_TPDOS = 1  # UNSIGNED8: bit n - 1 set = TPDO n is not sent
+FAULT_HEARTBEAT_OFF = 2  # UNSIGNED8: 1 = the heartbeat producer is silent
+FAULT_RAISE_EMCY = 3  # UNSIGNED16: writing a code sends that EMCY; 0 clears it
+FAULT_DRIVE_FAULT = 4  # UNSIGNED16: a drive fault with this code (CiA 402 FAULT); 0 clears
+FAULT_BUS_OFF = 5  # UNSIGNED16: off the bus for this many ms of the rack's time; 0 = on
 # CiA 402-2 drive profile area
 ABORT_CONNECTION_OPTION = 0x6007
 ERROR_CODE = 0x603F
@@ -81,6 +89,37 @@ ERROR_BEHAVIOURS = frozenset(
 )
 
 MANUFACTURER_AREA = range(0x2000, 0x6000)  # CiA 301: manufacturer-specific profile area
+
+# CiA 301 7.5.2.2 (0x1001 error register): bit 0 generic (set for any error), 1 current,
+# 2 voltage, 3 temperature, 4 communication, 5 device profile specific, 7 manufacturer specific.
+ERROR_REGISTER_GENERIC_BIT = 1 << 0
+_ERROR_REGISTER_BY_CLASS: tuple[tuple[int, int, int], ...] = (
+    # (mask, value, bit) over the EMCY code, CiA 301 table 21 (emergency error code classes)
+    (0xF000, 0x2000, 1 << 1),  # current
+    (0xF000, 0x3000, 1 << 2),  # voltage
+    (0xF000, 0x4000, 1 << 3),  # temperature
+    (0xFF00, 0x8100, 1 << 4),  # communication
+    (0xFF00, 0x8200, 1 << 4),  # protocol error (PDO, SYNC length): communication too
+    (0xFF00, 0xFF00, 1 << 7),  # device specific: manufacturer-specific bit
+)
+
+
+def error_register_for(code: int) -> int:
+    """The 0x1001 bits an error with EMCY code `code` sets (CiA 301 7.5.2.2); 0 for no error.
+
+    Generic (bit 0) for every error, plus the bit of the code's class where 0x1001 has one
+    (0x2xxx current, 0x3xxx voltage, 0x4xxx temperature, 0x81xx / 0x82xx communication,
+    0xFFxx manufacturer specific). Codes 0x0000-0x00FF are "error reset or no error".
+    """
+    if code & 0xFF00 == 0:
+        return 0
+    bits = ERROR_REGISTER_GENERIC_BIT
+    for mask, value, bit in _ERROR_REGISTER_BY_CLASS:
+        if code & mask == value:
+            bits |= bit
+    return bits
+
+
 EFFICIENCY_UNDEFINED = 0xFFFF  # 0x2012 / 0x2013 while the axis is stopped (eq. 10 idle)
 # TPDO4 (the drive-chain extras 0x2014-0x2016) goes every this many SYNCs (CiA 301 0x1803
 # sub 2, types 1-240): the extras change slowly next to position and velocity, and one 6-byte
@@ -368,8 +407,8 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     ObjectEntry(IDENTITY, 4, "Serial number", _U32, _RO, False, _cia301(IDENTITY), default=0),
     ObjectEntry(ERROR_BEHAVIOUR, 0, "Highest sub-index supported", _U8, _RO, False,
                 _cia301(ERROR_BEHAVIOUR), default=1),
-    # 1 = no change: CiA 301's default is 0, but a master then has to start the node again
-    # after a fault reset, which the lca_hil bridge does not (docs/can.md).
+    # 0 = to PRE-OPERATIONAL, CiA 301's default: the bridge's ~/recover starts the node again
+    # with the fault reset (docs/can.md, "Watchdogs and safety").
     ObjectEntry(ERROR_BEHAVIOUR, 1, "Communication error", _U8, _RW, False,
                 _cia301(ERROR_BEHAVIOUR), default=ERROR_BEHAVIOUR_PRE_OPERATIONAL),
     # lca_hil: the drive chain of the lca_sim plant (the paper's state machine, eq. 8-10)
@@ -396,6 +435,20 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     ObjectEntry(PROCESS_STALLS, 0, "Process stalls", _U32, _RO, True, "lca_hil", default=0),
     ObjectEntry(LONGEST_STALL, 0, "Longest process stall", _U16, _RO, True, "lca_hil", "s",
                 Scaling.MILLI, _SAT, default=0),
+    # lca_hil: fault injection (docs/can.md "Fault injection"). Written by SDO (or by the rack's
+    # `faults:` schedule); reads give what is active. Not PDO-mappable: a test harness sets it.
+    ObjectEntry(FAULT_INJECTION, 0, "Highest sub-index supported", _U8, _RO, False, "lca_hil",
+                default=FAULT_BUS_OFF),
+    ObjectEntry(FAULT_INJECTION, FAULT_LOST_TPDOS, "Lost TPDOs", _U8, _RW, False, "lca_hil",
+                default=0),  # bit n - 1: TPDO n
+    ObjectEntry(FAULT_INJECTION, FAULT_HEARTBEAT_OFF, "Heartbeat off", _U8, _RW, False,
+                "lca_hil", default=0),
+    ObjectEntry(FAULT_INJECTION, FAULT_RAISE_EMCY, "Raise EMCY", _U16, _RW, False, "lca_hil",
+                default=0),
+    ObjectEntry(FAULT_INJECTION, FAULT_DRIVE_FAULT, "Drive fault", _U16, _RW, False, "lca_hil",
+                default=0),
+    ObjectEntry(FAULT_INJECTION, FAULT_BUS_OFF, "Bus-off", _U16, _RW, False, "lca_hil", "s",
+                Scaling.MILLI, Overflow.RAISE, default=0),
     # CiA 402-2 drive profile
     ObjectEntry(ABORT_CONNECTION_OPTION, 0, "Abort connection option code", _I16, _RW, False,
                 _cia402(ABORT_CONNECTION_OPTION), default=1),
