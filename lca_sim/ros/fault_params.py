@@ -20,15 +20,18 @@ from lca_control.parameters import ParameterError, ParameterTable, ParamKind, Pa
 from lca_sim.config.loader import read_yaml, resolve
 from lca_sim.errors import USER_ERRORS
 from lca_sim.model.faults import (
+    LINK,
     FaultInjector,
     ScheduledFault,
     fault_table,
+    parameter_name,
     parse_fault_schedule,
     split_name,
 )
 from lca_sim.ros.node_util import accepted, declare_table, rejected
 
 FAULT_SCHEDULE = "fault_schedule"
+DELAY = parameter_name(LINK, "state_delay_s")
 
 
 def is_fault_parameter(name: str) -> bool:
@@ -52,19 +55,34 @@ def node_fault_table(joints: Sequence[str]) -> ParameterTable:
 class FaultParameters:
     """Declares a node's fault parameters and applies every set of them to `injector`."""
 
-    def __init__(self, node: Node, injector: FaultInjector) -> None:
+    def __init__(self, node: Node, injector: FaultInjector, *, lockstep: bool = False) -> None:
         self._node = node
         self.injector = injector
+        self._lockstep = lockstep
         self.table = node_fault_table(injector.joints)
         values = declare_table(node, self.table)
         path = str(values.pop(FAULT_SCHEDULE))
         self.schedule: tuple[ScheduledFault, ...] = load_fault_schedule(path, injector.joints)
+        for entry in self.schedule:
+            self._check_mode(parameter_name(entry.owner, entry.kind), entry.value)
         injector.set_schedule(self.schedule)
         for name, value in values.items():
             owner, kind = split_name(name)
             if value != self.table[name].default:
+                self._check_mode(name, value)
                 injector.set(owner, kind, value)
         node.add_on_set_parameters_callback(self._on_set)
+
+    def _check_mode(self, name: str, value: object) -> None:
+        """Refuse what the timing mode cannot do.
+
+        Raises:
+            ParameterError: a state delay in lockstep. There the plant advances only on a
+                command, and the controller commands only on a new state, so a state held
+                back would stop the loop instead of delaying it (use realtime timing).
+        """
+        if self._lockstep and name == DELAY and value:
+            raise ParameterError(name, "0 in lockstep (a late state stops the loop there)", value)
 
     @property
     def names(self) -> frozenset[str]:
@@ -80,6 +98,8 @@ class FaultParameters:
         injector = self.injector
         try:
             checked = [(c.name, self.table[c.name].check(c.value)) for c in mine]
+            for name, value in checked:
+                self._check_mode(name, value)
         except ParameterError as exc:
             return rejected(str(exc))
         before = dict(injector.values)

@@ -125,7 +125,9 @@ class SimulatorNode(Node):
         self.sim = Simulator(robot, dt_s=p.dt_s, rigid_body_update_steps=p.rigid_body_update_steps)
         # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
         self.faults = FaultInjector(self.sim, period_s=p.control_period_s)
-        self._fault_params = FaultParameters(self, self.faults)
+        self._fault_params = FaultParameters(
+            self, self.faults, lockstep=p.timing_mode == "lockstep"
+        )
         self._link = StateLink(self.faults)
         self._measured = tuple(np.zeros(self.sim.n_axes) for _ in range(3))
         self.plant = CommandedPlant(
