@@ -1,11 +1,12 @@
 """The fault matrix of issue 14 ("No silent faults"): one case per numbered item, 1 to 12.
 
 Each case starts the real nodes (in-process, on an rclpy Context of their own) or the installed
-console tool, on its own ROS 2 domain (`FIRST_DOMAIN_ID + item - 1`, 200 to 211: no other module
-uses them), causes the item's fault, and asserts the diagnostic level and message, or the tool's
-output, within a deadline, and that no data was lost where the item says so. Every wait polls
-with a deadline (support.wait_until / spin_until); nothing sleeps a fixed time. docs/reliability.md
-points here from each row of its tables.
+console tool, on its own ROS 2 domain (`FIRST_DOMAIN_ID + item - 1`, 200 to 211, and 212 for
+the controller's side of item 6: no other module uses them), causes the item's fault, and
+asserts the diagnostic level and message, or the tool's output, within a deadline, and that no
+data was lost where the item says so. Every wait polls with a deadline (support.wait_until /
+spin_until); nothing sleeps a fixed time. docs/reliability.md points here from each row of its
+tables.
 """
 
 from __future__ import annotations
@@ -87,7 +88,9 @@ def ros_context(item: int) -> AbstractContextManager[tuple[Context, SingleThread
     return support.ros_context_on(_domain_id(item))
 
 
-def _controller(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any) -> ControllerNode:
+def _controller(
+    ctx: Context, executor: SingleThreadedExecutor, name: str = "controller", **overrides: Any
+) -> ControllerNode:
     """The controller on a ramp of the pivot, current commands, quick to miss its plant."""
     values: dict[str, Any] = {
         "reference_source": "ramp",
@@ -96,7 +99,7 @@ def _controller(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any
         "plant_timeout_s": 0.3,
         **overrides,
     }
-    ctl = ControllerNode(context=ctx, parameter_overrides=support.parameters(**values))
+    ctl = ControllerNode(name, context=ctx, parameter_overrides=support.parameters(**values))
     executor.add_node(ctl)
     return ctl
 
@@ -480,6 +483,39 @@ def test_item_06_a_second_publisher_of_the_plant_states_is_an_error() -> None:
         diagnostics.clear()
         # no ERROR once the second simulator is gone
         diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
+
+
+# The controller's own check (issue 14: "each plant and controller node reports ... a second
+# publisher"), on a domain of its own after the twelve items'.
+CONTROLLER_CONFLICT_DOMAIN_ID = FIRST_DOMAIN_ID + 12
+
+
+def test_item_06_a_second_publisher_of_the_controller_commands_is_an_error() -> None:
+    """Item 6, the controller's side: a second controller publishing `current_commands`."""
+    with support.ros_context_on(CONTROLLER_CONFLICT_DOMAIN_ID) as (ctx, executor):
+        diagnostics = Diagnostics(ctx, executor)
+        _controller(ctx, executor, reference_source="hold", use_sim_time=False)
+        # alone, it reports only that no plant runs
+        diagnostics.wait_for(CONTROLLER_STATUS, DiagnosticStatus.WARN, "no plant state for")
+        assert diagnostics.value(CONTROLLER_STATUS, "other_publishers") == "none"
+        other = _controller(ctx, executor, "controller_b", reference_source="hold")
+        diagnostics.clear()
+        # the first controller reports the second at ERROR, naming it and the topic
+        found = diagnostics.wait_for(
+            CONTROLLER_STATUS,
+            DiagnosticStatus.ERROR,
+            "another node publishes current_commands: /controller_b",
+        )
+        assert found.message.startswith("another node publishes current_commands: /controller_b")
+        assert "; no plant state for" in found.message  # the lesser fault still shows
+        published = diagnostics.value(CONTROLLER_STATUS, "other_publishers")
+        assert published == "current_commands: /controller_b; velocity_commands: /controller_b"
+        kill(executor, other)
+        diagnostics.clear()
+        # no ERROR once the second controller is gone
+        diagnostics.wait_for(CONTROLLER_STATUS, DiagnosticStatus.WARN, "no plant state for")
+        assert "another node" not in diagnostics.latest[CONTROLLER_STATUS].message
+        assert diagnostics.value(CONTROLLER_STATUS, "other_publishers") == "none"
 
 
 # --- 7 ----------------------------------------------------------------------------------------

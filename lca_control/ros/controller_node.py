@@ -73,6 +73,9 @@ class ControllerNode(Node):
             ri.VOLTAGE_COMMANDS if params.command_interface == "voltage" else ri.CURRENT_COMMANDS
         )
         self._command_pub = self.create_publisher(Float64MultiArray, topic, command_qos)
+        # The topics no other node may publish: a second controller would fight this one.
+        self._own_topics = (topic, ri.VELOCITY_COMMANDS)
+        self._other_publishers: tuple[str, ...] = ()
         self._velocity_pub = self.create_publisher(
             Float64MultiArray, ri.VELOCITY_COMMANDS, command_qos
         )
@@ -209,12 +212,50 @@ class ControllerNode(Node):
             return DiagnosticStatus.OK, "plant states again"
         return DiagnosticStatus.OK, "running"
 
+    def _graph_health(self, values: dict[str, object]) -> str | None:
+        """The ERROR message while another node publishes this one's commands, else None.
+
+        Read from the ROS graph (`get_publishers_info_by_topic`) every diagnostics period, as
+        the plants check their state topics (`PlantPublisher.graph_health`): a second
+        controller, or a node of this name started twice, would send the plant two commands
+        per state. Its start and its end are logged once each; the publishers found go to
+        `values["other_publishers"]`.
+        """
+        me = self.get_fully_qualified_name()
+        found: list[str] = []
+        for topic in self._own_topics:
+            names = [
+                f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                for info in self.get_publishers_info_by_topic(topic)
+            ]
+            others = sorted({name for name in names if name != me})
+            if names.count(me) > 1:
+                others.append(f"{me} (another node of this name)")
+            if others:
+                found.append(f"{topic}: {', '.join(others)}")
+        if tuple(found) != self._other_publishers:
+            if found:
+                self.get_logger().error(
+                    f"another node publishes {'; '.join(found)}: the plant gets two commands "
+                    "per state; stop the other controller"
+                )
+            elif self._other_publishers:
+                self.get_logger().info("no other publisher of the commands any more")
+            self._other_publishers = tuple(found)
+        values["other_publishers"] = "; ".join(found) or "none"
+        return f"another node publishes {found[0]}" if found else None
+
     def _publish_diagnostics(self) -> None:
         core = self.core
         level, message = self._plant_health()
         if level == DiagnosticStatus.OK and (core.rejected_references or self.bad_states):
             level, message = DiagnosticStatus.WARN, "bad states or references (see counters)"
-        values: dict[str, object] = {
+        values: dict[str, object] = {}
+        conflict = self._graph_health(values)
+        if conflict is not None:  # the worst first, then what else is wrong
+            message = conflict if level == DiagnosticStatus.OK else f"{conflict}; {message}"
+            level = DiagnosticStatus.ERROR
+        values |= {
             "enabled": core.params.enabled,
             "reference_source": core.params.reference_source,
             "elapsed_s": core.elapsed_s,
