@@ -61,6 +61,7 @@ from lca_sim.cli.ros_guard import ROS_MODULES
 from lca_sim.config.loader import load_robot
 from lca_sim.model.state_machine import MotionState
 from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
+from lca_sim.ros.node_util import from_stamp
 from lca_sim.ros.simulator_node import SimulatorNode
 from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S
@@ -239,21 +240,58 @@ def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end
 
 # --- 3 ----------------------------------------------------------------------------------------
 
+# Lockstep periods the restarted simulator may offer before the loop runs again: its first
+# state, and at most one re-send (after lockstep_resend_s of wall time without an answer, a
+# loaded machine's hiccup). A controller skipping the new states as old offers them for ever.
+RESTART_STATES_MAX = 2
+RESTART_LOG = "plant time went back from"
 
-def test_item_03_a_restarted_simulator_is_picked_up_and_counted() -> None:
+
+def test_item_03_a_restarted_simulator_is_picked_up_and_counted(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
     """Item 3: "A simulator restarted during a lockstep run: its stamps started again at 0"."""
     with ros_context(3) as (ctx, executor):
         diagnostics = Diagnostics(ctx, executor)
         sim, ctl = _lockstep_loop(ctx, executor, 0.4)
+        probe = Node("test_state_probe", context=ctx)
+        executor.add_node(probe)
+        new_states: list[float] = []  # the stamps of states from the restart on
+        probe.create_subscription(
+            JointState,
+            JOINT_STATES,
+            lambda msg: new_states.append(from_stamp(msg.header.stamp)),
+            STATE_QOS_DEPTH,
+        )
         kill(executor, sim)
-        restarted = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR)
+        skipped_before = ctl.states_skipped
+        capfd.readouterr()  # the log from here on
+        # the restarted simulator starts once both the controller and the probe subscribe
+        restarted = start_simulator(ctx, executor, LOCKSTEP_SIMULATOR, lockstep_subscribers=2)
+        spin_until(executor, lambda: restarted.steps > 0, "the restarted loop's first period", 30.0)
+        # Periods of the restarted simulator, not wall seconds: its states at t = 0 are the
+        # ones it offered before the controller answered one (late states of the killed
+        # simulator are stamped 0.4 s and later).
+        offered = sum(t == 0.0 for t in new_states)
+        assert 1 <= offered <= RESTART_STATES_MAX, f"{offered} states at t = 0 before an answer"
+        period_s = CONTROL_PERIOD_S
         spin_until(
             executor,
-            lambda: restarted.sim_time_s >= 0.2,
-            "the loop runs again after the simulator restarted",
+            lambda: restarted.sim_time_s >= 50 * period_s,
+            "50 periods of the restarted loop",
             30.0,
         )
+        # every later state was answered: no re-send, no state skipped as old
+        assert sum(t == 0.0 for t in new_states) == offered
+        assert ctl.states_skipped - skipped_before <= RESTART_STATES_MAX - 1
         assert ctl.core.plant_restarts == 1
+        # logged once, at the restart, not per state
+        log = capfd.readouterr().err
+        restarts_logged = [line for line in log.splitlines() if RESTART_LOG in line]
+        assert len(restarts_logged) == 1, log
+        assert restarts_logged[0].endswith(
+            "loops and reference restart from this state (restart 1)"
+        )
         spin_until(
             executor,
             lambda: (
