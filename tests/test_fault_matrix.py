@@ -257,12 +257,11 @@ def test_item_03_a_restarted_simulator_is_picked_up_and_counted(
         probe = Node("test_state_probe", context=ctx)
         executor.add_node(probe)
         new_states: list[float] = []  # the stamps of states from the restart on
-        probe.create_subscription(
-            JointState,
-            JOINT_STATES,
-            lambda msg: new_states.append(from_stamp(msg.header.stamp)),
-            STATE_QOS_DEPTH,
-        )
+
+        def on_state(msg: JointState) -> None:
+            new_states.append(from_stamp(msg.header.stamp))
+
+        probe.create_subscription(JointState, JOINT_STATES, on_state, STATE_QOS_DEPTH)
         kill(executor, sim)
         skipped_before = ctl.states_skipped
         capfd.readouterr()  # the log from here on
