@@ -212,14 +212,19 @@ def test_item_01_a_disabled_simulator_applies_zero_volts_from_the_next_step() ->
 
 # --- 2 ----------------------------------------------------------------------------------------
 
+GEAR_HOLDS_LOG = "the gear holds the load"  # the old, wrong words for a reversible robot
+REVERSIBLE_LOG = "the gear is reversible: the load may drive the axes"
 
-def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end_stop() -> None:
+
+def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end_stop(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
     """Item 2: "reversible robot, left without command, back-drove and fell into its end stop"."""
     with ros_context(2) as (ctx, executor):
         diagnostics = Diagnostics(ctx, executor)
         # The pivot under gravity, 0.01 rad inside its end stop (2 rad): it runs into it at
         # about 0.01 rad/s with 0 V (the reversible baseline of docs/model.md).
-        start_simulator(
+        sim = start_simulator(
             ctx,
             executor,
             REALTIME_SIMULATOR,
@@ -227,15 +232,29 @@ def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end
             command_timeout_s=0.2,
             initial_position=[0.0, 1.99, 0.0, 0.0],
         )
+        # One tiny command that then stops: the command timeout's log line is written too.
+        operator = Node("test_operator", context=ctx)
+        executor.add_node(operator)
+        pub = operator.create_publisher(Float64MultiArray, VOLTAGE_COMMANDS, 10)
+        nudge = Float64MultiArray(data=[0.0, 0.01, 0.0, 0.0])
+        operator.create_timer(0.02, lambda: None if sim.plant.target.any() else pub.publish(nudge))
+        spin_until(executor, lambda: bool(sim.plant.target.any()), "the command is taken", 30.0)
+        kill(executor, operator)
         # the back-driven pivot is reported
         diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "back-driving: pivot moving at")
         assert diagnostics.latest[PIVOT_STATUS].message.endswith("rad/s with no command")
         # the command silence is reported
         diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for")
         assert "holding" not in diagnostics.latest[SIMULATOR_STATUS].message  # not held
+        spin_until(executor, lambda: not sim.plant.target.any(), "0 V after the timeout", 30.0)
         # the end-stop contact is reported with its speed
         diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "end stop hit at", 60.0)
         assert float(diagnostics.value(PIVOT_STATUS, "end_stop_contact_speed")) > 0.0
+        # and the log never says the gear holds the load it lets fall
+        log = capfd.readouterr().err
+        assert REVERSIBLE_LOG in log, log
+        assert "0 V, reversible gear (not held)" in log, log
+        assert GEAR_HOLDS_LOG not in log and "holding (0 V)" not in log, log
 
 
 # --- 3 ----------------------------------------------------------------------------------------
