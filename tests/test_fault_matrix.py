@@ -577,8 +577,8 @@ def test_item_06_a_second_publisher_of_the_controller_commands_is_an_error() -> 
 # --- 7 ----------------------------------------------------------------------------------------
 
 # The scenario's whole run: `lca-hil fig15`'s default duration (13 s of simulated time), so the
-# test runs it without --duration-s. Beside the CPU hog it takes about 31 s of wall time on the
-# 2-core machine (3251 lockstep periods at about 600 per second).
+# test runs it without --duration-s. Beside the CPU hog it took 31 s of wall time on the 2-core
+# machine alone (3251 lockstep periods at about 600 per second), 140 s with other tests running.
 FIG15_DURATION_S = 13.0
 
 
