@@ -1366,10 +1366,12 @@ class VirtualDriveRack:
         faults.bus_off_ms, faults.bus_off_until_step = 0, None
         network.subscribe(sdo_cob, node.sdo.on_request)
         network.subscribe(NMT_COB_ID, node.nmt.on_command)
-        self._update_silence(axis)
-        self._emcy(axis, EMCY_BUS_OFF_RECOVERED)
+        self._update_silence(axis, restart_heartbeat=False)
+        self._emcy(axis, EMCY_BUS_OFF_RECOVERED)  # its first frame back, then the heartbeat
+        if not faults.heartbeat_off and self._started:
+            node.nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
 
-    def _update_silence(self, axis: _Axis) -> None:
+    def _update_silence(self, axis: _Axis, restart_heartbeat: bool = True) -> None:
         """Mute the frames of bus-off nodes, stop or restart `axis`'s heartbeat producer."""
         muted: set[int] = set()
         periodic: set[int] = set()
@@ -1390,7 +1392,7 @@ class VirtualDriveRack:
         nmt = axis.node.nmt
         if cob in periodic and not was_silent:
             nmt.stop_heartbeat()  # type: ignore[no-untyped-call]
-        elif was_silent and cob not in periodic and self._started:
+        elif was_silent and cob not in periodic and self._started and restart_heartbeat:
             nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
 
     def _dropped_bus_off(self, cob_id: int) -> None:
