@@ -14,6 +14,7 @@ errors, drive-state changes).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -26,8 +27,9 @@ from lca_control.controller import validate_controller_params
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
 from lca_sim.cli.output import number_cell, write_json, write_table
-from lca_sim.config.loader import config_dir, load_robot, read_yaml
+from lca_sim.config.loader import config_dir, load_fault_schedule, load_robot, read_yaml
 from lca_sim.errors import EXIT_OK, ConfigError, run_guarded
+from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter, standing_faults
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.simulator_params import validate_simulator_params
 
@@ -75,7 +77,8 @@ def closed_loop_config(
         ConfigError: a bad robot.
     """
     controller = validate_controller_params(controller_values)
-    simulator = validate_simulator_params(simulator_values)
+    plant_values = {k: v for k, v in simulator_values.items() if not is_fault_parameter(k)}
+    simulator = validate_simulator_params(plant_values)
     if duration_s is None:
         duration_s = simulator.lockstep_end_s
         if duration_s <= 0.0:
@@ -117,7 +120,9 @@ def load_config(
     except ParameterError as exc:
         raise _in_file(controller_path, "controller", exc) from exc
     try:
-        validate_simulator_params(simulator_values)
+        validate_simulator_params(
+            {k: v for k, v in simulator_values.items() if not is_fault_parameter(k)}
+        )
     except ParameterError as exc:
         raise _in_file(simulator_path, "simulator", exc) from exc
     return closed_loop_config(controller_values, simulator_values, duration_s)
@@ -227,6 +232,12 @@ def add_parser(sub: Any) -> None:
         default=DEFAULT_DURATION_S,
         help=f"simulated seconds (default {DEFAULT_DURATION_S:g}); a whole number of dt_s",
     )
+    parser.add_argument(
+        "--faults",
+        default="",
+        help="a fault schedule (docs/faults.md): a YAML path, or a name in config/faults/; "
+        "overrides the simulator config's fault_schedule",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/run"), help="output folder")
 
 
@@ -245,6 +256,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     config = load_config(args.controller_config, args.simulator_config, args.duration_s)
+    values = node_parameters(args.simulator_config, "simulator")
+    schedule = args.faults or str(values.get(FAULT_SCHEDULE, ""))
+    try:
+        standing = standing_faults(values, config.robot.axis_names)
+    except ParameterError as exc:
+        raise _in_file(args.simulator_config, "simulator", exc) from exc
+    faults = (*standing, *load_fault_schedule(schedule, config.robot.axis_names))
+    if faults:
+        config = dataclasses.replace(config, faults=faults)
+        print(f"{PROG}: {len(faults)} faults ({schedule or args.simulator_config})")
     loop = ClosedLoop(config)
     start = time.perf_counter()
     result = loop.run()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +19,7 @@ import pinocchio as pin
 import yaml
 
 from lca_sim.errors import ConfigError, UnknownNameError
+from lca_sim.model.faults import ScheduledFault, parse_fault_schedule
 from lca_sim.model.params import RobotParams, parse_robot
 from lca_sim.model.scenario import Scenario, parse_scenario
 
@@ -200,3 +201,16 @@ def load_scenario(name_or_path: str, axis_names: tuple[str, ...]) -> Scenario:
     """Load and validate a scenario: a shipped name (`fig9_open_loop_pivot`) or a path."""
     path = resolve(name_or_path, "scenarios")
     return parse_scenario(read_yaml(path), str(path), axis_names)
+
+
+def load_fault_schedule(name_or_path: str, joints: Sequence[str]) -> tuple[ScheduledFault, ...]:
+    """A fault schedule (docs/faults.md): a file path, or a name in config/faults/; () for "".
+
+    Raises:
+        ConfigError: unreadable file, or the first bad entry, named by its key path.
+        UnknownNameError: no shipped schedule of that name.
+    """
+    if not name_or_path:
+        return ()
+    path = resolve(name_or_path, "faults")
+    return parse_fault_schedule(read_yaml(path), str(path), joints)

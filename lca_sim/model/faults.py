@@ -199,6 +199,34 @@ def fault_table(joints: Sequence[str]) -> ParameterTable:
     return ParameterTable(tuple(specs))
 
 
+FAULT_SCHEDULE = "fault_schedule"  # the node parameter naming a schedule file
+
+
+def is_fault_parameter(name: str) -> bool:
+    """True for a plant node's fault parameters (`faults.*`, `fault_schedule`)."""
+    return name.startswith("faults.") or name == FAULT_SCHEDULE
+
+
+def standing_faults(values: Mapping[str, Any], joints: Sequence[str]) -> tuple[ScheduledFault, ...]:
+    """The `faults.<owner>.<kind>` values of a params file as entries on from t = 0 for good.
+
+    Raises:
+        ParameterError: an unknown name or a value outside its range.
+    """
+    table = fault_table(joints)
+    entries = []
+    for name, value in values.items():
+        if not name.startswith("faults."):
+            continue
+        if name not in table:
+            raise ParameterError(name, "faults.<joint>.<kind> of a known joint and kind", value)
+        checked = table[name].check(value)
+        owner, kind = split_name(name)
+        if checked != table[name].default:
+            entries.append(ScheduledFault(owner, kind, checked, 0.0, math.inf))
+    return tuple(entries)
+
+
 def split_name(name: str) -> tuple[str, str]:
     """(owner, kind) of `faults.<owner>.<kind>`.
 

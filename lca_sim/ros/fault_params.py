@@ -17,26 +17,24 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from lca_control.parameters import ParameterError, ParameterTable, ParamKind, ParamSpec
-from lca_sim.config.loader import read_yaml, resolve
+from lca_sim.config.loader import load_fault_schedule
 from lca_sim.errors import USER_ERRORS
 from lca_sim.model.faults import (
+    FAULT_SCHEDULE,
     LINK,
     FaultInjector,
     ScheduledFault,
     fault_table,
+    is_fault_parameter,
     parameter_name,
-    parse_fault_schedule,
     split_name,
 )
 from lca_sim.ros.node_util import accepted, declare_table, rejected
 
-FAULT_SCHEDULE = "fault_schedule"
 DELAY = parameter_name(LINK, "state_delay_s")
 
 
-def is_fault_parameter(name: str) -> bool:
-    """True for the names `FaultParameters` owns (`faults.*`, `fault_schedule`)."""
-    return name.startswith("faults.") or name == FAULT_SCHEDULE
+__all__ = ["FAULT_SCHEDULE", "FaultParameters", "is_fault_parameter", "node_fault_table"]
 
 
 def node_fault_table(joints: Sequence[str]) -> ParameterTable:
@@ -116,15 +114,3 @@ class FaultParameters:
             "faults: " + "; ".join(f"{name} = {value}" for name, value in checked)
         )
         return accepted()
-
-
-def load_fault_schedule(path: str, joints: Sequence[str]) -> tuple[ScheduledFault, ...]:
-    """The schedule in the YAML file at `path` (a path, or a name in config/faults/); () for "".
-
-    Raises:
-        ConfigError: unreadable file, or the first bad entry, named by its key path.
-    """
-    if not path:
-        return ()
-    file = resolve(path, "faults")
-    return parse_fault_schedule(read_yaml(file), str(file), joints)

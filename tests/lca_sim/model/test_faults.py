@@ -10,6 +10,7 @@ current loop inside the plant.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -335,3 +336,25 @@ def test_signals_report_the_open_circuit_without_nan() -> None:
     sim, _plant, injector = _held_plant(sto=True)
     assert np.all(np.isfinite(sim.signal_array[[SIGNAL_NAMES.index("copper_loss_w")]]))
     assert injector.describe("l_arm") == "sto"
+
+
+def test_lca_hil_run_takes_a_schedule_and_fault_parameters(tmp_path: Path) -> None:
+    """`lca-hil run --faults NAME`, and faults.<joint>.<kind> in the simulator's params file."""
+    from lca_sim.cli import run
+
+    out = tmp_path / "scheduled"
+    assert run.main(["run", "--duration-s", "3", "--faults", "pivot_encoder_freeze",
+                     "--out", str(out)]) == 0  # fmt: skip
+    assert (out / "trajectory.csv").is_file()
+    params = yaml.safe_load((CONFIG / "ros" / "simulator.yaml").read_text())
+    params["simulator"]["ros__parameters"]["faults.pivot.jam"] = True
+    jammed_config = tmp_path / "simulator.yaml"
+    jammed_config.write_text(yaml.safe_dump(params))
+    out = tmp_path / "jammed"
+    assert run.main(["run", "--duration-s", "2", "--simulator-config", str(jammed_config),
+                     "--out", str(out)]) == 0  # fmt: skip
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["joints"]["pivot"]["max_abs_current_a"] > 19.0  # jammed from t = 0
+    params["simulator"]["ros__parameters"]["faults.pivot.jam"] = "yes"
+    jammed_config.write_text(yaml.safe_dump(params))
+    assert run.main(["run", "--simulator-config", str(jammed_config), "--out", str(out)]) == 2
