@@ -6,7 +6,9 @@ nonLinearEffects and computeGeneralizedGravity on the URDF.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import numpy.typing as npt
@@ -70,11 +72,36 @@ class Gantry:
     def dynamics_terms(self, q: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
         """A(q) (upper triangle filled) and C(q, qdot) qdot + Q(q), eq. (2).
 
-        The arrays are Pinocchio's own buffers, valid until the next call.
+        The arrays are new copies of Pinocchio's results (its bindings return by value).
         """
         mass = pin.crba(self._model, self._data, q)
         nle = pin.nonLinearEffects(self._model, self._data, q, v)
         return mass, nle
+
+    def terms_at(
+        self, q: FloatArray, v: FloatArray
+    ) -> tuple[Callable[[], FloatArray], Callable[[], FloatArray]]:
+        """`dynamics_terms` bound to two arrays, as two calls without arguments, for a hot path.
+
+        Each call evaluates Pinocchio's crba (A(q), upper triangle) or nonLinearEffects
+        (C(q, qdot) qdot + Q(q)) at what `q` and `v` hold at that moment: the arrays are bound,
+        not their values, so the caller updates them in place. The same Pinocchio functions on
+        the same inputs as `dynamics_terms`, so the same bits; without its Python frame and
+        attribute lookups (bench/model_step.py).
+        """
+        mass_at: Callable[[], FloatArray] = partial(pin.crba, self._model, self._data, q)
+        nle_at: Callable[[], FloatArray] = partial(
+            pin.nonLinearEffects, self._model, self._data, q, v
+        )
+        return mass_at, nle_at
+
+    def term_buffers(self) -> tuple[FloatArray, FloatArray]:
+        """Views of the buffers in Pinocchio's `Data` that crba and nonLinearEffects write.
+
+        A(q) (`Data.M`, column major, upper triangle written) and C(q, qdot) qdot + Q(q)
+        (`Data.nle`), in place, valid for this object's life (the model's size never changes).
+        """
+        return self._data.M, self._data.nle
 
     def mass_matrix(self, q: FloatArray) -> FloatArray:
         """A(q), full symmetric copy (kg m^2 or kg on the diagonal)."""

@@ -24,10 +24,15 @@ machine reads tau_l through a per-axis sign band, `P_LOAD_TORQUE_BAND` (docs/mod
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
+from numba import config as numba_config
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+from numba.np.numpy_support import carray, farray
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -479,3 +484,105 @@ def steps(
         if step(mass_matrix, nonlinear_effects, voltage_cmd_v, work, model, dt_s) != OK:
             return k
     return n_steps
+
+
+# --- the step at a fixed frame of memory ------------------------------------------------------
+#
+# numba unboxes every array argument at every call (about 0.1-0.15 us each), which at 4 axes
+# costs more than the step's arithmetic. A simulator's arrays never move: `work` and `model` are
+# its own, and Pinocchio's crba and nonLinearEffects write A(q) and the nonlinear effects into
+# the same Eigen buffers of its `Data` at every call (`Data.M`, column major, and `Data.nle`).
+# So `step_in_frame` takes their addresses once, in a small integer array (`frame`), and views
+# them in place; only the voltage array, new at every call, is unboxed. The arithmetic is
+# `step`'s, called on views of the same memory, so the bits are the same.
+
+F_MASS = 0  # address of A(q): n x n float64, column major (Eigen's layout)
+F_NLE = 1  # address of C(q, qdot) qdot + Q(q): n float64
+F_WORK = 2  # address of `work`: work_rows(n) x n float64, row major
+F_MODEL = 3  # address of `model`: F_MODEL_ROWS x n float64, row major
+F_N = 4  # number of axes
+F_MODEL_ROWS = 5
+N_FRAME = 6
+
+
+@intrinsic
+def _void_pointer(typingctx, address):  # type: ignore[no-untyped-def]
+    """The integer `address` as a void pointer (numba's recipe for carray on given memory)."""
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        return builder.inttoptr(args[0], cgutils.voidptr_t)
+
+    return types.voidptr(types.int64), codegen
+
+
+# Raw addresses mean nothing to plain Python: with NUMBA_DISABLE_JIT=1 the simulator passes arrays.
+FRAME_AVAILABLE = not getattr(numba_config, "DISABLE_JIT", False)
+
+
+def make_frame(
+    mass_matrix: FloatArray, nonlinear_effects: FloatArray, work: FloatArray, model: FloatArray
+) -> npt.NDArray[np.int64]:
+    """The `frame` of `step_in_frame`: the addresses and shapes of the four arrays.
+
+    The caller keeps the four arrays alive and in place for as long as it uses the frame.
+
+    Raises:
+        ValueError: an array has the wrong dtype, shape or memory layout.
+
+    """
+    n = work.shape[1]
+    layouts = (
+        (mass_matrix, (n, n), mass_matrix.flags.f_contiguous, "column-major"),
+        (nonlinear_effects, (n,), nonlinear_effects.flags.c_contiguous, "contiguous"),
+        (work, (work_rows(n), n), work.flags.c_contiguous, "row-major"),
+        (model, (model.shape[0], n), model.flags.c_contiguous, "row-major"),
+    )
+    for array, shape, in_layout, layout in layouts:
+        if array.dtype != np.float64 or array.shape != shape or not in_layout:
+            raise ValueError(
+                f"expected a {layout} float64 array of shape {shape}, "
+                f"got {array.dtype} {array.shape}"
+            )
+    frame = np.zeros(N_FRAME, dtype=np.int64)
+    frame[F_MASS] = mass_matrix.ctypes.data
+    frame[F_NLE] = nonlinear_effects.ctypes.data
+    frame[F_WORK] = work.ctypes.data
+    frame[F_MODEL] = model.ctypes.data
+    frame[F_N] = n
+    frame[F_MODEL_ROWS] = model.shape[0]
+    return frame
+
+
+# One signature, compiled when this module is first imported (then loaded from numba's cache):
+# any 1-D float64 voltage array (strided views too), the frame, the step.
+@njit("int64(float64[:], int64[::1], float64)", cache=True)
+def step_in_frame(voltage_cmd_v: FloatArray, frame: npt.NDArray[np.int64], dt_s: float) -> int:
+    """`step` on the arrays whose addresses `frame` holds (`make_frame`); same returns.
+
+    Call it through `step_in_frame_entry` on the hot path.
+    """
+    n = frame[F_N]
+    mass_matrix = farray(_void_pointer(frame[F_MASS]), (n, n), np.float64)  # type: ignore[call-arg]
+    nonlinear_effects = carray(_void_pointer(frame[F_NLE]), (n,), np.float64)
+    work = carray(_void_pointer(frame[F_WORK]), (W_INERTIA + 2 * n, n), np.float64)
+    model = carray(_void_pointer(frame[F_MODEL]), (frame[F_MODEL_ROWS], n), np.float64)
+    return step(mass_matrix, nonlinear_effects, voltage_cmd_v, work, model, dt_s)
+
+
+def step_in_frame_entry() -> Callable[[FloatArray, npt.NDArray[np.int64], float], int]:
+    """`step_in_frame`'s compiled entry point, without numba's dispatcher in front of it.
+
+    The dispatcher works out the numba types of the arguments at every call to pick a compiled
+    version, which costs about half the call. `step_in_frame` has one version, so this returns
+    it (`Dispatcher.overloads`); its arguments are then unboxed as that version's types without
+    being checked: the voltages MUST be a 1-D float64 array of the frame's axis count (any
+    strides), the frame `make_frame`'s, and dt_s a float. Falls back to the dispatcher when
+    numba's JIT is off or it has no single compiled version.
+    """
+    overloads = getattr(step_in_frame, "overloads", None)
+    if not overloads or len(overloads) != 1:
+        return step_in_frame
+    entry: Callable[[FloatArray, npt.NDArray[np.int64], float], int] = next(
+        iter(overloads.values())
+    ).entry_point
+    return entry

@@ -41,6 +41,10 @@ SIGNAL_NAMES: tuple[str, ...] = (
     "motor_acceleration_rad_s2",
 )
 assert len(SIGNAL_NAMES) == kernel.N_SIGNALS
+# For `Simulator.step`'s checks: numpy's float64 dtype is one object, so `is` tests it at the
+# cost of a pointer comparison (anything else takes the converting path, which tests it fully).
+_FLOAT64 = np.dtype(np.float64)
+_OK = kernel.OK
 
 
 class InputError(LcaHilError, ValueError):
@@ -164,6 +168,8 @@ class Simulator:
         self._held_nle = np.zeros(self.n_axes)
         self._terms: tuple[FloatArray, FloatArray] = (self._held_mass, self._held_nle)
         self._hold_age = 0  # steps taken on the held terms; 0: evaluate before the next step
+        # One step's Pinocchio calls and kernel, behind one call made once (`_bind_kernel_step`).
+        self._kernel_step = self._bind_kernel_step()
         self._time_s = 0.0
         self.reset()
 
@@ -282,17 +288,82 @@ class Simulator:
 
         """
         command = voltage_v
-        if type(command) is not np.ndarray or command.dtype != np.float64:
+        if (
+            type(command) is not np.ndarray
+            or command.dtype is not _FLOAT64
+            or command.shape != self._command_shape
+        ):
             command = np.asarray(voltage_v, dtype=np.float64)
-        if command.shape != self._command_shape:
-            raise InputError(f"expected {self.n_axes} voltages, got shape {command.shape}")
-        mass, nle = self._rigid_body_terms()
-        code = kernel.step(mass, nle, command, self._work, self._model, self.dt_s)
-        if code != kernel.OK:
+            if command.shape != self._command_shape:
+                raise InputError(f"expected {self.n_axes} voltages, got shape {command.shape}")
+        if self._kernel_step(command) != _OK:
             raise InputError(f"voltage commands must be finite, got {command.tolist()}")
         self._command = command
         self._time_s += self.dt_s
-        self._hold_age = (self._hold_age + 1) % self._hold_steps
+
+    def _bind_kernel_step(self) -> Callable[[FloatArray], int]:
+        """The rigid-body terms and `kernel.step` of one step, as one call on a voltage array.
+
+        `step` is the hot path of every run (bench/model_step.py holds it against a MuJoCo
+        step), and at 4 axes its cost is mostly Python around the compiled code, not the
+        arithmetic. So the exact scheme (terms at every step) is a closure over everything
+        fixed for the simulator's life: the two Pinocchio calls bound to the position and
+        velocity rows of `work` (`Gantry.terms_at`), the kernel, `work`, `model` and `dt_s`.
+        It makes the same calls on the same arrays as the general path, so the same bits.
+        """
+        if self._hold_steps > 1:
+            return self._held_kernel_step
+        mass_at, nle_at = self._gantry.terms_at(self._position, self._velocity)
+        work, model, dt_s = self._work, self._model, self.dt_s
+        frame = self._kernel_frame(mass_at(), nle_at())
+        if frame is None:
+            kernel_step = kernel.step
+
+            def exact_kernel_step(command: FloatArray) -> int:
+                code: int = kernel_step(mass_at(), nle_at(), command, work, model, dt_s)
+                return code
+
+            return exact_kernel_step
+        step_in_frame = kernel.step_in_frame_entry()  # `step` checked the voltages' type
+
+        def exact_frame_step(command: FloatArray) -> int:
+            mass_at()  # Pinocchio writes A(q) and the nonlinear effects into its Data's
+            nle_at()  # buffers, where the frame points; the copies it returns are dropped
+            code: int = step_in_frame(command, frame, dt_s)
+            return code
+
+        return exact_frame_step
+
+    def _kernel_frame(self, mass: FloatArray, nle: FloatArray) -> npt.NDArray[np.int64] | None:
+        """`kernel.step_in_frame`'s frame, or None where it cannot be used.
+
+        `mass` and `nle` are what Pinocchio just returned; the frame is used only if its
+        `Data` buffers hold the same (so a Pinocchio release that stops writing them in place
+        falls back to passing arrays), and not when numba's JIT is off (no raw addresses in
+        plain Python).
+        """
+        if not kernel.FRAME_AVAILABLE:
+            return None
+        mass_buffer, nle_buffer = self._gantry.term_buffers()
+        upper = np.triu_indices(self.n_axes)
+        if not (
+            np.array_equal(mass_buffer[upper], mass[upper]) and np.array_equal(nle_buffer, nle)
+        ):
+            return None
+        try:
+            frame = kernel.make_frame(mass_buffer, nle_buffer, self._work, self._model)
+        except ValueError:
+            return None
+        self._frame_arrays = (mass_buffer, nle_buffer)  # the frame's memory stays referenced
+        return frame
+
+    def _held_kernel_step(self, command: FloatArray) -> int:
+        """One kernel step on the held rigid-body terms (evaluated when a new hold starts)."""
+        mass, nle = self._rigid_body_terms()
+        code: int = kernel.step(mass, nle, command, self._work, self._model, self.dt_s)
+        if code == kernel.OK:
+            self._hold_age = (self._hold_age + 1) % self._hold_steps
+        return code
 
     def advance(self, n_steps: int, voltage_v: FloatArray) -> None:
         """`n_steps` of `step` under one voltage command, in compiled code per hold.
