@@ -358,3 +358,36 @@ def test_lca_hil_run_takes_a_schedule_and_fault_parameters(tmp_path: Path) -> No
     params["simulator"]["ros__parameters"]["faults.pivot.jam"] = "yes"
     jammed_config.write_text(yaml.safe_dump(params))
     assert run.main(["run", "--simulator-config", str(jammed_config), "--out", str(out)]) == 2
+
+
+def test_encoder_noise_has_its_deviation_and_a_differentiated_velocity() -> None:
+    """Position noise of sigma; velocity noise of sqrt(2) sigma / T, as a differentiator."""
+    sim = Simulator(load_robot("default"), DT_S)
+    injector = FaultInjector(sim, PERIOD_S)
+    injector.set("pivot", "encoder_noise", 1e-4)
+    read = (np.zeros(4), np.zeros(4), np.zeros(4))
+    q_noise, v_noise = [], []
+    for _ in range(4000):
+        injector.measure(np.zeros(4), np.zeros(4), np.zeros(4), read)
+        q_noise.append(read[0][PIVOT])
+        v_noise.append(read[1][PIVOT])
+    assert float(np.std(q_noise)) == pytest.approx(1e-4, rel=0.05)
+    assert float(np.std(v_noise)) == pytest.approx(math.sqrt(2) * 1e-4 / PERIOD_S, rel=0.05)
+
+
+def test_dropped_encoder_samples_leave_the_loop_running(nominal: ClosedLoopResult) -> None:
+    """10 % of the pivot's samples lost: the controller resends its last command, no NaN."""
+    lossy = ClosedLoop(_config(5.0, _on("encoder_dropout", 0.1, 1.0)))
+    result = lossy.run()
+    assert np.all(np.isfinite(result.command))
+    assert result.commands_rejected == 0
+    steady = _window(result, 3.0, 5.0)
+    error = np.abs(result.velocity[steady, PIVOT] - result.velocity_reference[steady, PIVOT])
+    assert error.max() < math.radians(0.5)  # still tracking
+
+
+def test_worn_gear_changes_the_current_it_takes(nominal: ClosedLoopResult) -> None:
+    """eta_m 0.2 lower in every moving state: the same motion takes more current."""
+    worn = _run(5.0, _on("eta_m_drift", -0.2, 0.0))
+    steady = _window(worn, 4.0, 5.0)
+    assert np.mean(worn.current_a[steady, PIVOT]) > 1.1 * np.mean(nominal.current_a[steady, PIVOT])
