@@ -35,6 +35,10 @@ setup(
             "ros/*.yaml",
             "can/*.yaml",
             "can/*.eds",
+            "faults/*.yaml",
+            "sweeps/*.yaml",
+            "layouts/*",
+            "ros2_control/*",
         ]
     },
     data_files=[
@@ -45,6 +49,10 @@ setup(
         ("share/" + PACKAGE + "/config/urdf", _config_files("urdf")),
         ("share/" + PACKAGE + "/config/ros", _config_files("ros")),
         ("share/" + PACKAGE + "/config/can", _config_files("can")),
+        ("share/" + PACKAGE + "/config/faults", _config_files("faults")),
+        ("share/" + PACKAGE + "/config/sweeps", _config_files("sweeps")),
+        ("share/" + PACKAGE + "/config/layouts", _config_files("layouts")),
+        ("share/" + PACKAGE + "/config/ros2_control", _config_files("ros2_control")),
     ],
     install_requires=[
         "numpy>=1.26",

@@ -30,6 +30,16 @@ def test_non_editable_install_finds_shipped_configs(tmp_path: Path) -> None:
         check=True, capture_output=True, text=True,
     )  # fmt: skip
     assert (target / "lca_sim" / "data" / "robots" / "default.yaml").is_file()
+    data = target / "lca_sim" / "data"
+    for shipped in (
+        "faults/pivot_encoder_freeze.yaml",
+        "sweeps/gear_wear_pivot.yaml",
+        "layouts/lca_hil.plotjuggler.xml",
+        "layouts/lca_hil.foxglove.json",
+        "ros2_control/controllers.yaml",
+        "ros2_control/lca_hil.ros2_control.xacro",
+    ):
+        assert (data / shipped).is_file(), shipped
     assert (target / "bin" / "lca-sim").is_file()
     probe = (
         "import lca_sim, lca_sim.config.loader as c;"
