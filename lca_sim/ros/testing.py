@@ -218,10 +218,11 @@ class HilLoop:
     def inject(self, node: Node, **values: Any) -> str:
         """Switch something on or off in a running loop: parameters of the node that owns it.
 
-        The hook faults use: a fault is a parameter (namespace `faults.<joint>.<kind>`) of the
-        node that owns it, so injecting one is a live set on that node, refused with the reason
-        if the node has no such fault. For now the nodes' existing parameters go through it
-        (`enabled`, `initial_position`, gains, limits). Returns "" or the reason (no check).
+        A fault is a parameter of the node that owns it (`faults.<joint>.<kind>`,
+        `faults.link.<kind>` on the simulator; docs/faults.md), so injecting one is a live set
+        on that node, refused with the reason if the value is not one it takes:
+        `inject(loop.simulator, **{"faults.pivot.jam": True})`. Any other live parameter goes
+        through it too (`enabled`, gains, limits). Returns "" or the reason (no check).
         """
         return self.set_parameters(node, check=False, **values)
 
