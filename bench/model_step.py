@@ -18,9 +18,12 @@ Every figure is the median over repeats of ``time.perf_counter`` around a plain 
 the state being reset before each repeat so the joints stay inside their limits. The repeats of
 the three measurements are interleaved (one repeat of each in turn, the order rotating), so a
 noisy neighbour or a clock change on a shared machine hits all three alike and the ratios stay
-fair. The targets are a full step of at most 1.5x a MuJoCo step and a real-time factor of at
-least 5 at dt = 0.1 ms; they are reported, never enforced (the exit status is 0). The last
-stdout line is one JSON object with every figure.
+fair. The same loops are also timed in the thread's CPU time (``time.thread_time``), which
+leaves out the time other processes held the core; both ratios are printed, the target is
+judged on the wall-clock one. The targets are issue 17's full step of at most 1.0x a MuJoCo
+step (the exact scheme, Pinocchio's terms evaluated at every step, against ``mj_step``) and a
+real-time factor of at least 5 at dt = 0.1 ms; they are reported, never enforced (the exit
+status is 0). The last stdout line is one JSON object with every figure.
 
 Run from the repository root::
 
@@ -34,6 +37,7 @@ script still measures the first two figures and reports null for the MuJoCo ones
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import re
 import statistics
@@ -59,7 +63,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 URDF_PATH = REPO_ROOT / "config" / "urdf" / "lca_gantry.urdf"
 DT_S = 1e-4
 DT_US = DT_S * 1e6
-TARGET_RATIO_MAX = 1.5
+TARGET_RATIO_MAX = 1.0  # issue 17: the full step at or under MuJoCo's
 TARGET_RTF_MIN = 5
 DEFAULT_STEPS = 20_000
 DEFAULT_REPEATS = 5
@@ -89,9 +93,18 @@ MOVING_VELOCITY_EPS = 1e-6
 
 @dataclass(frozen=True, slots=True)
 class Timing:
-    """Microseconds per call for each repeat, with the median as the headline figure."""
+    """Microseconds per call for each repeat, with the median as the headline figure.
+
+    `per_repeat_us` is wall-clock time, `per_repeat_cpu_us` the thread's CPU time.
+    """
 
     per_repeat_us: tuple[float, ...]
+    per_repeat_cpu_us: tuple[float, ...]
+
+    @property
+    def median_cpu_us(self) -> float:
+        """The median over repeats of the thread's CPU time (us per call)."""
+        return statistics.median(self.per_repeat_cpu_us)
 
     @property
     def median_us(self) -> float:
@@ -124,14 +137,17 @@ class Case:
     args: tuple[Any, ...]
     reset: Callable[[], None]
 
-    def run_us(self, steps: int) -> float:
-        """Reset, then time `steps` calls; microseconds per call."""
+    def run_us(self, steps: int) -> tuple[float, float]:
+        """Reset, then time `steps` calls; microseconds per call, wall clock and CPU."""
         self.reset()
         call, args = self.call, self.args
+        start_cpu_s = time.thread_time()
         start_s = time.perf_counter()
         for _ in range(steps):
             call(*args)
-        return (time.perf_counter() - start_s) / steps * 1e6
+        wall_s = time.perf_counter() - start_s
+        cpu_s = time.thread_time() - start_cpu_s
+        return wall_s / steps * 1e6, cpu_s / steps * 1e6
 
     def warm_up(self, steps: int) -> None:
         """Run repeats for at least WARMUP_S (caches, branch predictors, CPU clock)."""
@@ -153,12 +169,15 @@ def run_interleaved(cases: Sequence[Case], steps: int, repeats: int) -> dict[str
     """
     for case in cases:
         case.warm_up(steps)
-    per_repeat_us: dict[str, list[float]] = {case.name: [] for case in cases}
+    per_repeat: dict[str, list[tuple[float, float]]] = {case.name: [] for case in cases}
     for r in range(repeats):
         shift = r % len(cases)
         for case in [*cases[shift:], *cases[:shift]]:
-            per_repeat_us[case.name].append(case.run_us(steps))
-    return {name: Timing(tuple(values)) for name, values in per_repeat_us.items()}
+            per_repeat[case.name].append(case.run_us(steps))
+    return {
+        name: Timing(tuple(w for w, _ in values), tuple(c for _, c in values))
+        for name, values in per_repeat.items()
+    }
 
 
 def import_mujoco() -> ModuleType | None:
@@ -419,7 +438,13 @@ def verdict(met: bool | None) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the three measurements, print the figures and end with one JSON line."""
     args = parse_args(argv)
-    steps, repeats = args.steps, args.repeats
+    record = measure(args.steps, args.repeats)
+    print(strict_json(record, indent=None))  # strict: NaN/inf as null, with why
+    return 0
+
+
+def measure(steps: int, repeats: int) -> dict[str, object]:
+    """Run the three measurements and print them; return the JSON record (bench/sweep.py too)."""
     urdf_xml = URDF_PATH.read_text(encoding="utf-8")
     mujoco = import_mujoco()
     print(
@@ -460,6 +485,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     full_us, aba_us = full.median_us, aba.median_us
     mj_us = mj.median_us if mj else None
     ratio_mj = full_us / mj_us if mj_us else None
+    ratio_mj_cpu = full.median_cpu_us / mj.median_cpu_us if mj else None
     ratio_aba = full_us / aba_us
     rtf = DT_US / full_us
     ratio_met = ratio_mj <= TARGET_RATIO_MAX if ratio_mj is not None else None
@@ -469,6 +495,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("\nsummary")
     if ratio_mj is not None:
         print(f"  full / mj_step         {ratio_mj:8.2f} x")
+    if ratio_mj_cpu is not None:
+        print(f"  full / mj_step, CPU    {ratio_mj_cpu:8.2f} x  (thread CPU time; not the target)")
     print(f"  full / aba             {ratio_aba:8.2f} x")
     print(f"  real-time factor       {rtf:8.2f} x  (= {DT_US:g} us of simulated time per step)")
     print(f"  target full step <= {TARGET_RATIO_MAX}x mj_step: {verdict(ratio_met)}")
@@ -483,12 +511,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         "aba_min_us": round(aba.min_us, 4),
         "mj_step_min_us": round(mj.min_us, 4) if mj else None,
         "ratio_full_to_mj": round(ratio_mj, 4) if ratio_mj is not None else None,
+        "full_step_cpu_us": round(full.median_cpu_us, 4),
+        "mj_step_cpu_us": round(mj.median_cpu_us, 4) if mj else None,
+        "ratio_full_to_mj_cpu": round(ratio_mj_cpu, 4) if ratio_mj_cpu is not None else None,
         "ratio_full_to_aba": round(ratio_aba, 4),
         "realtime_factor_at_0p1ms": round(rtf, 4),
         "dt_s": DT_S,
         "steps": steps,
         "repeats": repeats,
-        "timing": "median of interleaved repeats",
+        "timing": "median of interleaved repeats; ratio target on wall clock",
+        "scheme": "exact (rigid_body_update_steps=1) against mj_step",
         "target_ratio_max": TARGET_RATIO_MAX,
         "target_rtf_min": TARGET_RTF_MIN,
         "meets_ratio_target": ratio_met,
@@ -499,9 +531,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "numpy": np.__version__,
         "pinocchio": pin.__version__,
         "mujoco": mujoco.__version__ if mujoco else None,
+        "load_average": round(os.getloadavg()[0], 2),
     }
-    print(strict_json(record, indent=None))  # strict: NaN/inf as null, with why
-    return 0
+    return record
 
 
 if __name__ == "__main__":

@@ -493,7 +493,8 @@ def steps(
 # its own, and Pinocchio's crba and nonLinearEffects write A(q) and the nonlinear effects into
 # the same Eigen buffers of its `Data` at every call (`Data.M`, column major, and `Data.nle`).
 # So `step_in_frame` takes their addresses once, in a small integer array (`frame`), and views
-# them in place; only the voltage array, new at every call, is unboxed. The arithmetic is
+# them in place; only the voltage array, new at every call, is unboxed. Nothing checks the
+# addresses: the caller keeps every array alive and in place while it uses the frame. The arithmetic is
 # `step`'s, called on views of the same memory, so the bits are the same.
 
 F_MASS = 0  # address of A(q): n x n float64, column major (Eigen's layout)
@@ -554,35 +555,37 @@ def make_frame(
 
 
 # One signature, compiled when this module is first imported (then loaded from numba's cache):
-# any 1-D float64 voltage array (strided views too), the frame, the step.
-@njit("int64(float64[:], int64[::1], float64)", cache=True)
-def step_in_frame(voltage_cmd_v: FloatArray, frame: npt.NDArray[np.int64], dt_s: float) -> int:
-    """`step` on the arrays whose addresses `frame` holds (`make_frame`); same returns.
+# any 1-D float64 voltage array (strided views too), the frame's address, the step.
+@njit("int64(float64[:], int64, float64)", cache=True)
+def step_in_frame(voltage_cmd_v: FloatArray, frame_address: int, dt_s: float) -> int:
+    """`step` on the arrays a frame points to (`make_frame`), given the frame's own address.
 
-    Call it through `step_in_frame_entry` on the hot path.
+    Even the frame is passed by address: an integer costs numba next to nothing to unbox, an
+    array about 0.1 us. Same returns as `step`. Call it through `step_in_frame_entry` on the
+    hot path.
     """
+    frame = carray(_void_pointer(frame_address), (N_FRAME,), np.int64)  # type: ignore[call-arg]
     n = frame[F_N]
-    mass_matrix = farray(_void_pointer(frame[F_MASS]), (n, n), np.float64)  # type: ignore[call-arg]
+    mass_matrix = farray(_void_pointer(frame[F_MASS]), (n, n), np.float64)
     nonlinear_effects = carray(_void_pointer(frame[F_NLE]), (n,), np.float64)
     work = carray(_void_pointer(frame[F_WORK]), (W_INERTIA + 2 * n, n), np.float64)
     model = carray(_void_pointer(frame[F_MODEL]), (frame[F_MODEL_ROWS], n), np.float64)
     return step(mass_matrix, nonlinear_effects, voltage_cmd_v, work, model, dt_s)
 
 
-def step_in_frame_entry() -> Callable[[FloatArray, npt.NDArray[np.int64], float], int]:
+def step_in_frame_entry() -> Callable[[FloatArray, int, float], int]:
     """`step_in_frame`'s compiled entry point, without numba's dispatcher in front of it.
 
     The dispatcher works out the numba types of the arguments at every call to pick a compiled
     version, which costs about half the call. `step_in_frame` has one version, so this returns
     it (`Dispatcher.overloads`); its arguments are then unboxed as that version's types without
     being checked: the voltages MUST be a 1-D float64 array of the frame's axis count (any
-    strides), the frame `make_frame`'s, and dt_s a float. Falls back to the dispatcher when
-    numba's JIT is off or it has no single compiled version.
+    strides), the address that of a live frame (`make_frame`, `frame.ctypes.data`), and dt_s a
+    float. Falls back to the dispatcher when numba's JIT is off or it has no single compiled
+    version.
     """
     overloads = getattr(step_in_frame, "overloads", None)
     if not overloads or len(overloads) != 1:
         return step_in_frame
-    entry: Callable[[FloatArray, npt.NDArray[np.int64], float], int] = next(
-        iter(overloads.values())
-    ).entry_point
+    entry: Callable[[FloatArray, int, float], int] = next(iter(overloads.values())).entry_point
     return entry

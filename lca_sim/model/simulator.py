@@ -325,11 +325,12 @@ class Simulator:
 
             return exact_kernel_step
         step_in_frame = kernel.step_in_frame_entry()  # `step` checked the voltages' type
+        frame_address = int(frame.ctypes.data)  # `frame` is kept in `_frame_arrays`
 
         def exact_frame_step(command: FloatArray) -> int:
             mass_at()  # Pinocchio writes A(q) and the nonlinear effects into its Data's
             nle_at()  # buffers, where the frame points; the copies it returns are dropped
-            code: int = step_in_frame(command, frame, dt_s)
+            code: int = step_in_frame(command, frame_address, dt_s)
             return code
 
         return exact_frame_step
@@ -354,7 +355,7 @@ class Simulator:
             frame = kernel.make_frame(mass_buffer, nle_buffer, self._work, self._model)
         except ValueError:
             return None
-        self._frame_arrays = (mass_buffer, nle_buffer)  # the frame's memory stays referenced
+        self._frame_arrays = (frame, mass_buffer, nle_buffer)  # keeps the frame's memory alive
         return frame
 
     def _held_kernel_step(self, command: FloatArray) -> int:
