@@ -16,8 +16,9 @@ terms held for 1 ms), `--points` times (the same work under distinct keys):
 
 Figures: points per second with 1 worker and with all cores, the scaling ratio (target >= 1.8
 from 1 to 2 workers), and Dask's overhead per point against the plain loop (1 worker's wall time
-per point over the plain loop's, minus 1; target under 5 %). Targets are reported, never
-enforced (exit status 0). The last stdout line is one JSON object.
+per point over the plain loop's, minus 1; target under 5 %). Last, the model step against
+MuJoCo's: bench/model_step.py's measurement, run here (`model_step_*` keys; target <= 1.0).
+Targets are reported, never enforced (exit status 0). The last stdout line is one JSON object.
 
 Run from the repository root::
 
@@ -29,6 +30,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
+import io
 import os
 import platform
 import statistics
@@ -101,12 +104,34 @@ def _dask(client: Any, tasks: Sequence[PointTask]) -> float:
     return wall_s
 
 
+def _model_step(steps: int, repeats: int) -> dict[str, object]:
+    """bench/model_step.py's record (full step against mj_step), its printout kept short."""
+    spec = importlib.util.spec_from_file_location(
+        "model_step", Path(__file__).with_name("model_step.py")
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
+    spec.loader.exec_module(module)
+    with contextlib.redirect_stdout(io.StringIO()):
+        record: dict[str, object] = module.measure(steps, repeats)
+    print(
+        f"model step: {record['full_step_us']} us, mj_step {record['mj_step_us']} us, ratio "
+        f"{record['ratio_full_to_mj']} (target <= {record['target_ratio_max']}: "
+        f"{'met' if record['meets_ratio_target'] else 'not met'})"
+    )
+    return record
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark; print its figures and one JSON line."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--points", type=int, default=24, help="13-s points per measurement")
     parser.add_argument("--repeats", type=int, default=3, help="repeats of every measurement")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="all cores")
+    parser.add_argument(
+        "--model-steps", type=int, default=20_000, help="calls per repeat of the model step bench"
+    )
     args = parser.parse_args(argv)
     tasks = _tasks(args.points)
     rtf = _realtime_factor(tasks, args.repeats)
@@ -144,6 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"Dask overhead {overhead * 100:.1f} % ({per_point_ms:.1f} ms per point; target < "
         f"{TARGET_OVERHEAD * 100:.0f} %)"
     )
+    model = _model_step(args.model_steps, max(args.repeats, 5))
     result = {
         "bench": "sweep",
         "points": len(tasks),
@@ -159,6 +185,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "dask_overhead_ms_per_point": per_point_ms,
         "overhead_target": TARGET_OVERHEAD,
         "cluster_startup_s": setup_s,
+        "model_step_ratio_to_mj": model["ratio_full_to_mj"],
+        "model_step_ratio_to_mj_cpu": model["ratio_full_to_mj_cpu"],
+        "model_step_us": model["full_step_us"],
+        "mj_step_us": model["mj_step_us"],
+        "model_step_target_ratio_max": model["target_ratio_max"],
+        "model_step_meets_target": model["meets_ratio_target"],
         "repeats": args.repeats,
         "wall_s": {"plain": plain, "1_worker": one, "all_workers": all_},
         "cpu_count": os.cpu_count(),

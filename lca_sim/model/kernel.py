@@ -494,8 +494,8 @@ def steps(
 # the same Eigen buffers of its `Data` at every call (`Data.M`, column major, and `Data.nle`).
 # So `step_in_frame` takes their addresses once, in a small integer array (`frame`), and views
 # them in place; only the voltage array, new at every call, is unboxed. Nothing checks the
-# addresses: the caller keeps every array alive and in place while it uses the frame. The arithmetic is
-# `step`'s, called on views of the same memory, so the bits are the same.
+# addresses: the caller keeps every array alive and in place while it uses the frame. The
+# arithmetic is `step`'s, called on views of the same memory, so the bits are the same.
 
 F_MASS = 0  # address of A(q): n x n float64, column major (Eigen's layout)
 F_NLE = 1  # address of C(q, qdot) qdot + Q(q): n float64
