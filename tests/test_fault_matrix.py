@@ -232,6 +232,15 @@ def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end
             command_timeout_s=0.2,
             initial_position=[0.0, 1.99, 0.0, 0.0],
         )
+        # the back-driven pivot is reported
+        diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "back-driving: pivot moving at")
+        assert diagnostics.latest[PIVOT_STATUS].message.endswith("rad/s with no command")
+        # the command silence is reported
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for")
+        assert "holding" not in diagnostics.latest[SIMULATOR_STATUS].message  # not held
+        # the end-stop contact is reported with its speed
+        diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "end stop hit at", 60.0)
+        assert float(diagnostics.value(PIVOT_STATUS, "end_stop_contact_speed")) > 0.0
         # One tiny command that then stops: the command timeout's log line is written too.
         operator = Node("test_operator", context=ctx)
         executor.add_node(operator)
@@ -240,16 +249,7 @@ def test_item_02_a_reversible_robot_without_command_reports_back_driving_and_end
         operator.create_timer(0.02, lambda: None if sim.plant.target.any() else pub.publish(nudge))
         spin_until(executor, lambda: bool(sim.plant.target.any()), "the command is taken", 30.0)
         kill(executor, operator)
-        # the back-driven pivot is reported
-        diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "back-driving: pivot moving at")
-        assert diagnostics.latest[PIVOT_STATUS].message.endswith("rad/s with no command")
-        # the command silence is reported
-        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.WARN, "no command for")
-        assert "holding" not in diagnostics.latest[SIMULATOR_STATUS].message  # not held
         spin_until(executor, lambda: not sim.plant.target.any(), "0 V after the timeout", 30.0)
-        # the end-stop contact is reported with its speed
-        diagnostics.wait_for(PIVOT_STATUS, DiagnosticStatus.WARN, "end stop hit at", 60.0)
-        assert float(diagnostics.value(PIVOT_STATUS, "end_stop_contact_speed")) > 0.0
         # and the log never says the gear holds the load it lets fall
         log = capfd.readouterr().err
         assert REVERSIBLE_LOG in log, log
