@@ -250,6 +250,12 @@ class ControllerNode(Node):
         level, message = self._plant_health()
         if level == DiagnosticStatus.OK and (core.rejected_references or self.bad_states):
             level, message = DiagnosticStatus.WARN, "bad states or references (see counters)"
+        if level == DiagnosticStatus.OK and core.bad_states:
+            level = DiagnosticStatus.WARN
+            message = (
+                f"{core.bad_states} plant states with NaN or infinite readings (a lost sensor "
+                "sample): the last command was sent again for each"
+            )
         values: dict[str, object] = {}
         conflict = self._graph_health(values)
         if conflict is not None:  # the worst first, then what else is wrong
@@ -262,6 +268,7 @@ class ControllerNode(Node):
             "commands_sent": self.commands_sent,
             "states_skipped": self.states_skipped,
             "bad_states": self.bad_states,
+            "states_not_finite": core.bad_states,
             "references_rejected": core.rejected_references,
             "plant_state_age_s": time.monotonic() - self._last_state_wall,
             "plant_losses": self.plant_losses,

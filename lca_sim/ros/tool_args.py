@@ -60,8 +60,9 @@ def record_parser() -> argparse.ArgumentParser:
         "--flush-period-s",
         type=float,
         default=RECORD_FLUSH_PERIOD_S,
-        help="close and flush the open MCAP chunk this often, so a killed recorder loses at "
-        f"most this much (default {RECORD_FLUSH_PERIOD_S:g})",
+        help="a killed recorder loses at most this much of what it received: the open MCAP "
+        "chunk is closed and flushed every 0.4 of it "
+        f"(default {RECORD_FLUSH_PERIOD_S:g})",
     )
     parser.add_argument(
         "--recover",

@@ -170,3 +170,33 @@ def test_link_delay_is_refused_in_lockstep_and_drop_counts(lca_hil_loop: HilLoop
     reason = lca_hil_loop.inject(sim, **{"faults.link.state_delay_s": 0.012})
     assert "lockstep" in reason
     assert sim.faults.describe("link") == "none"
+
+
+def test_lost_encoder_samples_show_on_the_controller(lca_hil_loop: HilLoop) -> None:
+    """Half the pivot's samples lost: the loop runs on, the controller WARNs with the count."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    loop = lca_hil_loop
+    sim = loop.simulator
+    seen: list[tuple[int, str, dict[str, str]]] = []
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == "lca_hil/controller":
+                values = {kv.key: kv.value for kv in status.values}
+                seen.append((int.from_bytes(status.level, "little"), status.message, values))
+
+    sub = loop.node.create_subscription(DiagnosticArray, DIAGNOSTICS, on_diagnostics, 50)
+    try:
+        assert loop.inject(sim, **{"faults.pivot.encoder_dropout": 0.5}) == ""
+        loop.step(100)  # every period still runs: a lost sample gets the last command again
+        loop.wait_for(
+            lambda: any(int(v.get("states_not_finite", "0")) > 10 for _, _, v in seen),
+            "the controller's count of lost samples",
+            timeout_s=30.0,
+        )
+        level, message, _ = next(s for s in seen if int(s[2].get("states_not_finite", "0")) > 10)
+        assert level == 1 and "NaN or infinite readings" in message
+    finally:
+        assert loop.inject(sim, **{"faults.pivot.encoder_dropout": 0.0}) == ""
+        loop.node.destroy_subscription(sub)
