@@ -12,8 +12,10 @@
   `on_state` once every drive has answered the SYNC.
 
 Safety is here, whatever the controller does (docs/can.md): command silence halts with zero
-torque, then quick-stops; a stale drive stops every axis; an EMCY latches a fault until
-`recover()`; error frames and bus-off stop the cyclic transmission; repeated send failures halt.
+torque, then quick-stops; a stale drive, a drive whose heartbeat stopped (the master's heartbeat
+consumer) and, while enabled, a stall of complete cycles stop every axis; an EMCY latches a
+fault until `recover()`; error frames and bus-off stop the cyclic transmission; repeated send
+failures halt.
 The ROS shell is `lca_sim.ros.can_bridge_node`.
 """
 
@@ -146,6 +148,9 @@ class BridgeParams:
         stale_timeout_s: a drive without TPDO for this long while running is stale.
         heartbeat_producer_ms: written to each drive's 0x1017.
         heartbeat_consumer_ms: written to each drive's 0x1016 (watching the master).
+        heartbeat_loss_periods: the master's own consumer time of each drive's heartbeat
+            (CiA 301 7.2.8.3.2.2; 0x1016 on a consumer), in the drives' producer periods
+            (`heartbeat_producer_ms`): a drive silent that long has lost its heartbeat.
         rpdo_deadline_ms: written to each drive's 0x1400 sub 5.
         max_send_failures: consecutive failed sends after which the axes halt.
         pdo_layout: "compact": `init()` maps every drive's PDOs for this cycle
@@ -172,6 +177,7 @@ class BridgeParams:
     stale_timeout_s: float = 0.1
     heartbeat_producer_ms: int = 100
     heartbeat_consumer_ms: int = 300
+    heartbeat_loss_periods: float = 3.0
     rpdo_deadline_ms: int = 100
     max_send_failures: int = 10
     pdo_layout: str = "compact"
@@ -181,6 +187,16 @@ class BridgeParams:
     def mode_of(self, k: int) -> int:
         """The 0x6060 value of joint k."""
         return MODES[self.modes[k]] if self.modes else MODE_CST
+
+    @property
+    def drive_heartbeat_timeout_s(self) -> float:
+        """The master's heartbeat consumer time of every drive, s (0: 0x1017 = 0, not watched)."""
+        return self.heartbeat_loss_periods * self.heartbeat_producer_ms * 1e-3
+
+    @property
+    def stall_cycles(self) -> int:
+        """SYNCs without a complete cycle that make a stall: `stale_timeout_s` in SYNCs, >= 3."""
+        return max(3, math.ceil(self.stale_timeout_s * self.cycle_hz))
 
     @property
     def slow_tpdo_every(self) -> int:
@@ -209,6 +225,11 @@ class BridgeParams:
                 raise ValueError(f"{name} must be > 0, got {value!r}")
         if self.max_send_failures < 1:
             raise ValueError("max_send_failures must be >= 1")
+        if not (math.isfinite(self.heartbeat_loss_periods) and self.heartbeat_loss_periods > 1.0):
+            # CiA 301 7.2.8.3.2.2: the consumer time must exceed the producer time
+            raise ValueError(
+                f"heartbeat_loss_periods must be > 1, got {self.heartbeat_loss_periods!r}"
+            )
         self._check_pdo_layout()
 
     def _check_pdo_layout(self) -> None:
@@ -281,6 +302,8 @@ class Counters:
     bits_received: int = 0
     nominal_bits: int = 0  # both directions, without stuffing (`frame_bits_nominal`)
     process_freezes: int = 0
+    heartbeats_lost: int = 0  # a drive's heartbeat silent beyond its consumer time, per loss
+    cycle_stalls: int = 0  # runs of `BridgeParams.stall_cycles` SYNCs without a complete cycle
 
 
 @dataclass(slots=True)
@@ -302,6 +325,9 @@ class _Axis:
     last_tpdo_t: float = 0.0
     fresh: int = 0  # a bit per every-SYNC TPDO that arrived this cycle
     sync_mask: int = 0  # the bits of all its every-SYNC TPDOs: the cycle's complete at this
+    seen: int = 0  # the every-SYNC TPDO bits that came since the last complete cycle
+    last_heartbeat_t: float = 0.0  # monotonic reception of its last heartbeat (or the arming)
+    heartbeat_lost: bool = False  # silent beyond the consumer time, until its next heartbeat
     emcy_code: int = 0  # the latched one (a fault reaction), 0: none
     advisory_code: int = 0  # the last advisory one (`emcy.ADVISORY`), 0: none
     advisory_count: int = 0
@@ -378,6 +404,11 @@ class Cia402Master:
         self._quick_stopped = False
         self._stale: list[str] = []
         self._rebooted: list[str] = []  # drives that sent a boot-up after init()
+        self._heartbeat_lost: list[str] = []  # drives whose heartbeat stopped (until recover)
+        self._last_complete_cycle = 0  # `_cycle` at the last complete cycle (or init)
+        self._stall_armed_cycle = 0  # a stall is judged from here: a complete cycle or recover
+        self._stalled = False  # no complete cycle for `stall_cycles` SYNCs, until one comes
+        self._stall_latched = ""  # the stall's text, latched while enabled (until recover)
         self._bus_off = False
         self._send_failures_in_row = 0
         self._failure_halt = False
@@ -451,13 +482,14 @@ class Cia402Master:
             self._bind_pdos(axis)
             node.emcy.add_callback(self._emcy_callback(axis))
             if axis.boot_watch is None:  # once: init() may run again
-                axis.boot_watch = self._boot_up_callback(axis)
+                axis.boot_watch = self._heartbeat_callback(axis)
                 self.network.subscribe(HEARTBEAT_BASE + self.params.node_ids[k], axis.boot_watch)
         for axis in self._axes:
             axis.node.nmt.state = "OPERATIONAL"
             axis.last_tpdo_t = time.monotonic()
         with self._lock:
             self._rebooted = []  # configured again: a restart before this no longer matters
+            self._arm_watches(time.monotonic())
         self._initialized = True
 
     def _bind_pdos(self, axis: _Axis) -> None:
@@ -605,11 +637,17 @@ class Cia402Master:
 
     def _mark_fresh(self, axis: _Axis, bit: int, now: float) -> None:
         snapshot = None
+        stalled_for = 0
         with self._lock:
             axis.fresh |= bit
+            axis.seen |= bit
             if all(a.fresh == a.sync_mask for a in self._axes):
                 for a in self._axes:
-                    a.fresh = 0
+                    a.fresh = a.seen = 0
+                if self._stalled:
+                    self._stalled = False
+                    stalled_for = self._cycle - self._last_complete_cycle
+                self._last_complete_cycle = self._stall_armed_cycle = self._cycle
                 self.counters.complete_cycles += 1
                 if self.keep_latencies:
                     self.latencies_s.append(now - self._sync_mono_s)
@@ -618,19 +656,36 @@ class Cia402Master:
                     self._cycle,
                     tuple(AxisState(**_fields(a.state)) for a in self._axes),
                 )
+        if stalled_for:
+            log.warning("complete cycles again after %d SYNCs without one", stalled_for)
         if snapshot is not None and self.on_state is not None:
             self.on_state(snapshot)
 
-    def _boot_up_callback(self, axis: _Axis) -> Callable[[int, bytearray, float], None]:
-        """A boot-up message (CiA 301 7.2.8.3.3: heartbeat COB-ID, state byte 0) after init().
+    def _heartbeat_callback(self, axis: _Axis) -> Callable[[int, bytearray, float], None]:
+        """The master's heartbeat consumer of one drive (CiA 301 7.2.8.3.2.2) and its boot-ups.
 
-        The drive restarted behind the master's back (power, reset, a NMT reset node from
-        elsewhere): its configuration, PDO mapping included, is its boot default again, so every
-        axis stops (latched) until `init()` configures it again. Counted and logged once.
+        Every heartbeat (1 byte: the NMT state) is stamped on reception, on the clock the
+        cycle's `_check_heartbeats` judges it by (the frame's own timestamp is the bus's clock,
+        and a freeze of this process is discounted from the reception time only). A boot-up
+        (CiA 301 7.2.8.3.3: state byte 0) after init() means the drive restarted behind the
+        master's back (power, reset, a NMT reset node from elsewhere): its configuration, PDO
+        mapping included, is its boot default again, so every axis stops (latched) until
+        `init()` configures it again. Counted and logged once.
         """
 
         def on_heartbeat(_can_id: int, data: bytearray, _timestamp: float) -> None:
-            if len(data) != 1 or data[0] != 0 or not self._initialized:
+            if len(data) != 1:
+                return  # not a heartbeat (CiA 301: one byte)
+            now = time.monotonic()
+            with self._lock:
+                axis.last_heartbeat_t = now
+                back = axis.heartbeat_lost
+                axis.heartbeat_lost = False
+            if back:
+                log.warning(
+                    "heartbeat of %s again; the axes stay stopped until ~/recover", axis.joint
+                )
+            if data[0] != 0 or not self._initialized:
                 return
             self.counters.drive_restarts += 1
             with self._lock:
@@ -732,7 +787,13 @@ class Cia402Master:
             self._user_halt = True
 
     def recover(self) -> None:
-        """Clear the bridge's latches (EMCY, stale, bus-off, send failures), reset drive faults.
+        """Clear the bridge's latches and reset drive faults.
+
+        The latches: EMCY, stale drive, lost heartbeat, stall of complete cycles, bus-off, send
+        failures.
+
+        The heartbeat and stall watches start again from now, as the stale one does: a drive
+        still silent is latched again after its consumer time (or `stall_cycles` SYNCs).
 
         The drives end up disabled: enabling again is a separate, explicit request. Each drive
         is also sent NMT start (CiA 301 7.2.8.3.2.1, command 0x01): a drive whose
@@ -750,8 +811,11 @@ class Cia402Master:
                 axis.statuswords_at_reset = axis.statuswords_received
                 axis.emcy_code = 0
                 axis.advisory_code = axis.advisory_count = 0
-                axis.last_tpdo_t = time.monotonic()
+                axis.last_tpdo_t = axis.last_heartbeat_t = time.monotonic()
             self._stale = []
+            self._heartbeat_lost = []
+            self._stall_latched = ""
+            self._stall_armed_cycle = self._cycle
             self._bus_off = False
             self._failure_halt = False
             self._send_failures_in_row = 0
@@ -768,7 +832,7 @@ class Cia402Master:
         return "; ".join(reasons)
 
     def _stop_reason(self) -> str:
-        """The latches that quick-stop every axis: EMCY, a stale drive, bus-off."""
+        """The latches that quick-stop all axes: EMCY, stale, heartbeat, stall, restart, bus-off."""
         reasons = []
         latched = [
             f"{a.joint} {emcy.describe(a.emcy_code, a.has_drive_state)}"
@@ -779,6 +843,10 @@ class Cia402Master:
             reasons.append("EMCY " + ", ".join(latched))
         if self._stale:
             reasons.append("stale drive " + ", ".join(self._stale))
+        if self._heartbeat_lost:
+            reasons.append("lost heartbeat of " + ", ".join(self._heartbeat_lost))
+        if self._stall_latched:
+            reasons.append(self._stall_latched)
         if self._rebooted:
             reasons.append(f"drive {', '.join(self._rebooted)} restarted (boot-up): ~/init")
         if self._bus_off:
@@ -868,6 +936,7 @@ class Cia402Master:
             self._last_command_t = discounted(self._last_command_t, frozen_s, now)
             for axis in self._axes:
                 axis.last_tpdo_t = discounted(axis.last_tpdo_t, frozen_s, now)
+                axis.last_heartbeat_t = discounted(axis.last_heartbeat_t, frozen_s, now)
         if self.counters.process_freezes == 1:
             log.warning(
                 "the cycle thread stood still for %.0f ms; silence deadlines do not count it "
@@ -894,6 +963,81 @@ class Cia402Master:
                 if silent_s > p.stale_timeout_s and axis.joint not in self._stale:
                     self._stale.append(axis.joint)
                     log.error("drive %s is stale: no TPDO for %.3f s", axis.joint, silent_s)
+        self._check_heartbeats(now)
+        self._check_cycle_stall()
+
+    def _arm_watches(self, now: float) -> None:
+        """Start the heartbeat and stall watches (init): from now, and from this cycle.
+
+        CiA 301 7.2.8.3.2.2 starts a consumer at the first heartbeat it receives; the master
+        wrote every drive's 0x1017 itself, so it expects one from now on, and a drive that never
+        sends one is caught too.
+        """
+        for axis in self._axes:
+            axis.last_heartbeat_t = now
+            axis.heartbeat_lost = False
+            axis.fresh = axis.seen = 0
+        self._last_complete_cycle = self._stall_armed_cycle = self._cycle
+        self._stalled = False
+
+    def _check_heartbeats(self, now: float) -> None:
+        """The master's heartbeat consumer (CiA 301 7.2.8.3.2.2): a silent drive is latched.
+
+        Whatever the drives are asked to do: a drive that lost its heartbeat may have lost its
+        bus, and nothing it reports can be trusted to stop it; every axis stops until
+        `recover()`. Each loss is counted and logged once, however often `recover()` latches it
+        again while the drive stays silent.
+        """
+        timeout_s = self.params.drive_heartbeat_timeout_s
+        if timeout_s <= 0.0:
+            return  # 0x1017 = 0: the drives send no heartbeat (CiA 301)
+        for axis in self._axes:
+            silent_s = now - axis.last_heartbeat_t
+            if silent_s <= timeout_s:
+                continue
+            if axis.joint not in self._heartbeat_lost:
+                self._heartbeat_lost.append(axis.joint)
+            if not axis.heartbeat_lost:
+                axis.heartbeat_lost = True
+                self.counters.heartbeats_lost += 1
+                log.error(
+                    "lost heartbeat of %s: none for %.3f s (consumer time %.3f s): latched, "
+                    "axes stopped until ~/recover",
+                    axis.joint,
+                    silent_s,
+                    timeout_s,
+                )
+
+    def _check_cycle_stall(self) -> None:
+        """No complete cycle for `stall_cycles` SYNCs sent: counted, and latched while enabled.
+
+        Judged in SYNCs the cycle sent, not in seconds: a cycle thread that stood still sent
+        none. Disabled, it is a state (`cycle_stall()`, WARN on /diagnostics) that ends with the
+        next complete cycle: no torque is at stake, but joint_states stop. Enabled, the
+        controller has no state to close its loops on, and one that runs on a timer would
+        command blind: every axis stops until `recover()`, as for a stale drive (which catches
+        a drive without any TPDO, not one without its cyclic one).
+        """
+        if self._cycle - self._stall_armed_cycle <= self.params.stall_cycles:
+            return
+        if not self._stalled:
+            self._stalled = True
+            self.counters.cycle_stalls += 1
+            log.warning("%s", self._stall_text())
+        if self._want is Want.ENABLED and not self._stall_latched:
+            self._stall_latched = self._stall_text()
+            log.error("%s: axes stopped until ~/recover", self._stall_latched)
+
+    def _stall_text(self) -> str:
+        """What stalls the complete cycles: the drives and the every-SYNC TPDOs not received."""
+        missing = []
+        for axis in self._axes:
+            lost = axis.sync_mask & ~axis.seen
+            numbers = [f"TPDO{n}" for n in range(1, lost.bit_length()) if lost >> n & 1]
+            if numbers:
+                missing.append(f"{axis.joint} {'+'.join(numbers)}")
+        why = ", ".join(missing) + " missing" if missing else "every TPDO late"
+        return f"no complete cycle for {self._cycle - self._last_complete_cycle} SYNCs: {why}"
 
     def _rpdo_frames(self, axis: _Axis, want: Want) -> list[tuple[int, bytes]]:
         """The RPDO frame(s) of one drive: the torque's, and the controlword's if due."""
@@ -998,6 +1142,20 @@ class Cia402Master:
             if self._silence_halt:
                 return False, f"no command for {silent_s:.1f} s: halted, zero torque"
         return None
+
+    def silent_heartbeats(self) -> tuple[str, ...]:
+        """The drives whose heartbeat is silent beyond the consumer time now (latched or not)."""
+        with self._lock:
+            return tuple(a.joint for a in self._axes if a.heartbeat_lost)
+
+    def cycle_stall(self) -> str:
+        """While no complete cycle comes (for over `stall_cycles` SYNCs): what stalls it, or ''.
+
+        A state, not a latch: it ends with the next complete cycle. Enabled, it is also latched
+        (`latched_reason()`) until `recover()`.
+        """
+        with self._lock:
+            return self._stall_text() if self._stalled else ""
 
     def command_age_s(self, now: float) -> float:
         """Seconds since the last accepted command."""
