@@ -330,7 +330,8 @@ def _read_graph(probe: Node, plant: Node, node_name: str, run: ContractRun) -> N
     DDS does not carry a writer's history depth, so the QoS comes from the node's own
     publishers and subscriptions, the types from the graph (what a subscriber sees).
     """
-    infra = {"rosout", "parameter_events"}
+    # rcl's own topics, and a managed node's (the CAN bridge's lifecycle transition events)
+    infra = {"rosout", "parameter_events", f"{node_name}/transition_event"}
     wanted = {t.name.lstrip("/") for t in pc.PLANT_PUBLISHES if t.required}
 
     def topics(pairs: list[tuple[str, list[str]]]) -> dict[str, tuple[str, ...]]:
