@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -174,6 +175,18 @@ class Simulator:
         self.reset()
 
     # --- state -----------------------------------------------------------------------------
+
+    def __reduce__(self) -> Any:
+        """Refused: a copy would step the original's memory (see below); build a new one.
+
+        The exact scheme's step reaches its arrays through a frame of raw addresses
+        (`_bind_kernel_step`), so a copy made by `copy` or `pickle` would keep pointing at
+        this simulator's arrays and Pinocchio buffers, and its steps would change them.
+        """
+        raise TypeError(
+            "a Simulator cannot be copied or pickled (its step holds raw addresses of its own "
+            "arrays): build a new one from the same RobotParams, and set_state to its state"
+        )
 
     def reset(
         self,
