@@ -987,6 +987,9 @@ class CanBridgeNode(LifecycleNode):
         peer = self._command_health(bridge, now)
         if peer is not None:
             found.append(peer)
+        stall = bridge.cycle_stall()  # no complete cycle: a TPDO lost (latched while enabled)
+        if stall and not latched:
+            found.append((DiagnosticStatus.WARN, stall))
         values: dict[str, object] = {
             "lifecycle_state": self.lifecycle_state,
             "interface": self.params.interface,

@@ -137,3 +137,27 @@ def test_every_emcy_shows_on_the_drive_status_decoded_to_text() -> None:
             injector.shutdown()
             bridge.destroy_node()
             probe.node.destroy_node()
+
+
+def test_a_lost_tpdo_of_a_disabled_drive_warns_on_the_bridge() -> None:
+    """Pivot TPDO1 lost (0x2030 sub 1), drives disabled: WARN naming it, OK when it returns.
+
+    Without complete cycles no joint_states go out, so the stall must show on /diagnostics.
+    """
+    from lca_sim.cia402 import objects as od
+
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, auto_enable=False)
+        probe = Diagnostics(ctx, executor)
+        try:
+            spin_until(
+                executor, lambda: bridge.bridge.counters.complete_cycles > 10, "cycles", 30.0
+            )
+            probe.wait_for(BRIDGE, OK, "")
+            bridge.bridge.sdo_write("pivot", od.FAULT_INJECTION, od.FAULT_LOST_TPDOS, 0x01)
+            probe.wait_for(BRIDGE, WARN, "pivot TPDO1 missing")
+            bridge.bridge.sdo_write("pivot", od.FAULT_INJECTION, od.FAULT_LOST_TPDOS, 0)
+            probe.wait_for(BRIDGE, OK, "")
+        finally:
+            bridge.destroy_node()
+            probe.node.destroy_node()
