@@ -54,7 +54,6 @@ def lca_hil_simulator_parameters() -> dict[str, Any]:
         **SIMULATOR_DEFAULTS,
         "fault_schedule": str(SCHEDULE),
         "diagnostics_period_s": 0.02,
-        "lockstep_subscribers": 2,  # the controller and the recorder
     }
 
 
@@ -74,9 +73,9 @@ def fault_bag(
     recorder = BagRecorder(node, bag, list(RECORDED))
     sim = loop.simulator
     try:
+        loop.reset()  # paused at 0, as the bagplot test's bag: the recorder joins, then steps
         recorder.start()
         loop.wait_for(lambda: len(recorder.matched) == len(RECORDED), "the recorder")
-        loop.reset()
         loop.step(_periods(LIVE_JAM_S[0]))
         assert loop.inject(sim, **{"faults.pivot.jam": True}) == ""
         loop.step(_periods(LIVE_JAM_S[1] - LIVE_JAM_S[0]))
