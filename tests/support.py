@@ -322,3 +322,26 @@ class FreezeWatch(threading.Thread):
         self._stop_event.set()
         if self.is_alive():
             self.join()
+
+
+# A wall-clock CAN loop whose cycles resend the previous command more often than this has two
+# periods of delay where it was tuned for one; the bridge WARNs at the same share
+# (lca_sim.ros.can_bridge_node.LATE_COMMAND_SHARE).
+LATE_COMMAND_SHARE = 0.05
+
+
+def skip_if_host_too_slow(late_share: float, what: str) -> None:
+    """Skip a closed-loop comparison over CAN that this host could not run in time.
+
+    The comparison holds the CAN loop to the lockstep simulator's, which assumes the
+    controller answers each state before the next SYNC. Where more than LATE_COMMAND_SHARE of
+    the cycles resent the previous command (measured by the bridge's master, and WARNed on
+    its /diagnostics), the loop has two periods of delay and rings, as any loop tuned for
+    one does: the test says so with the measured share instead of comparing.
+    """
+    if late_share > LATE_COMMAND_SHARE:
+        pytest.skip(
+            f"{what}: {late_share:.0%} of the CAN cycles resent the previous command (the "
+            "controller answered after the next SYNC on this host): two periods of loop delay, "
+            "so the comparison with the lockstep loop does not apply here"
+        )

@@ -304,6 +304,11 @@ class Counters:
     process_freezes: int = 0
     heartbeats_lost: int = 0  # a drive's heartbeat silent beyond its consumer time, per loss
     cycle_stalls: int = 0  # runs of `BridgeParams.stall_cycles` SYNCs without a complete cycle
+    # Cycles (once commands flow) that sent a command newer than the previous cycle, and those
+    # that had to send the previous one again: the controller's answer to the last states came
+    # after this SYNC, so it acts a cycle later (a loop delay of two periods instead of one).
+    commands_in_time: int = 0
+    commands_late: int = 0
 
 
 @dataclass(slots=True)
@@ -413,6 +418,7 @@ class Cia402Master:
         self._send_failures_in_row = 0
         self._failure_halt = False
         self._last_command_t = -math.inf
+        self._previous_cycle_t = -math.inf  # the start of the last cycle (commands_late)
         self._commanded = False  # a command came since the last enable
         self._cycle = 0
         self._sync_wall_s = 0.0
@@ -888,6 +894,15 @@ class Cia402Master:
             elif delay > 0.0:
                 self._stop.wait(delay)
 
+    def _count_command_timing(self, now: float) -> None:
+        """Count this cycle's command as in time (newer than the last cycle) or late."""
+        if self._commanded:
+            if self._last_command_t >= self._previous_cycle_t:
+                self.counters.commands_in_time += 1
+            else:
+                self.counters.commands_late += 1
+        self._previous_cycle_t = now
+
     def cycle(self, now: float) -> None:
         """One cycle: safety checks, controlwords and RPDOs, SYNC, master heartbeat."""
         p = self.params
@@ -898,6 +913,7 @@ class Cia402Master:
                 return  # bus-off: no cyclic transmission until recover()
             if any(a.fresh for a in self._axes) and self._cycle:
                 self.counters.late_cycles += 1
+            self._count_command_timing(now)
             for a in self._axes:
                 a.fresh = 0
             self._check_safety(now)

@@ -83,6 +83,8 @@ from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 if TYPE_CHECKING:
     from lca_sim.canbus.virtual_rack import VirtualDriveRack
 
+# More than this share of the cycles sending the previous command again is a WARN.
+LATE_COMMAND_SHARE = 0.05
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
 # How long shutdown and error processing wait for the drives to leave OPERATION ENABLED: a
 # disable is one cycle, its statusword the next slow TPDO (50 Hz by default).
@@ -256,6 +258,7 @@ class CanBridgeNode(LifecycleNode):
         self._command_losses = 0
         self._last_diag_t = time.monotonic()
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
+        self._last_command_timing = (0, 0)  # commands in time and late, at the previous one
         self._init_lock = threading.Lock()
         self._create_interfaces(p)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
@@ -955,6 +958,26 @@ class CanBridgeNode(LifecycleNode):
         }
         return status("lca_hil/can_bridge", level, message, values)
 
+    def _late_commands(self, in_time: int, late: int) -> tuple[bytes, str] | None:
+        """WARN while too many cycles of the last diagnostics period sent an old command.
+
+        More than LATE_COMMAND_SHARE of the cycles sent the previous command again (the
+        controller's answer came after the SYNC it was for): the loop then runs with two
+        periods of delay instead of one, and a loop tuned for one (the paper's gains) rings.
+        The host is too slow for `cycle_hz`.
+        """
+        last_in_time, last_late = self._last_command_timing
+        self._last_command_timing = (in_time, late)
+        window_late, window_all = late - last_late, in_time + late - last_in_time - last_late
+        if window_all == 0 or window_late <= LATE_COMMAND_SHARE * window_all:
+            return None
+        return (
+            DiagnosticStatus.WARN,
+            f"{100.0 * window_late / window_all:.0f} % of the cycles sent the previous command "
+            "(the controller answered after the next SYNC): the loop has two periods of delay; "
+            "lower cycle_hz or unload the host",
+        )
+
     def _bridge_status(self, bridge: Cia402Master) -> DiagnosticStatus:
         c = bridge.counters
         now = time.monotonic()
@@ -990,6 +1013,9 @@ class CanBridgeNode(LifecycleNode):
         stall = bridge.cycle_stall()  # no complete cycle: a TPDO lost (latched while enabled)
         if stall and not latched:
             found.append((DiagnosticStatus.WARN, stall))
+        late = self._late_commands(c.commands_in_time, c.commands_late)
+        if late is not None:
+            found.append(late)
         values: dict[str, object] = {
             "lifecycle_state": self.lifecycle_state,
             "interface": self.params.interface,

@@ -161,3 +161,27 @@ def test_a_lost_tpdo_of_a_disabled_drive_warns_on_the_bridge() -> None:
         finally:
             bridge.destroy_node()
             probe.node.destroy_node()
+
+
+def test_commands_late_for_their_cycle_warn_on_the_bridge() -> None:
+    """A controller answering at 25 Hz a 250 Hz cycle: most cycles resend an old command.
+
+    The loop then has two periods of delay or more, which a loop tuned for one does not
+    stand; the bridge counts it (commands_late) and WARNs with the share.
+    """
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, command_timeout_s=0.5)
+        probe = Diagnostics(ctx, executor)
+        commands = probe.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
+        probe.node.create_timer(
+            0.04, lambda: commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+        )
+        try:
+            spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
+            status = probe.wait_for(BRIDGE, WARN, "of the cycles sent the previous command")
+            values = {kv.key: kv.value for kv in status.values}
+            late, in_time = int(values["commands_late"]), int(values["commands_in_time"])
+            assert late > 0.5 * (late + in_time)
+        finally:
+            bridge.destroy_node()
+            probe.node.destroy_node()
