@@ -330,7 +330,12 @@ class FreezeWatch(threading.Thread):
 LATE_COMMAND_SHARE = 0.05
 
 
-def skip_if_host_too_slow(late_share: float, what: str) -> None:
+def late_share(late: int, in_time: int) -> float:
+    """The share of the CAN cycles that resent the previous command (the master's counters)."""
+    return late / max(late + in_time, 1)
+
+
+def skip_if_host_too_slow(share: float, what: str) -> None:
     """Skip a closed-loop comparison over CAN that this host could not run in time.
 
     The comparison holds the CAN loop to the lockstep simulator's, which assumes the
@@ -339,9 +344,9 @@ def skip_if_host_too_slow(late_share: float, what: str) -> None:
     its /diagnostics), the loop has two periods of delay and rings, as any loop tuned for
     one does: the test says so with the measured share instead of comparing.
     """
-    if late_share > LATE_COMMAND_SHARE:
+    if share > LATE_COMMAND_SHARE:
         pytest.skip(
-            f"{what}: {late_share:.0%} of the CAN cycles resent the previous command (the "
+            f"{what}: {share:.0%} of the CAN cycles resent the previous command (the "
             "controller answered after the next SYNC on this host): two periods of loop delay, "
             "so the comparison with the lockstep loop does not apply here"
         )

@@ -25,7 +25,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from support import FreezeWatch, skip_if_host_too_slow
+from support import FreezeWatch, late_share, skip_if_host_too_slow
 
 from lca_control import contract as ri
 from lca_control.profiles import RampProfile
@@ -150,8 +150,7 @@ def _run_swap(tmp_path: Path, modes: tuple[str, ...] = (), until_s: float = 11.5
             ramp,
             bridge.bridge.latched_reason(),
             freeze_ms,
-            bridge.bridge.counters.commands_late
-            / max(bridge.bridge.counters.commands_late + bridge.bridge.counters.commands_in_time, 1),
+            late_share(bridge.bridge.counters.commands_late, bridge.bridge.counters.commands_in_time),
         )
     finally:
         started: tuple[Node | None, ...] = (probe, ctl, bridge)

@@ -49,7 +49,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from support import FreezeWatch, skip_if_host_too_slow, wait_until
+from support import FreezeWatch, late_share, skip_if_host_too_slow, wait_until
 
 from lca_control import contract as pc
 from lca_control.ros.controller_node import ControllerNode
@@ -402,7 +402,7 @@ def _run_backend(backend: str, tmp_path: Path) -> ContractRun:
         if isinstance(plant, CanBridgeNode):
             run.latched_reason = plant.bridge.latched_reason()
             c = plant.bridge.counters
-            run.commands_late_share = c.commands_late / max(c.commands_late + c.commands_in_time, 1)
+            run.commands_late_share = late_share(c.commands_late, c.commands_in_time)
         _read_graph(probe, plant, plant.get_name(), run)
         return run
     finally:
