@@ -143,6 +143,7 @@ def _run_swap(tmp_path: Path, modes: tuple[str, ...] = (), until_s: float = 11.5
         ramp = ctl.core.params.profile
         freeze_ms = round(watch.longest_s * 1e3)
         assert isinstance(ramp, RampProfile)
+        counters = bridge.bridge.counters
         return SwapRun(
             stamp_s,
             velocity_rad_s,
@@ -150,7 +151,7 @@ def _run_swap(tmp_path: Path, modes: tuple[str, ...] = (), until_s: float = 11.5
             ramp,
             bridge.bridge.latched_reason(),
             freeze_ms,
-            late_share(bridge.bridge.counters.commands_late, bridge.bridge.counters.commands_in_time),
+            late_share(counters.commands_late, counters.commands_in_time),
         )
     finally:
         started: tuple[Node | None, ...] = (probe, ctl, bridge)
