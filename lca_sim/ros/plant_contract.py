@@ -157,8 +157,9 @@ class PlantPublisher:
         joint.velocity = snap.velocity.tolist()
         joint.effort = snap.effort.tolist()
         self.joint_pub.publish(joint)
-        if self.extra_joint_pub is not None:
-            self.extra_joint_pub.publish(joint)
+        extra = self.extra_joint_pub
+        if extra is not None and extra.get_subscription_count():  # ros2_control listens
+            extra.publish(joint)
 
         if self.motor_pub.get_subscription_count():
             motor = self._motor_msg
