@@ -49,7 +49,13 @@ from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from support import FreezeWatch, late_share, skip_if_host_too_slow, wait_until
+from support import (
+    LATE_COMMAND_SHARE,
+    FreezeWatch,
+    late_share,
+    skip_if_host_too_slow,
+    wait_until,
+)
 
 from lca_control import contract as pc
 from lca_control.ros.controller_node import ControllerNode
@@ -481,7 +487,10 @@ def test_the_run_went_through(run: ContractRun) -> None:
     for topic in (pc.JOINT_STATES, pc.MOTOR_STATES, pc.DRIVE_CHAIN_STATES):
         assert run.counts.get(topic, 0) > 500, run.counts  # 4.2 s at 250 Hz: about 1050
     assert run.latched_reason == ""
-    assert math.degrees(max(run.pivot_position.values())) > SWITCH_DEG + 3.0
+    # A loop whose commands came a cycle late lags the ramp (support.skip_if_host_too_slow):
+    # it must still pass the transition, with less margin.
+    margin_deg = 3.0 if run.commands_late_share <= LATE_COMMAND_SHARE else 0.5
+    assert math.degrees(max(run.pivot_position.values())) > SWITCH_DEG + margin_deg
 
 
 def test_publishes_the_contract_topics_types_and_qos(run: ContractRun) -> None:
