@@ -250,12 +250,13 @@ class ControllerNode(Node):
         level, message = self._plant_health()
         if level == DiagnosticStatus.OK and (core.rejected_references or self.bad_states):
             level, message = DiagnosticStatus.WARN, "bad states or references (see counters)"
-        if level == DiagnosticStatus.OK and core.bad_states:
-            level = DiagnosticStatus.WARN
-            message = (
+        if core.bad_states:  # said beside any other warning, never hidden behind it
+            lost = (
                 f"{core.bad_states} plant states with NaN or infinite readings (a lost sensor "
                 "sample): the last command was sent again for each"
             )
+            message = lost if level == DiagnosticStatus.OK else f"{message}; {lost}"
+            level = max(level, DiagnosticStatus.WARN)
         values: dict[str, object] = {}
         conflict = self._graph_health(values)
         if conflict is not None:  # the worst first, then what else is wrong

@@ -195,7 +195,7 @@ def test_lost_encoder_samples_show_on_the_controller(lca_hil_loop: HilLoop) -> N
             timeout_s=30.0,
         )
         level, message, _ = next(s for s in seen if int(s[2].get("states_not_finite", "0")) > 10)
-        assert level == 1 and "NaN or infinite readings" in message
+        assert level >= 1 and "NaN or infinite readings" in message
     finally:
         assert loop.inject(sim, **{"faults.pivot.encoder_dropout": 0.0}) == ""
         loop.node.destroy_subscription(sub)
