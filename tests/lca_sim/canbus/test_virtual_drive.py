@@ -746,7 +746,11 @@ def test_tpdo4_reports_load_friction_and_voltage(
     node.sdo[0x6071].raw = 800
     enable(node)
     nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    start = probe.mark()
     sync(rack, probe, 4)  # 150 ms of plant: the pivot is moving up
+    # The 4th SYNC's TPDO4 may reach the probe after the rack has counted that SYNC: let it
+    # arrive, or it would be taken for the next SYNC's (one step of motion apart).
+    wait_until(lambda: len(probe.seen(0x482, start)) >= 4, "the 4 SYNCs' TPDO4s")
     with rack._lock:
         signals = rack.simulator.signals
     pivot = rack.simulator.axis_names.index("pivot")
