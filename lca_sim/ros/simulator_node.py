@@ -102,6 +102,9 @@ from lca_sim.ros.simulator_params import (
 )
 
 MAX_CATCH_UP_PERIODS = 4
+# Time skipped within one diagnostics period above which it is reported as a stall (WARN):
+# five control periods. A few ms skipped on a loaded host is counted in skipped_s only.
+STALL_WARN_S = 0.02
 _ROW = {name: row for row, name in enumerate(SIGNAL_NAMES)}
 # The plant's state topics: a second publisher of any of them on the domain is an ERROR.
 _END_STOP = "stop_end_stop"
@@ -416,19 +419,30 @@ class SimulatorNode(Node):
                 f"no command for {p.command_timeout_s:g} s: 0 V, {self._hold_words}",
                 throttle_duration_sec=5.0,
             )
-        factor = p.realtime_factor
-        due = round((time.monotonic() - self._wall_start) * factor / p.dt_s) - self._steps_done
-        cap = MAX_CATCH_UP_PERIODS * max(1, round(factor / (p.publish_rate_hz * p.dt_s)))
-        if due > cap:
-            self._overrun_steps += due - cap
-            # drop the backlog: simulated time slips
-            self._wall_start += (due - cap) * p.dt_s / factor
-            due = cap
+        due = self._steps_due()
         if due > 0:
             self._switch_faults()
             self.plant.advance(due)
             self._steps_done += due
         self._publish_state()
+
+    def _steps_due(self) -> int:
+        """Realtime: the model steps due now, at most the catch-up cap; the rest is skipped.
+
+        A backlog beyond MAX_CATCH_UP_PERIODS (a stall) is dropped: simulated time slips and
+        the dropped steps are counted (`overrun_steps`). Also called by the diagnostics before
+        they report, so a stall shows in the period it happened, even when the diagnostics
+        timer runs before the next tick after it.
+        """
+        p = self.params
+        factor = p.realtime_factor
+        due = round((time.monotonic() - self._wall_start) * factor / p.dt_s) - self._steps_done
+        cap = MAX_CATCH_UP_PERIODS * max(1, round(factor / (p.publish_rate_hz * p.dt_s)))
+        if due > cap:
+            self._overrun_steps += due - cap
+            self._wall_start += (due - cap) * p.dt_s / factor  # drop the backlog
+            due = cap
+        return due
 
     @property
     def _hold_words(self) -> str:
@@ -605,6 +619,8 @@ class SimulatorNode(Node):
         """
         if self._lockstep:
             return None
+        if not self._paused:
+            self._steps_due()  # a stall not yet seen by a tick is counted in this period
         dt_s = self.params.dt_s
         now = time.monotonic()
         paused_s = self._paused_s + (now - self._pause_began if self._paused else 0.0)
@@ -620,8 +636,8 @@ class SimulatorNode(Node):
         self._window_wall, self._window_steps = now, self._steps_done
         self._window_overrun = self._overrun_steps
         self._window_paused_s, self._window_manual = paused_s, self._manual_steps
-        if skipped <= 0:
-            return None
+        if skipped * dt_s <= STALL_WARN_S:
+            return None  # a scheduling hiccup of a few ms: counted (skipped_s), not a stall
         return DiagnosticStatus.WARN, (
             f"stalled: simulated time fell {skipped * dt_s:.3f} s behind the wall clock (skipped)"
         )
