@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import struct
 import threading
 import time
@@ -34,6 +35,7 @@ from typing import Any
 import can
 import canopen
 from canopen.sdo.base import SdoArray, SdoRecord
+from canopen.sdo.client import SdoClient
 
 from lca_sim.canbus import emcy
 from lca_sim.cia402 import codec
@@ -444,6 +446,7 @@ class Cia402Master:
         for k, axis in enumerate(self._axes):
             node = axis.node
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
+            _drop_unasked_sdo_responses(node.sdo)
             try:
                 node.nmt.state = "PRE-OPERATIONAL"
                 supported = int(node.sdo[od.SUPPORTED_DRIVE_MODES].raw)
@@ -1270,6 +1273,22 @@ def _compile_apply(
     exec("\n".join(lines), namespace)  # fixed field names and decoders, see above
     apply: Callable[[AxisState, bytearray], None] = namespace["apply"]
     return apply
+
+
+def _drop_unasked_sdo_responses(sdo: SdoClient) -> None:
+    """Drop SDO responses that came while this master had no request out.
+
+    canopen's client queues every frame on the drive's SDO response COB-ID, asked for or not.
+    The default SDO channel serves one client at a time (CiA 301 7.2.4.1), and another client
+    on it (a tool, a test, a random frame) leaves answers this master never asked for; the
+    first transfer of `init()` would take such an answer for its own and fail ("Node returned
+    a value for 0x1000:00 instead").
+    """
+    while True:
+        try:
+            sdo.responses.get_nowait()
+        except queue.Empty:
+            return
 
 
 _AXIS_FIELDS = frozenset(AxisState.__slots__)
