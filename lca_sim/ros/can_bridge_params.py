@@ -11,7 +11,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from lca_control.contract import ROBOT_JOINT_COMMANDS, ROBOT_JOINT_STATES
 from lca_control.parameters import (
     ParameterError,
     ParameterTable,
@@ -20,7 +19,7 @@ from lca_control.parameters import (
     positive,
 )
 from lca_sim.model.params import AXIS_NAMES
-from lca_sim.ros.simulator_params import JOINT_COMMAND_EFFORTS, check_topic
+from lca_sim.ros.simulator_params import ROS2_CONTROL_PARAMETERS, check_topic
 
 S, INT = ParamKind.STRING, ParamKind.INTEGER
 
@@ -88,16 +87,7 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
                   live=False),
         ParamSpec("auto_enable", ParamKind.BOOL, False,
                   "autostart: enable operation after init (else: ~/enable)", live=False),
-        ParamSpec("joint_command_topic", S, ROBOT_JOINT_COMMANDS,
-                  "sensor_msgs/JointState commands by joint name (ros2_control's topic-based "
-                  "hardware interface, docs/ros2_control.md); empty: off", live=False),
-        ParamSpec("joint_state_topic", S, ROBOT_JOINT_STATES,
-                  "joint_states' message again on this topic (ros2_control's "
-                  "joint_states_topic); empty: off", live=False),
-        ParamSpec("joint_command_effort", S, "current",
-                  "what a JointState command's effort is: current (A) or torque (joint side, "
-                  "N m; N for the lift: current = effort / (k_t N))",
-                  choices=JOINT_COMMAND_EFFORTS, live=False),
+        *ROS2_CONTROL_PARAMETERS,
         positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
     )
 )  # fmt: skip

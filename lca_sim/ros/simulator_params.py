@@ -35,6 +35,22 @@ JOINT_COMMAND_EFFORTS = ("current", "torque")
 
 S, D_ARRAY = ParamKind.STRING, ParamKind.DOUBLE_ARRAY
 
+# ros2_control's topic-based hardware interface (docs/ros2_control.md): the same three
+# parameters on both plants (the simulator and the CAN bridge).
+ROS2_CONTROL_PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec("joint_command_topic", S, ROBOT_JOINT_COMMANDS,
+              "sensor_msgs/JointState commands by joint name (ros2_control's topic-based "
+              "hardware interface, docs/ros2_control.md); empty: off", live=False),
+    ParamSpec("joint_state_topic", S, ROBOT_JOINT_STATES,
+              "joint_states' message again on this topic (ros2_control's "
+              "joint_states_topic); empty: off", live=False),
+    ParamSpec("joint_command_effort", S, "current",
+              "what a JointState command's effort is: current (A) or torque (joint side, "
+              "N m; N for the lift: current = effort / (k_t N))",
+              choices=JOINT_COMMAND_EFFORTS, live=False),
+)  # fmt: skip
+
+
 # Declaration order. Read-only: the model and the wiring (a restart builds them anew).
 SIMULATOR_PARAMETERS = ParameterTable(
     (
@@ -76,16 +92,7 @@ SIMULATOR_PARAMETERS = ParameterTable(
         non_negative("lockstep_end_s", 0.0,
                      "lockstep: simulated time of the run's last state, s (a whole multiple of "
                      "dt_s); no state after it (0: no end)", high=1e6),
-        ParamSpec("joint_command_topic", S, ROBOT_JOINT_COMMANDS,
-                  "sensor_msgs/JointState commands by joint name (ros2_control's topic-based "
-                  "hardware interface, docs/ros2_control.md); empty: off", live=False),
-        ParamSpec("joint_state_topic", S, ROBOT_JOINT_STATES,
-                  "joint_states' message again on this topic (ros2_control's "
-                  "joint_states_topic); empty: off", live=False),
-        ParamSpec("joint_command_effort", S, "current",
-                  "what a JointState command's effort is: current (A) or torque (joint side, "
-                  "N m; N for the lift: current = effort / (k_t N))",
-                  choices=JOINT_COMMAND_EFFORTS, live=False),
+        *ROS2_CONTROL_PARAMETERS,
         positive("diagnostics_period_s", 1.0, "period of /diagnostics, s", high=60.0),
         positive("realtime_factor", 1.0,
                  "realtime: simulated time advances this many times the wall time (lockstep: "
