@@ -35,6 +35,7 @@ from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
     from_stamp,
+    other_publishers,
     run_node,
     set_enabled_by_service,
     status,
@@ -221,18 +222,7 @@ class ControllerNode(Node):
         per state. Its start and its end are logged once each; the publishers found go to
         `values["other_publishers"]`.
         """
-        me = self.get_fully_qualified_name()
-        found: list[str] = []
-        for topic in self._own_topics:
-            names = [
-                f"{info.node_namespace.rstrip('/')}/{info.node_name}"
-                for info in self.get_publishers_info_by_topic(topic)
-            ]
-            others = sorted({name for name in names if name != me})
-            if names.count(me) > 1:
-                others.append(f"{me} (another node of this name)")
-            if others:
-                found.append(f"{topic}: {', '.join(others)}")
+        found = other_publishers(self, self._own_topics)
         if tuple(found) != self._other_publishers:
             if found:
                 self.get_logger().error(

@@ -235,3 +235,24 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
             node.destroy_node()
         if rclpy_ok():
             rclpy.shutdown()
+
+
+def other_publishers(node: Node, topics: Sequence[str]) -> list[str]:
+    """`topic: node, ...` for each topic another node (or a second node of this name) publishes.
+
+    Read from the ROS graph (`get_publishers_info_by_topic`); the plants check their state
+    topics with it, the controller its command topics.
+    """
+    me = node.get_fully_qualified_name()
+    found: list[str] = []
+    for topic in topics:
+        names = [
+            f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+            for info in node.get_publishers_info_by_topic(topic)
+        ]
+        others = sorted({name for name in names if name != me})
+        if names.count(me) > 1:
+            others.append(f"{me} (another node of this name)")
+        if others:
+            found.append(f"{topic}: {', '.join(others)}")
+    return found

@@ -30,7 +30,7 @@ from sensor_msgs.msg import JointState
 from lca_control import contract as pc
 from lca_control.contract import PlantSnapshot
 from lca_sim.errors import LcaHilError
-from lca_sim.ros.node_util import to_stamp
+from lca_sim.ros.node_util import other_publishers, to_stamp
 
 _RELIABILITY = {
     pc.RELIABLE: ReliabilityPolicy.RELIABLE,
@@ -189,19 +189,7 @@ class PlantPublisher:
         under this node's name. Its start and its end are logged once each, and the publishers
         found go to `values["other_publishers"]`.
         """
-        node = self._node
-        me = node.get_fully_qualified_name()
-        found: list[str] = []
-        for topic in STATE_TOPICS:
-            names = [
-                f"{i.node_namespace.rstrip('/')}/{i.node_name}"
-                for i in node.get_publishers_info_by_topic(topic)
-            ]
-            others = sorted({n for n in names if n != me})
-            if names.count(me) > 1:
-                others.append(f"{me} (another node of this name)")
-            if others:
-                found.append(f"{topic}: {', '.join(others)}")
+        found = other_publishers(self._node, STATE_TOPICS)
         if tuple(found) != self._other_publishers:
             if found:
                 self._log.error(f"another node publishes {'; '.join(found)}")
