@@ -407,10 +407,7 @@ class FaultInjector:
         self.n = sim.n_axes
         self.joints = sim.axis_names
         self._nominal_model = sim._model.copy()
-        pin_model = sim.gantry._model
-        self._pin_model = pin_model
-        self._joint_ids = [int(pin_model.getJointId(j)) for j in self.joints]
-        self._nominal_inertia = [pin_model.inertias[j].copy() for j in self._joint_ids]
+        self._nominal_inertia = [sim.gantry.link_inertia(a) for a in range(self.n)]
         self._rng = np.random.default_rng(0)
         self._frozen_q = np.zeros(self.n)
         self._play_q = np.array(sim.state_array[0], copy=True)
@@ -598,9 +595,8 @@ class FaultInjector:
 
     def _apply_payload(self, a: int, extra_kg: float) -> None:
         nominal = self._nominal_inertia[a]
-        joint_id = self._joint_ids[a]
         if extra_kg == 0.0:
-            self._pin_model.inertias[joint_id] = nominal.copy()
+            self.sim.gantry.set_link_inertia(a, nominal)
             return
         mass = float(nominal.mass)
         if mass + extra_kg <= 0.0:
@@ -613,7 +609,7 @@ class FaultInjector:
         inertia = nominal.copy()
         inertia.mass = mass + extra_kg
         inertia.inertia = nominal.inertia * scale
-        self._pin_model.inertias[joint_id] = inertia
+        self.sim.gantry.set_link_inertia(a, inertia)
 
     def _apply_i2t(self, a: int, v: Mapping[str, Any]) -> None:
         rated = float(v["i2t_rated_a"])

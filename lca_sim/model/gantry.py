@@ -1,22 +1,38 @@
 """The gantry's rigid-body dynamics, eq. (1)-(2), from Pinocchio.
 
-A(q), C(q, qdot) qdot and Q(q) are never written by hand: they come from Pinocchio's crba,
-nonLinearEffects and computeGeneralizedGravity on the URDF.
+The robot is never written by hand: Pinocchio's URDF parser builds the model (tree, placements,
+axes, link inertias with fixed links merged), and its algorithms give A(q), C(q, qdot) qdot and
+Q(q), the energies and the forward dynamics. The simulator's step evaluates A(q) and
+C qdot + Q through `lca_sim.model.rigid_body`, the same two algorithms (CRBA, RNEA) compiled
+with the step on that same model's numbers (`pack_tree`), because Pinocchio's Python bindings
+cost more per call than the arithmetic at four joints; a model whose compiled terms do not agree
+with Pinocchio's is refused when it is built.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 import numpy.typing as npt
 import pinocchio as pin
 
 from lca_sim.errors import ConfigError
+from lca_sim.model import rigid_body
 
 FloatArray = npt.NDArray[np.float64]
+
+# Joints whose motion is a rotation about, or a translation along, one fixed axis of the joint
+# frame: the ones `rigid_body` evaluates (Pinocchio's short names).
+_AXIS_JOINTS = {
+    **{f"JointModelR{x}": False for x in "XYZ"},
+    **{f"JointModelP{x}": True for x in "XYZ"},
+    "JointModelRevoluteUnaligned": False,
+    "JointModelPrismaticUnaligned": True,
+}
+# How far the compiled terms may be from Pinocchio's (relative to the largest term) before a
+# model is refused: rounding is about 1e-15 here, a wrong axis or placement is order 1.
+_TERMS_AGREEMENT = 1e-9
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,61 +69,138 @@ class Gantry:
                 )
             kind = joint.shortname()
             idx = joint.idx_q
+            if kind not in _AXIS_JOINTS or idx != joint_id - 1 or joint.idx_v != idx:
+                raise ConfigError(
+                    source,
+                    "robot.urdf",
+                    "expected only 1-DoF revolute or prismatic joints about or along one axis "
+                    f"(joint {self._model.names[joint_id]!r} is {kind})",
+                )
             joints.append(
                 JointInfo(
                     name=self._model.names[joint_id],
-                    prismatic="JointModelP" in kind,
+                    prismatic=_AXIS_JOINTS[kind],
                     position_min=float(self._model.lowerPositionLimit[idx]),
                     position_max=float(self._model.upperPositionLimit[idx]),
                 )
             )
         self.joints: tuple[JointInfo, ...] = tuple(joints)
         self.nv: int = int(self._model.nv)
+        self._tree = np.zeros((self._model.njoints, rigid_body.TREE_COLS))
+        self._body = np.zeros((self._model.njoints, rigid_body.BODY_COLS))
+        self._mass = np.zeros((self.nv, self.nv), order="F")
+        self._nle = np.zeros(self.nv)
+        self.pack_tree()
+        self._check_terms(source)
 
     @property
     def joint_names(self) -> tuple[str, ...]:
         """Actuated joint names in Pinocchio's (tree) order."""
         return tuple(j.name for j in self.joints)
 
-    def dynamics_terms(self, q: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """A(q) (upper triangle filled) and C(q, qdot) qdot + Q(q), eq. (2).
+    def pack_tree(self) -> None:
+        """Copy the Pinocchio model's numbers into the compiled terms' `tree` (in place).
 
-        The arrays are new copies of Pinocchio's results (its bindings return by value).
+        Called at construction and by `set_link_inertia`; the array keeps its address, so a
+        step that holds it sees the change at its next call.
         """
-        mass = pin.crba(self._model, self._data, q)
-        nle = pin.nonLinearEffects(self._model, self._data, q, v)
+        model, tree = self._model, self._tree
+        tree[0, :] = 0.0
+        tree[0, rigid_body.T_GRAVITY : rigid_body.T_GRAVITY + 3] = model.gravity.linear
+        data = model.createData()
+        for joint_id in range(1, model.njoints):
+            row = tree[joint_id]
+            info = self.joints[joint_id - 1]
+            # The motion subspace in the joint frame: (axis, 0) prismatic, (0, axis) revolute.
+            subspace = np.asarray(data.joints[joint_id].S, dtype=float).reshape(6)
+            axis = subspace[:3] if info.prismatic else subspace[3:]
+            placement = model.jointPlacements[joint_id]
+            inertia = model.inertias[joint_id]
+            row[rigid_body.T_PARENT] = float(model.parents[joint_id])
+            row[rigid_body.T_PRISMATIC] = 1.0 if info.prismatic else 0.0
+            row[rigid_body.T_AXIS : rigid_body.T_AXIS + 3] = axis
+            row[rigid_body.T_PLACEMENT_R : rigid_body.T_PLACEMENT_R + 9] = np.asarray(
+                placement.rotation
+            ).reshape(9)
+            row[rigid_body.T_PLACEMENT_P : rigid_body.T_PLACEMENT_P + 3] = placement.translation
+            row[rigid_body.T_MASS] = inertia.mass
+            row[rigid_body.T_LEVER : rigid_body.T_LEVER + 3] = inertia.lever
+            row[rigid_body.T_INERTIA : rigid_body.T_INERTIA + 9] = np.asarray(
+                inertia.inertia
+            ).reshape(9)
+            row[rigid_body.T_ARMATURE] = model.armature[joint_id - 1]
+
+    def _check_terms(self, source: str) -> None:
+        """Refuse a model whose compiled terms are not Pinocchio's (a joint they misread)."""
+        rng = np.random.default_rng(0)
+        lo = np.array([j.position_min for j in self.joints])
+        hi = np.array([j.position_max for j in self.joints])
+        for _ in range(3):
+            q = np.where(np.isfinite(lo) & np.isfinite(hi), rng.uniform(lo, hi), rng.normal())
+            v = rng.normal(size=self.nv)
+            mass, nle = self.terms_in_place(q, v)
+            ref_mass, ref_nle = self.pinocchio_terms(q, v)
+            scale = max(float(np.max(np.abs(ref_mass))), float(np.max(np.abs(ref_nle))), 1.0)
+            error = max(
+                float(np.max(np.abs(mass - ref_mass))), float(np.max(np.abs(nle - ref_nle)))
+            )
+            if not error <= _TERMS_AGREEMENT * scale:
+                raise ConfigError(
+                    source,
+                    "robot.urdf",
+                    "a model the compiled rigid-body terms reproduce (they differ from "
+                    f"Pinocchio's by {error:.3g} of {scale:.3g})",
+                )
+
+    def terms_in_place(self, q: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """A(q) (full, symmetric) and C(q, qdot) qdot + Q(q), eq. (2), compiled.
+
+        Returns this object's own two buffers, overwritten by the next call: for a caller that
+        uses them at once (the simulator's step). `dynamics_terms` returns copies.
+        """
+        rigid_body.terms(q, v, self._tree, self._body, self._mass, self._nle)
+        return self._mass, self._nle
+
+    def dynamics_terms(self, q: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """A(q) (full, symmetric) and C(q, qdot) qdot + Q(q), eq. (2): new arrays.
+
+        The terms the simulator steps on (`terms_in_place`), as copies.
+        """
+        mass, nle = self.terms_in_place(q, v)
+        return mass.copy(), nle.copy()
+
+    def pinocchio_terms(self, q: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Pinocchio's crba (made symmetric) and nonLinearEffects at (q, qdot): the reference."""
+        upper = np.triu(np.array(pin.crba(self._model, self._data, q)))
+        mass: FloatArray = upper + np.triu(upper, 1).T
+        nle: FloatArray = np.array(pin.nonLinearEffects(self._model, self._data, q, v))
         return mass, nle
 
-    def terms_at(
-        self, q: FloatArray, v: FloatArray
-    ) -> tuple[Callable[[], FloatArray], Callable[[], FloatArray]]:
-        """`dynamics_terms` bound to two arrays, as two calls without arguments, for a hot path.
+    def term_buffers(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The arrays the compiled terms read and write: A(q), C qdot + Q, tree and scratch.
 
-        Each call evaluates Pinocchio's crba (A(q), upper triangle) or nonLinearEffects
-        (C(q, qdot) qdot + Q(q)) at what `q` and `v` hold at that moment: the arrays are bound,
-        not their values, so the caller updates them in place. The same Pinocchio functions on
-        the same inputs as `dynamics_terms`, so the same bits; without its Python frame and
-        attribute lookups (bench/model_step.py).
+        In place, valid for this object's life (never replaced), for a step that holds their
+        addresses (`kernel.make_frame`).
         """
-        mass_at: Callable[[], FloatArray] = partial(pin.crba, self._model, self._data, q)
-        nle_at: Callable[[], FloatArray] = partial(
-            pin.nonLinearEffects, self._model, self._data, q, v
-        )
-        return mass_at, nle_at
+        return self._mass, self._nle, self._tree, self._body
 
-    def term_buffers(self) -> tuple[FloatArray, FloatArray]:
-        """Views of the buffers in Pinocchio's `Data` that crba and nonLinearEffects write.
+    def link_inertia(self, axis: int) -> pin.Inertia:
+        """A copy of the inertia of the link moved by joint `axis` (0-based, in axis order)."""
+        inertia: pin.Inertia = self._model.inertias[axis + 1].copy()
+        return inertia
 
-        A(q) (`Data.M`, column major, upper triangle written) and C(q, qdot) qdot + Q(q)
-        (`Data.nle`), in place, valid for this object's life (the model's size never changes).
+    def set_link_inertia(self, axis: int, inertia: pin.Inertia) -> None:
+        """Replace the inertia of the link moved by joint `axis` (a payload), everywhere.
+
+        Pinocchio's model and the compiled terms' copy of it change together.
         """
-        return self._data.M, self._data.nle
+        self._model.inertias[axis + 1] = inertia.copy()
+        self.pack_tree()
 
     def mass_matrix(self, q: FloatArray) -> FloatArray:
         """A(q), full symmetric copy (kg m^2 or kg on the diagonal)."""
-        mass: FloatArray = np.array(pin.crba(self._model, self._data, q))
-        full: FloatArray = np.triu(mass) + np.triu(mass, 1).T
-        return full
+        mass, _ = self.pinocchio_terms(q, np.zeros(self.nv))
+        return mass
 
     def gravity(self, q: FloatArray) -> FloatArray:
         """Q(q): the generalized gravity torques/forces, joint side (N m or N)."""

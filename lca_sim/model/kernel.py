@@ -34,6 +34,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from numba.np.numpy_support import carray, farray
 
+from lca_sim.model import rigid_body
+
 FloatArray = npt.NDArray[np.float64]
 
 # Rows of `model`: per-axis constants.
@@ -490,20 +492,23 @@ def steps(
 #
 # numba unboxes every array argument at every call (about 0.1-0.15 us each), which at 4 axes
 # costs more than the step's arithmetic. A simulator's arrays never move: `work` and `model` are
-# its own, and Pinocchio's crba and nonLinearEffects write A(q) and the nonlinear effects into
-# the same Eigen buffers of its `Data` at every call (`Data.M`, column major, and `Data.nle`).
-# So `step_in_frame` takes their addresses once, in a small integer array (`frame`), and views
-# them in place; only the voltage array, new at every call, is unboxed. Nothing checks the
-# addresses: the caller keeps every array alive and in place while it uses the frame. The
-# arithmetic is `step`'s, called on views of the same memory, so the bits are the same.
+# its own, and its `Gantry` owns the packed tree, the scratch and the two buffers the compiled
+# rigid-body terms (`rigid_body.terms`) write A(q) and the nonlinear effects into. So
+# `step_in_frame` takes their addresses once, in a small integer array (`frame`), views them in
+# place, evaluates eq. (2)'s terms at the state in `work` and steps; only the voltage array, new
+# at every call, is unboxed. Nothing checks the addresses: the caller keeps every array alive
+# and in place while it uses the frame. The arithmetic is `rigid_body.terms` then `step`, called
+# on views of the same memory, so the bits are those of the two called in turn.
 
-F_MASS = 0  # address of A(q): n x n float64, column major (Eigen's layout)
+F_MASS = 0  # address of A(q): n x n float64, column major
 F_NLE = 1  # address of C(q, qdot) qdot + Q(q): n float64
 F_WORK = 2  # address of `work`: work_rows(n) x n float64, row major
 F_MODEL = 3  # address of `model`: F_MODEL_ROWS x n float64, row major
 F_N = 4  # number of axes
 F_MODEL_ROWS = 5
-N_FRAME = 6
+F_TREE = 6  # address of the packed rigid-body tree: (n + 1) x rigid_body.TREE_COLS
+F_BODY = 7  # address of its scratch: (n + 1) x rigid_body.BODY_COLS
+N_FRAME = 8
 
 
 @intrinsic
@@ -521,11 +526,18 @@ FRAME_AVAILABLE = not getattr(numba_config, "DISABLE_JIT", False)
 
 
 def make_frame(
-    mass_matrix: FloatArray, nonlinear_effects: FloatArray, work: FloatArray, model: FloatArray
+    mass_matrix: FloatArray,
+    nonlinear_effects: FloatArray,
+    work: FloatArray,
+    model: FloatArray,
+    tree: FloatArray,
+    body: FloatArray,
 ) -> npt.NDArray[np.int64]:
-    """The `frame` of `step_in_frame`: the addresses and shapes of the four arrays.
+    """The `frame` of `step_in_frame`: the addresses and shapes of the six arrays.
 
-    The caller keeps the four arrays alive and in place for as long as it uses the frame.
+    `tree` and `body` are the packed model and scratch of `rigid_body.terms`, whose outputs
+    are `mass_matrix` and `nonlinear_effects`. The caller keeps the six arrays alive and in
+    place for as long as it uses the frame.
 
     Raises:
         ValueError: an array has the wrong dtype, shape or memory layout.
@@ -537,6 +549,8 @@ def make_frame(
         (nonlinear_effects, (n,), nonlinear_effects.flags.c_contiguous, "contiguous"),
         (work, (work_rows(n), n), work.flags.c_contiguous, "row-major"),
         (model, (model.shape[0], n), model.flags.c_contiguous, "row-major"),
+        (tree, (n + 1, rigid_body.TREE_COLS), tree.flags.c_contiguous, "row-major"),
+        (body, (n + 1, rigid_body.BODY_COLS), body.flags.c_contiguous, "row-major"),
     )
     for array, shape, in_layout, layout in layouts:
         if array.dtype != np.float64 or array.shape != shape or not in_layout:
@@ -551,6 +565,8 @@ def make_frame(
     frame[F_MODEL] = model.ctypes.data
     frame[F_N] = n
     frame[F_MODEL_ROWS] = model.shape[0]
+    frame[F_TREE] = tree.ctypes.data
+    frame[F_BODY] = body.ctypes.data
     return frame
 
 
@@ -558,7 +574,7 @@ def make_frame(
 # any 1-D float64 voltage array (strided views too), the frame's address, the step.
 @njit("int64(float64[:], int64, float64)", cache=True)
 def step_in_frame(voltage_cmd_v: FloatArray, frame_address: int, dt_s: float) -> int:
-    """`step` on the arrays a frame points to (`make_frame`), given the frame's own address.
+    """Eq. (2)'s terms at the state, then `step`, on the arrays a frame points to (`make_frame`).
 
     Even the frame is passed by address: an integer costs numba next to nothing to unbox, an
     array about 0.1 us. Same returns as `step`. Call it through `step_in_frame_entry` on the
@@ -570,6 +586,9 @@ def step_in_frame(voltage_cmd_v: FloatArray, frame_address: int, dt_s: float) ->
     nonlinear_effects = carray(_void_pointer(frame[F_NLE]), (n,), np.float64)
     work = carray(_void_pointer(frame[F_WORK]), (W_INERTIA + 2 * n, n), np.float64)
     model = carray(_void_pointer(frame[F_MODEL]), (frame[F_MODEL_ROWS], n), np.float64)
+    tree = carray(_void_pointer(frame[F_TREE]), (n + 1, rigid_body.TREE_COLS), np.float64)
+    body = carray(_void_pointer(frame[F_BODY]), (n + 1, rigid_body.BODY_COLS), np.float64)
+    rigid_body.terms(work[X_POSITION], work[X_VELOCITY], tree, body, mass_matrix, nonlinear_effects)
     return step(mass_matrix, nonlinear_effects, voltage_cmd_v, work, model, dt_s)
 
 

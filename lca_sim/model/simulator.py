@@ -159,9 +159,9 @@ class Simulator:
         self._signals = self._work[kernel.FIRST_SIGNAL : kernel.FIRST_SIGNAL + kernel.N_SIGNALS]
         self._command = np.zeros(self.n_axes)
         self._command_shape = (self.n_axes,)
-        self._dynamics = self._gantry.dynamics_terms
-        # The held rigid-body terms: Pinocchio's buffers themselves when evaluated at every
-        # step, copies when held (another Pinocchio call would overwrite its buffers).
+        self._dynamics = self._gantry.terms_in_place
+        # The held rigid-body terms: the gantry's buffers themselves when evaluated at every
+        # step, copies when held (another evaluation would overwrite its buffers).
         self._hold_steps = rigid_body_update_steps
         self._hold_lead_s = 0.5 * (rigid_body_update_steps - 1) * self.dt_s
         self._hold_position = np.zeros(self.n_axes)
@@ -318,22 +318,24 @@ class Simulator:
         """The rigid-body terms and `kernel.step` of one step, as one call on a voltage array.
 
         `step` is the hot path of every run (bench/model_step.py holds it against a MuJoCo
-        step), and at 4 axes its cost is mostly Python around the compiled code, not the
-        arithmetic. So the exact scheme (terms at every step) is a closure over everything
-        fixed for the simulator's life: the two Pinocchio calls bound to the position and
-        velocity rows of `work` (`Gantry.terms_at`), the kernel, `work`, `model` and `dt_s`.
-        It makes the same calls on the same arrays as the general path, so the same bits.
+        step), and at 4 axes its cost is mostly the calls around the arithmetic. So the exact
+        scheme (terms at every step) is one compiled call, `kernel.step_in_frame`, on a frame
+        of the addresses of everything fixed for the simulator's life: `work`, `model` and the
+        gantry's compiled terms' tree, scratch and output buffers. It computes what the general
+        path computes (`Gantry.terms_in_place`, then `kernel.step`), so the same bits.
         """
         if self._hold_steps > 1:
             return self._held_kernel_step
-        mass_at, nle_at = self._gantry.terms_at(self._position, self._velocity)
         work, model, dt_s = self._work, self._model, self.dt_s
-        frame = self._kernel_frame(mass_at(), nle_at())
+        terms_in_place = self._gantry.terms_in_place
+        position, velocity = self._position, self._velocity
+        frame = self._kernel_frame()
         if frame is None:
             kernel_step = kernel.step
 
             def exact_kernel_step(command: FloatArray) -> int:
-                code: int = kernel_step(mass_at(), nle_at(), command, work, model, dt_s)
+                mass, nle = terms_in_place(position, velocity)
+                code: int = kernel_step(mass, nle, command, work, model, dt_s)
                 return code
 
             return exact_kernel_step
@@ -341,34 +343,18 @@ class Simulator:
         frame_address = int(frame.ctypes.data)  # `frame` is kept in `_frame_arrays`
 
         def exact_frame_step(command: FloatArray) -> int:
-            mass_at()  # Pinocchio writes A(q) and the nonlinear effects into its Data's
-            nle_at()  # buffers, where the frame points; the copies it returns are dropped
             code: int = step_in_frame(command, frame_address, dt_s)
             return code
 
         return exact_frame_step
 
-    def _kernel_frame(self, mass: FloatArray, nle: FloatArray) -> npt.NDArray[np.int64] | None:
-        """`kernel.step_in_frame`'s frame, or None where it cannot be used.
-
-        `mass` and `nle` are what Pinocchio just returned; the frame is used only if its
-        `Data` buffers hold the same (so a Pinocchio release that stops writing them in place
-        falls back to passing arrays), and not when numba's JIT is off (no raw addresses in
-        plain Python).
-        """
+    def _kernel_frame(self) -> npt.NDArray[np.int64] | None:
+        """`kernel.step_in_frame`'s frame, or None when numba's JIT is off (no raw addresses)."""
         if not kernel.FRAME_AVAILABLE:
             return None
-        mass_buffer, nle_buffer = self._gantry.term_buffers()
-        upper = np.triu_indices(self.n_axes)
-        if not (
-            np.array_equal(mass_buffer[upper], mass[upper]) and np.array_equal(nle_buffer, nle)
-        ):
-            return None
-        try:
-            frame = kernel.make_frame(mass_buffer, nle_buffer, self._work, self._model)
-        except ValueError:
-            return None
-        self._frame_arrays = (frame, mass_buffer, nle_buffer)  # keeps the frame's memory alive
+        mass, nle, tree, body = self._gantry.term_buffers()
+        frame = kernel.make_frame(mass, nle, self._work, self._model, tree, body)
+        self._frame_arrays = (frame, mass, nle, tree, body)  # keeps the frame's memory alive
         return frame
 
     def _held_kernel_step(self, command: FloatArray) -> int:

@@ -1,9 +1,12 @@
 """An axis without a gravity load: the load-sign band of Fig. 8 (docs/model.md, section 4).
 
 The L-arm turns about the vertical, so Q(q) has no L-arm component and, moving alone, it has no
-Coriolis term either: Pinocchio returns tau_l as a rounding residue of 1e-20 to 1e-15 N m of
+Coriolis term either: Pinocchio returns tau_l as a rounding residue of 1e-20 to 1e-13 N m of
 random sign. Before the band the drive state followed that sign (24,886 changes in 12 s at 12 V
 from the zero pose, 49,736 with the pivot at 0.44 rad); now it keeps the state of a zero load.
+The step's compiled terms (`lca_sim.model.rigid_body`, world frame) give exactly 0 on this
+vertical axis, but a robot whose axes are not aligned with gravity has the residue, so the band
+is tested on hand-set residues and on Pinocchio's.
 """
 
 from __future__ import annotations
@@ -50,7 +53,6 @@ def test_unloaded_l_arm_keeps_its_state_at_constant_speed(
     _, result = _constant_voltage_run(default_robot, pose, hold_steps)
     tau_l = result.signal("load_torque_nm", "l_arm")
     assert np.abs(tau_l).max() < 1e-14  # rounding only: no physical load
-    assert np.any(tau_l != 0.0)  # but not exactly zero: the noise is there to flip on
     states = [p.state for p in result.phases("l_arm")]
     assert states == ["stop_hold", "stop_motor_direct", "motor_driving"]
 
@@ -167,7 +169,10 @@ def test_band_is_the_documented_multiple_of_the_stall_torque(default_robot: Robo
 
 
 def test_band_covers_pinocchio_rounding_on_the_l_arm(default_robot: RobotParams) -> None:
-    """Over random poses and L-arm speeds, the L-arm's tau_l stays a hundredth of the band."""
+    """Over random poses and L-arm speeds, the L-arm's tau_l stays a hundredth of the band.
+
+    Both Pinocchio's nonLinearEffects (a residue of random sign) and the step's compiled terms.
+    """
     sim = Simulator(default_robot)
     band = sim.model_array[kernel.P_LOAD_TORQUE_BAND, L_ARM]
     ratio = default_robot.axes[L_ARM].gear_ratio
@@ -179,8 +184,9 @@ def test_band_covers_pinocchio_rounding_on_the_l_arm(default_robot: RobotParams)
         v = np.zeros(4)
         v[L_ARM] = rng.uniform(-0.2, 0.2)
         _, nle = sim.gantry.dynamics_terms(q, v)
-        worst_nm = max(worst_nm, abs(float(nle[L_ARM])) / ratio)
-    assert worst_nm < 0.01 * band
+        _, reference = sim.gantry.pinocchio_terms(q, v)
+        worst_nm = max(worst_nm, abs(float(nle[L_ARM])) / ratio, abs(reference[L_ARM]) / ratio)
+    assert 0.0 < worst_nm < 0.01 * band  # Pinocchio's residue is there, and inside the band
 
 
 # --- energy and hold stay exact -------------------------------------------------------------
