@@ -7,6 +7,7 @@ metrics to compute:
       kind: open_loop                  # closed_loop | open_loop | current_step
       robot: default
       scenario: fig9_open_loop_pivot
+    # closed_loop also takes faults: a fault schedule (docs/faults.md) on the run
     parameters:
       - name: wear
         paths: [robot.axes.pivot.efficiency.load_driving.direct.eta_l]
@@ -18,13 +19,17 @@ metrics to compute:
 
 A parameter's path starts at one of the run's documents (`ROOTS`): `base` (the spec's base
 block), `robot` (the robot YAML, after its `base:` merge), `controller` and `simulator` (the
-nodes' parameters, closed loop), `scenario` (the open-loop scenario YAML). Below the root, a
+nodes' parameters, closed loop), `faults` (the entries of the closed loop's fault schedule, by
+index: `faults.0.start_s`), `scenario` (the open-loop scenario YAML). Below the root, a
 mapping is entered by key, a list by index or, for a list of named items (the robot's axes),
-by name. Every path must exist in the base documents, with three exceptions: a node parameter
-the params file leaves at its default (`controller.*`, `simulator.*`: the node's validation
-then names an unknown one), a base key the block leaves at its default, and an axis without its
-own `efficiency` table, which takes the robot's top-level one (that is what the robot file
-means), so `robot.axes.pivot.efficiency...` changes the pivot's alone.
+by name. A node parameter is one dotted name, as ROS 2 has it: `simulator.faults.pivot.jam` is
+the simulator's parameter `faults.pivot.jam` (a standing fault), `simulator.initial_position.1`
+the second item of its `initial_position`. Every path must exist in the base documents, with
+three exceptions: a node parameter the params file leaves at its default (`controller.*`,
+`simulator.*`: the node's validation then names an unknown one), a base key the block leaves at
+its default, and an axis without its own `efficiency` table, which takes the robot's top-level
+one (that is what the robot file means), so `robot.axes.pivot.efficiency...` changes the
+pivot's alone.
 
 Grid sweeps take the product of the parameters' values (the last parameter varies fastest);
 random sweeps draw `samples` points, point i from the generator seeded with (seed, i), the
@@ -52,9 +57,10 @@ from lca_sim.analysis.metrics import MetricSpec, parse_metric
 from lca_sim.errors import ConfigError
 
 KINDS = ("closed_loop", "open_loop", "current_step")
-ROOTS = ("base", "robot", "controller", "simulator", "scenario")
+ROOTS = ("base", "robot", "controller", "simulator", "faults", "scenario")
+NODE_ROOTS = ("controller", "simulator")  # documents of ROS 2 parameters: flat dotted names
 ROOTS_OF_KIND: dict[str, tuple[str, ...]] = {
-    "closed_loop": ("base", "robot", "controller", "simulator"),
+    "closed_loop": ("base", "robot", "controller", "simulator", "faults"),
     "open_loop": ("base", "robot", "scenario"),
     "current_step": ("base", "robot"),
 }
@@ -72,7 +78,16 @@ SPEC_KEYS = (
     "plot",
 )
 BASE_KEYS: dict[str, tuple[str, ...]] = {
-    "closed_loop": ("kind", "robot", "controller", "simulator", "duration_s", "axis", "payload"),
+    "closed_loop": (
+        "kind",
+        "robot",
+        "controller",
+        "simulator",
+        "faults",
+        "duration_s",
+        "axis",
+        "payload",
+    ),
     "open_loop": ("kind", "robot", "scenario", "rigid_body_update_steps", "axis", "payload"),
     "current_step": (
         "kind",
@@ -180,7 +195,11 @@ class Documents:
         base: the spec's base block (file references resolved by the CLI, left as given).
         robot: the robot document after its `base:` merge.
         urdf_xml: the gantry URDF the robot names.
-        controller, simulator: the nodes' parameters (closed loop; empty otherwise).
+        controller, simulator: the nodes' parameters, dotted names as ROS 2 flattens them
+            (closed loop; empty otherwise).
+        faults: the entries of the closed loop's fault schedule (`base.faults`, else the
+            simulator's `fault_schedule`), as its file lists them; empty without one.
+        faults_source: that schedule's file, for its errors.
         scenario: the open-loop scenario document (empty otherwise).
     """
 
@@ -190,11 +209,12 @@ class Documents:
     controller: Mapping[str, Any] = field(default_factory=dict)
     simulator: Mapping[str, Any] = field(default_factory=dict)
     scenario: Mapping[str, Any] = field(default_factory=dict)
+    faults: tuple[Any, ...] = ()
+    faults_source: str = ""
 
-    def root(self, name: str) -> Mapping[str, Any]:
-        """The document a path's first part names."""
-        document: Mapping[str, Any] = getattr(self, name)
-        return document
+    def root(self, name: str) -> Any:
+        """The document a path's first part names (a mapping; a list for `faults`)."""
+        return getattr(self, name)
 
 
 # --- parsing -----------------------------------------------------------------------------------
@@ -533,19 +553,47 @@ def _apply(
     return b + x * (parameter.to - b)
 
 
+def _set_node_parameter(
+    node: dict[str, Any],
+    parts: list[str],
+    value: Scalar,
+    parameter: Parameter,
+    source: str,
+    where: str,
+) -> bool:
+    """Set a node parameter named by the dotted rest of a path; False to walk the path instead.
+
+    ROS 2 parameter names are flat and dotted (`faults.pivot.jam`), so the rest of the path is
+    one name when the document has it, when it is one part (a parameter the file leaves at its
+    default) or when it names a fault parameter; otherwise (`initial_position.1`) it is walked.
+    """
+    name = ".".join(parts)
+    if name not in node and len(parts) > 1 and parts[0] != "faults":
+        return False
+    node[name] = _apply(value, node.get(name), parameter, name, source, where)
+    return True
+
+
 def apply_point(spec: SweepSpec, documents: Documents, point: Point) -> Documents:
     """The documents of one point: the base ones with the point's values in their places.
 
     Raises:
         ConfigError: `parameters[i].path`: a path the documents do not have.
     """
-    roots = {name: copy.deepcopy(dict(documents.root(name))) for name in ROOTS}
+    roots: dict[str, Any] = {}
+    for name in ROOTS:
+        document = documents.root(name)
+        roots[name] = copy.deepcopy(list(document) if name == "faults" else dict(document))
     values = dict(point.values)
     for i, parameter in enumerate(spec.parameters):
         where = f"parameters[{i}].path" + ("s" if len(parameter.paths) > 1 else "")
         for path in parameter.paths:
             root, *parts = path.split(".")
             document = roots[root]
+            if root in NODE_ROOTS and _set_node_parameter(
+                document, parts, values[parameter.name], parameter, spec.source, where
+            ):
+                continue
             if root == "robot":
                 _materialise_axis_efficiency(document, parts)
             node: Any = document
@@ -563,11 +611,8 @@ def apply_point(spec: SweepSpec, documents: Documents, point: Point) -> Document
                 continue
             if not isinstance(node, dict):
                 raise _fail(spec.source, where, f"{trail}: not a mapping")
-            # a node parameter or a base key the file leaves at its default
-            may_add = len(parts) == 1 and (
-                root in ("controller", "simulator")
-                or (root == "base" and last in BASE_KEYS[spec.kind])
-            )
+            # a base key the block leaves at its default
+            may_add = len(parts) == 1 and root == "base" and last in BASE_KEYS[spec.kind]
             if last not in node and not may_add:
                 raise _fail(
                     spec.source,
@@ -584,6 +629,8 @@ def apply_point(spec: SweepSpec, documents: Documents, point: Point) -> Document
         controller=roots["controller"],
         simulator=roots["simulator"],
         scenario=roots["scenario"],
+        faults=tuple(roots["faults"]),
+        faults_source=documents.faults_source,
     )
 
 
@@ -601,6 +648,7 @@ def point_key(spec: SweepSpec, documents: Documents, version: str) -> str:
         "controller": documents.controller,
         "simulator": documents.simulator,
         "scenario": documents.scenario,
+        "faults": list(documents.faults),
         "metrics": [m.as_dict() for m in spec.metrics],
         "trajectories": (
             None

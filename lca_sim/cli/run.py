@@ -40,7 +40,10 @@ MAX_LISTED_CHANGES = 50  # drive-state changes listed per joint in summary.json
 
 
 def node_parameters(path: Path, node: str) -> dict[str, Any]:
-    """The `ros__parameters` of `node` (or of `/**`) in a ROS 2 params file.
+    """The `ros__parameters` of `node` (or of `/**`) in a ROS 2 params file, by dotted name.
+
+    A nested mapping is a group of parameters, as ROS 2 reads the file:
+    `faults: {pivot: {jam: true}}` is the parameter `faults.pivot.jam`.
 
     Raises:
         ConfigError: the file, and what is missing.
@@ -51,8 +54,20 @@ def node_parameters(path: Path, node: str) -> dict[str, Any]:
     for key in (node, f"/{node}", "/**"):
         section = document.get(key)
         if isinstance(section, Mapping) and isinstance(section.get(PARAMS_KEY), Mapping):
-            return dict(section[PARAMS_KEY])
+            return _dotted(section[PARAMS_KEY], "")
     raise ConfigError(str(path), node, f"expected {node}: {PARAMS_KEY}: (the node's parameters)")
+
+
+def _dotted(group: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    """A parameter group's values by dotted name (rcl's params-file reading)."""
+    values: dict[str, Any] = {}
+    for key, value in group.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            values.update(_dotted(value, f"{name}."))
+        else:
+            values[name] = value
+    return values
 
 
 def closed_loop_config(

@@ -44,6 +44,12 @@ from lca_sim.cli.output import atomic_path, save_png, write_json
 from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import _read_with_base, config_dir, read_yaml, resolve
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
+from lca_sim.model.faults import (
+    FAULT_SCHEDULE,
+    is_fault_parameter,
+    parse_fault_schedule,
+    standing_faults,
+)
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.simulator_params import validate_simulator_params
 
@@ -110,6 +116,8 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
     controller: dict[str, Any] = {}
     simulator: dict[str, Any] = {}
     scenario: Any = {}
+    faults: tuple[Any, ...] = ()
+    faults_source = ""
     ros = config_dir() / "ros"
     if spec.kind == "closed_loop":
         controller_path = (
@@ -124,6 +132,7 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
         )
         controller = node_parameters(controller_path, "controller")
         simulator = node_parameters(simulator_path, "simulator")
+        faults, faults_source = _fault_schedule(base, simulator, spec_path, simulator_path)
     if spec.kind == "open_loop":
         if "scenario" not in base:
             raise ConfigError(spec.source, "base.scenario", "missing (an open-loop scenario)")
@@ -137,26 +146,65 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
         controller=controller,
         simulator=simulator,
         scenario=dict(scenario),
+        faults=faults,
+        faults_source=faults_source,
     )
     return spec, documents
+
+
+def _fault_schedule(
+    base: Mapping[str, Any], simulator: Mapping[str, Any], spec_path: Path, simulator_path: Path
+) -> tuple[tuple[Any, ...], str]:
+    """A closed-loop run's fault schedule entries and file: `base.faults`, else the simulator's.
+
+    `base.faults` (a shipped name in config/faults/ or a path from the spec's folder) wins over
+    the simulator params file's `fault_schedule`, as `lca-hil run --faults` does. The entries
+    are checked against the robot when each point is built (`closed_loop_builder`).
+
+    Raises:
+        ConfigError: a missing file, or one that is not a schedule (a mapping with a list).
+    """
+    if "faults" in base:
+        path = _file_ref(base["faults"], spec_path, "faults", "base.faults")
+    elif simulator.get(FAULT_SCHEDULE):
+        ref = simulator[FAULT_SCHEDULE]
+        if not isinstance(ref, str):
+            raise ConfigError(str(simulator_path), FAULT_SCHEDULE, "expected a schedule's name")
+        path = resolve(ref, "faults")
+    else:
+        return (), ""
+    document = read_yaml(path)
+    entries = document.get("faults") if isinstance(document, Mapping) else None
+    if not isinstance(entries, list):
+        raise ConfigError(str(path), "faults", "expected a fault schedule: a 'faults' list")
+    return tuple(entries), str(path)
 
 
 def closed_loop_builder(documents: Documents, robot: RobotParams) -> ClosedLoopConfig:
     """A closed-loop point's config: the nodes' parameters validated as the nodes do.
 
     The spec's robot replaces the simulator's `robot`; `base.duration_s` (default: the
-    simulator's `lockstep_end_s`) is the run's length.
+    simulator's `lockstep_end_s`) is the run's length. The faults are those `lca-hil run`
+    applies: the simulator's standing `faults.<joint>.<kind>` values and the schedule
+    (`_fault_schedule`), each entry checked against the point's robot.
 
     Raises:
-        ParameterError: a node parameter the node would refuse.
+        ParameterError: a node parameter the node would refuse (a fault value included).
+        ConfigError: a bad schedule entry, named by its file and key.
     """
-    simulator = validate_simulator_params(documents.simulator)
+    plant_values = {k: v for k, v in documents.simulator.items() if not is_fault_parameter(k)}
+    simulator = validate_simulator_params(plant_values)
     duration = documents.base.get("duration_s", simulator.lockstep_end_s)
     if isinstance(duration, bool) or not isinstance(duration, int | float) or duration <= 0:
         raise ParameterError("duration_s", "a run's length > 0 (base.duration_s)", duration)
-    return closed_loop_config(
+    config = closed_loop_config(
         documents.controller, documents.simulator, float(duration), robot=robot
     )
+    faults = standing_faults(documents.simulator, robot.axis_names)
+    if documents.faults:
+        schedule = {"faults": list(documents.faults)}
+        faults += parse_fault_schedule(schedule, documents.faults_source, robot.axis_names)
+    return dataclasses.replace(config, faults=faults) if faults else config
 
 
 def build_tasks(spec: SweepSpec, documents: Documents, version: str) -> list[PointTask]:
