@@ -3,9 +3,10 @@
 What it measures, in one process on one machine, on the same URDF (config/urdf/lca_gantry.urdf,
 joints l_arm, pivot, c_arc, lift):
 
-1. ``Simulator.step``: one full step of the drive-chain simulator at dt = 0.1 ms (Pinocchio crba
-   and nonLinearEffects, then the numba kernel of the four drive chains), with voltage commands
-   that keep all four axes moving.
+1. ``Simulator.step``: one full step of the drive-chain simulator at dt = 0.1 ms (eq. 2's A(q)
+   and C qdot + Q by the compiled CRBA and RNEA on Pinocchio's model, then the numba kernel of
+   the four drive chains, in one compiled call; docs/model.md sections 2 and 5), with voltage
+   commands that keep all four axes moving.
 2. ``pinocchio.aba``: one articulated-body forward-dynamics call on the same URDF, alone.
 3. ``mujoco.mj_step``: one step of the same gantry compiled by MuJoCo from the URDF text (a
    ``<mujoco><compiler/></mujoco>`` element is injected in memory only), timestep 0.1 ms, no
@@ -21,7 +22,7 @@ noisy neighbour or a clock change on a shared machine hits all three alike and t
 fair. The same loops are also timed in the thread's CPU time (``time.thread_time``), which
 leaves out the time other processes held the core; both ratios are printed, the target is
 judged on the wall-clock one. The targets are issue 17's full step of at most 1.0x a MuJoCo
-step (the exact scheme, Pinocchio's terms evaluated at every step, against ``mj_step``) and a
+step (the exact scheme, the rigid-body terms evaluated at every step, against ``mj_step``) and a
 real-time factor of at least 5 at dt = 0.1 ms; they are reported, never enforced (the exit
 status is 0). The last stdout line is one JSON object with every figure.
 

@@ -1,7 +1,7 @@
 """Benchmark: `lca-hil sweep`'s throughput on Dask against a plain loop, and its scaling.
 
 What it measures, on Fig. 15's 13-s closed-loop point (config/ros/*.yaml: the 4-axis robot,
-the cascade on current commands at a 4 ms control period, the plant at 0.1 ms with Pinocchio's
+the cascade on current commands at a 4 ms control period, the plant at 0.1 ms with the rigid-body
 terms held for 1 ms), `--points` times (the same work under distinct keys):
 
 1. the composed closed loop's real-time factor: one `ClosedLoop.run` of the 13-s point (the

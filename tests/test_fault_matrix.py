@@ -947,7 +947,11 @@ def test_item_11_the_unloaded_l_arm_keeps_its_drive_state_and_is_identified(
     load_nm = np.loadtxt(
         csv_path, delimiter=",", skiprows=1, usecols=header.index("l_arm_load_torque_nm")
     )
-    assert np.abs(load_nm).max() < 1e-14 and np.any(load_nm != 0.0)  # noise, to flip on
+    # No physical load. The step's compiled terms give exactly 0 on this vertical axis, where
+    # Pinocchio's gave the random-sign residue the state machine flipped on; the band that
+    # keeps the state under such a residue is held by tests/lca_sim/model/test_zero_load.py
+    # (hand-set residues of 7e-20 to 1e-15 N m, and Pinocchio's own over random poses).
+    assert np.abs(load_nm).max() < 1e-14
     changes = np.flatnonzero(drive[1:] != drive[:-1]) + 1
     visited = [str(drive[0]), *(str(drive[k]) for k in changes)]
     assert visited == ["stop_hold", "stop_motor_direct", "motor_driving"], (

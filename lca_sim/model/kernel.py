@@ -1,7 +1,8 @@
 """The compiled drive-chain step: electrics, state machine, eq. (10) solve, stick/slip integration.
 
-This is the hot path of the simulator, compiled with numba so that one 4-axis step (with the two
-Pinocchio calls that feed it) costs about as much as a MuJoCo step of the same gantry. The code is
+This is the hot path of the simulator, compiled with numba so that one 4-axis step (with eq. 2's
+rigid-body terms that feed it, `rigid_body.terms`) costs less than a MuJoCo step of the same
+gantry. The code is
 plain Python over floats and small arrays: `NUMBA_DISABLE_JIT=1` runs it uncompiled, unchanged.
 
 numba's call overhead grows with every argument (about 0.1 us each) and every allocation inside
@@ -213,11 +214,11 @@ def static_friction(tau_m: float, model: FloatArray, a: int) -> float:
     return 0.0
 
 
-# The two compiled functions below stay above ruff's complexity limit (C901) on purpose: they are
-# the hot path of every run (bench/model_step.py: a full 4-axis step, Pinocchio included, is
-# about 2.9 us here), and the step's branches follow eq. (3)-(10) and Figs 6-8 in the order the
-# docstrings cite them; a split would trade that reading order and re-measured speed for a
-# lower count.
+# The two compiled functions below stay above ruff's complexity limit (C901) on purpose: they
+# are the hot path of every run (bench/model_step.py: a full 4-axis step, the rigid-body terms
+# included, is about 1.05 us here), and the step's branches follow eq. (3)-(10) and Figs 6-8 in
+# the order the docstrings cite them; a split would trade that reading order and re-measured
+# speed for a lower count.
 @njit(cache=True)
 def _solve_moving(work: FloatArray, n: int) -> None:  # noqa: C901
     """Solve J[M, M] acc[M] = rhs[M] for the moving axes M by Cholesky; acc = 0 elsewhere.
@@ -262,8 +263,8 @@ def _select_state(work: FloatArray, model: FloatArray, a: int, direction: int) -
     """Pick the moving state of axis a for a direction and set its eta_m, eta_l signals.
 
     The load torque it classifies is `W_TAU_L_STATE`: tau_l, or exactly 0.0 inside the axis's
-    sign band (|tau_l| <= P_LOAD_TORQUE_BAND), where tau_l is Pinocchio's rounding residue on an
-    axis without a gravity load and Fig. 8's states, which do not meet at tau_l = 0, would follow
+    sign band (|tau_l| <= P_LOAD_TORQUE_BAND), where tau_l is a rounding residue on an axis
+    without a gravity load and Fig. 8's states, which do not meet at tau_l = 0, would follow
     its random sign (state_machine.load_torque_band_nm). Only the choice of state sees the band:
     eq. (10) keeps the real tau_l (`W_TAU_L`), and the state a zero load picks has eta_l = 1
     (eq. 11, checked on load), so the band neither creates nor burns energy.
@@ -291,8 +292,9 @@ def step(  # noqa: C901  (the compiled step; see the note above _solve_moving)
     """Advance all axes by one fixed step dt_s, in place in `work`.
 
     Args:
-        mass_matrix: A(q), joint side; only the upper triangle is read (Pinocchio's crba).
-        nonlinear_effects: C(q, qdot) qdot + Q(q), joint side (Pinocchio's nonLinearEffects).
+        mass_matrix: A(q), joint side; only the upper triangle is read (`rigid_body.terms`,
+            or Pinocchio's crba, which fills no more).
+        nonlinear_effects: C(q, qdot) qdot + Q(q), joint side.
         voltage_cmd_v: amplifier voltage commands, saturated here at the voltage limit.
         work: state, signals and scratch (module docstring); updated in place.
         model: packed constants (`pack_model`).

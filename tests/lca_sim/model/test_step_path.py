@@ -1,8 +1,9 @@
 """The exact step's fast path (`Simulator._bind_kernel_step`) against the plain kernel call.
 
-The fast path reaches `work`, `model` and Pinocchio's buffers through a frame of raw addresses
-(docs/model.md, "The exact step's call path"). These tests hold it to `kernel.step` on
-Pinocchio's own results, step by step, under random voltages: the same bits; and they check
+The fast path reaches `work`, `model` and the gantry's compiled terms' tree, scratch and output
+buffers through a frame of raw addresses (docs/model.md, "The exact step's call path"). These
+tests hold it to the general path, `Gantry.dynamics_terms` then `kernel.step`, step by step,
+under random voltages: the same bits; and they check
 that a simulator, whose step holds those addresses, refuses to be copied.
 """
 
@@ -21,7 +22,7 @@ from lca_sim.model.simulator import Simulator
 
 
 def _reference_step(sim: Simulator, work: np.ndarray, volts: np.ndarray) -> None:
-    """`kernel.step` with Pinocchio's terms at the state in `work` (the general path)."""
+    """`kernel.step` with the gantry's terms at the state in `work` (the general path)."""
     mass, nle = sim.gantry.dynamics_terms(work[kernel.X_POSITION], work[kernel.X_VELOCITY])
     assert kernel.step(mass, nle, volts, work, sim.model_array, sim.dt_s) == kernel.OK
 
@@ -53,6 +54,25 @@ def test_fast_step_follows_a_fault_that_rewrites_the_model() -> None:
     for _ in range(200):
         sim.step(volts)
     assert sim.state.velocity[1] == 0.0
+
+
+def test_fast_step_follows_a_payload_that_rewrites_a_link() -> None:
+    """A payload set mid-run reaches the frame's packed tree: still the general path's bits."""
+    sim = Simulator(load_robot("default"), 1e-4)
+    healthy = Simulator(load_robot("default"), 1e-4)
+    injector = FaultInjector(sim, 0.004)
+    volts = np.array([3.0, 30.0, 3.0, 6.0])
+    for _ in range(300):
+        sim.step(volts)
+        healthy.step(volts)
+    injector.set("c_arc", "payload_kg", 60.0)
+    reference = sim._work.copy()
+    for k in range(300):
+        sim.step(volts)
+        healthy.step(volts)
+        _reference_step(sim, reference, volts)
+        np.testing.assert_array_equal(sim._work, reference, f"step {k}")
+    assert not np.array_equal(sim._work, healthy._work)  # the payload did act
 
 
 def test_a_simulator_refuses_copies() -> None:
