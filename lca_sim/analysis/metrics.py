@@ -330,6 +330,8 @@ def end_stop_contact(trace: Trace, args: MetricArgs) -> float:
 
 
 _WINDOW = frozenset({"axis", "from_s", "to_s"})
+# The metrics of a loop's reference: NaN on a run that follows no reference (open loop).
+TRACKING_METRICS = frozenset({"tracking_error_rms", "tracking_error_max"})
 _STEP = _WINDOW | {"signal", "target"}
 
 METRICS: dict[str, MetricDef] = {
@@ -463,7 +465,25 @@ def _metric_args(
         if not (isinstance(states, list) and states and all(isinstance(x, str) for x in states)):
             raise ConfigError(source, f"{where}.states", "expected drive-state names")
         kwargs["states"] = tuple(states)
+    _check_ranges(kwargs, source, where)
     return MetricArgs(**kwargs)
+
+
+def _check_ranges(kwargs: Mapping[str, Any], source: str, where: str) -> None:
+    """A window that is not empty by construction, a band and levels a step can reach."""
+    from_s, to_s = kwargs.get("from_s"), kwargs.get("to_s")
+    if from_s is not None and to_s is not None and not from_s <= to_s:
+        raise ConfigError(source, f"{where}.to_s", f"expected to_s >= from_s ({from_s:g})")
+    if "band" in kwargs and not kwargs["band"] > 0.0:
+        raise ConfigError(source, f"{where}.band", "expected a fraction of the target > 0")
+    if "margin" in kwargs and not kwargs["margin"] >= 0.0:
+        raise ConfigError(source, f"{where}.margin", "expected a distance >= 0")
+    defaults = MetricArgs(axis="")
+    low = kwargs.get("low", defaults.low)
+    high = kwargs.get("high", defaults.high)
+    if not low < high:
+        key = "high" if "high" in kwargs else "low"
+        raise ConfigError(source, f"{where}.{key}", f"expected low < high (got {low:g}, {high:g})")
 
 
 def check_metric_names(

@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from lca_control.pi import PIController, PIParams
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
-from lca_sim.analysis.metrics import MetricSpec, Trace, check_metric_names
+from lca_sim.analysis.metrics import TRACKING_METRICS, MetricSpec, Trace, check_metric_names
 from lca_sim.analysis.sweep_spec import (
     Documents,
     Point,
@@ -88,7 +88,11 @@ ClosedLoopBuilder = Callable[[Documents, RobotParams], ClosedLoopConfig]
 
 @dataclass(frozen=True, slots=True)
 class PointTask:
-    """Everything a worker needs for one point (picklable, self-contained)."""
+    """Everything a worker needs for one point (picklable, self-contained).
+
+    `version` is the lca_hil (and code) version the point's key was made with: a worker that
+    runs another refuses the point (`lca_sim.cli.sweep.timed_point`).
+    """
 
     index: int
     seed: int
@@ -97,6 +101,7 @@ class PointTask:
     run: RunConfig
     metrics: tuple[MetricSpec, ...]
     trajectories: Trajectories | None
+    version: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -200,6 +205,23 @@ def build_task(
     run = build_run(spec, resolved, closed_loop)
     robot = run.robot
     check_metric_names(spec.metrics, robot.axis_names, robot.state_machine.state_names, spec.source)
+    if spec.trajectories is not None:
+        for axis in spec.trajectories.axes:
+            if axis not in robot.axis_names:
+                raise ConfigError(
+                    spec.source,
+                    "trajectories.axes",
+                    f"expected axes among {', '.join(robot.axis_names)}, got {axis!r}",
+                )
+    if spec.kind == "open_loop":
+        for i, metric in enumerate(spec.metrics):
+            if metric.metric in TRACKING_METRICS:
+                raise ConfigError(
+                    spec.source,
+                    f"metrics[{i}].metric",
+                    f"{metric.metric} needs a reference; an open-loop run follows a voltage "
+                    "table and has none (use a closed_loop or current_step base)",
+                )
     return PointTask(
         index=point.index,
         seed=point.seed,
@@ -208,6 +230,7 @@ def build_task(
         run=run,
         metrics=spec.metrics,
         trajectories=spec.trajectories,
+        version=version,
     )
 
 

@@ -102,6 +102,16 @@ BASE_KEYS: dict[str, tuple[str, ...]] = {
     ),
 }
 PAYLOAD_KEYS = ("link", "mass_kg", "xyz_m")
+# Keys that name a file, read once before the points: a path to them would change nothing.
+FILE_PATHS: dict[str, str] = {
+    "base.robot": "robot.*",
+    "base.scenario": "scenario.*",
+    "base.controller": "controller.*",
+    "base.simulator": "simulator.*",
+    "base.faults": "faults.*",
+    "simulator.robot": "robot.*",
+    "simulator.fault_schedule": "faults.*",
+}
 MAX_POINTS = 1_000_000
 
 Scalar = float | int | str | bool
@@ -327,6 +337,13 @@ def _paths(p: Mapping[str, Any], kind: str, source: str, where: str) -> tuple[st
     for path in paths_raw:
         if not isinstance(path, str) or not all(path.split(".")):
             raise _fail(source, key, f"expected a dotted path, got {path!r}")
+        if path in FILE_PATHS:
+            raise _fail(
+                source,
+                key,
+                f"{path} names a file the sweep reads once, before the points: vary what is "
+                f"in it ({FILE_PATHS[path]}) or run one sweep per file",
+            )
         root = path.split(".")[0]
         if root not in ROOTS_OF_KIND[kind]:
             raise _fail(

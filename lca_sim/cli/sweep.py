@@ -20,8 +20,11 @@ point failed). docs/sweeps.md has the spec format and the metric library.
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import dataclasses
+import functools
+import hashlib
 import importlib.metadata
 import itertools
 import json
@@ -35,6 +38,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+import lca_control
+import lca_sim
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
 from lca_sim.analysis.metrics import METRICS
@@ -69,12 +74,26 @@ WORKER_SWITCH_INTERVAL_S = 0.05
 OK, FAILED = "ok", "failed"
 
 
+@functools.cache
 def package_version() -> str:
-    """The installed lca_hil's version (part of every point's key)."""
+    """lca_hil's version and a hash of its code (part of every point's key).
+
+    `<release>+code.<12 hex>`: the installed release, and the SHA-256 of every module of
+    lca_sim and lca_control as they are on disk. The release alone is not bumped by every
+    change of the model, and a result of older code must not be taken for a result of this one;
+    nor may a worker with other code compute a point (`timed_point` refuses it).
+    """
     try:
-        return importlib.metadata.version("lca_hil")
+        release = importlib.metadata.version("lca_hil")
     except importlib.metadata.PackageNotFoundError:
-        return "0+unknown"
+        release = "0+unknown"
+    digest = hashlib.sha256()
+    for package in (lca_control, lca_sim):
+        root = Path(str(package.__file__)).resolve().parent
+        for module in sorted(root.rglob("*.py")):
+            digest.update(module.relative_to(root.parent).as_posix().encode())
+            digest.update(module.read_bytes())
+    return f"{release}+code.{digest.hexdigest()[:12]}"
 
 
 # --- the spec and its documents ----------------------------------------------------------------
@@ -100,19 +119,6 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
     """
     spec = parse_spec(read_yaml(spec_path), str(spec_path))
     base = spec.base
-    robot_path = _file_ref(base.get("robot", "default"), spec_path, "robots", "base.robot")
-    robot_doc, urdf_home = _read_with_base(robot_path)
-    if not isinstance(robot_doc, Mapping):
-        raise ConfigError(str(robot_path), "", "expected a robot document (a mapping)")
-    robot_section = robot_doc.get("robot")
-    urdf_ref = robot_section.get("urdf") if isinstance(robot_section, Mapping) else None
-    if not isinstance(urdf_ref, str):
-        raise ConfigError(str(robot_path), "robot.urdf", "expected the path of the gantry URDF")
-    urdf_path = (urdf_home.parent / urdf_ref).resolve()
-    try:
-        urdf_xml = urdf_path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(robot_path), "robot.urdf", f"cannot read {urdf_path}") from exc
     controller: dict[str, Any] = {}
     simulator: dict[str, Any] = {}
     scenario: Any = {}
@@ -139,6 +145,7 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
         scenario = read_yaml(_file_ref(base["scenario"], spec_path, "scenarios", "base.scenario"))
         if not isinstance(scenario, Mapping):
             raise ConfigError(spec.source, "base.scenario", "expected a scenario document")
+    urdf_xml, robot_doc = _robot(base, simulator, spec_path)
     documents = Documents(
         base=dict(base),
         robot=dict(robot_doc),
@@ -150,6 +157,38 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
         faults_source=faults_source,
     )
     return spec, documents
+
+
+def _robot(
+    base: Mapping[str, Any], simulator: Mapping[str, Any], spec_path: Path
+) -> tuple[str, Mapping[str, Any]]:
+    """The robot's URDF text and its document (after its `base:` merge).
+
+    `base.robot` (a shipped name or a path from the spec's folder); else, closed loop, the
+    simulator params' `robot`, as the node and `lca-hil run` take it; else `default`.
+
+    Raises:
+        ConfigError: a missing or unreadable robot or URDF.
+    """
+    if "robot" in base:
+        robot_path = _file_ref(base["robot"], spec_path, "robots", "base.robot")
+    elif isinstance(simulator.get("robot"), str) and simulator["robot"]:
+        robot_path = resolve(simulator["robot"], "robots")
+    else:
+        robot_path = resolve("default", "robots")
+    robot_doc, urdf_home = _read_with_base(robot_path)
+    if not isinstance(robot_doc, Mapping):
+        raise ConfigError(str(robot_path), "", "expected a robot document (a mapping)")
+    robot_section = robot_doc.get("robot")
+    urdf_ref = robot_section.get("urdf") if isinstance(robot_section, Mapping) else None
+    if not isinstance(urdf_ref, str):
+        raise ConfigError(str(robot_path), "robot.urdf", "expected the path of the gantry URDF")
+    urdf_path = (urdf_home.parent / urdf_ref).resolve()
+    try:
+        urdf_xml = urdf_path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(robot_path), "robot.urdf", f"cannot read {urdf_path}") from exc
+    return urdf_xml, robot_doc
 
 
 def _fault_schedule(
@@ -299,7 +338,18 @@ def _outcome_row(task: PointTask, outcome: PointOutcome | None, error: str) -> d
 
 
 def timed_point(task: PointTask) -> tuple[PointOutcome, float]:
-    """`run_point` and its wall time on the worker, s (what the workers run)."""
+    """`run_point` and its wall time on the worker, s (what the workers run).
+
+    Raises:
+        RuntimeError: this worker's lca_hil is not the one the point's key was made with (a
+            cluster's workers must run the driver's code, docs/sweeps.md).
+    """
+    version = package_version()
+    if task.version and task.version != version:
+        raise RuntimeError(
+            f"this worker runs lca_hil {version}, the sweep {task.version}: install the "
+            "driver's lca_hil on every worker"
+        )
     sys.setswitchinterval(WORKER_SWITCH_INTERVAL_S)
     start = time.perf_counter()
     outcome = run_point(task)
@@ -329,10 +379,10 @@ class Progress:
         self.tty = bool(stream is not None and stream.isatty())
         self._last_shown = -1.0
 
-    def update(self, *, failed: bool = False) -> None:
-        """One more point finished (or failed)."""
-        self.done += 1
-        self.failed += failed
+    def update(self, *, failed: bool = False, points: int = 1) -> None:
+        """One more computation finished (or failed), for `points` points of one key."""
+        self.done += points
+        self.failed += points if failed else 0
         self.show()
 
     def show(self, final: bool = False) -> None:
@@ -365,7 +415,9 @@ def dask_client(scheduler: str | None, workers: int) -> Iterator[Any]:
 
     The local cluster's scheduler and its dashboard bind 127.0.0.1; each worker is a
     single-threaded process (the model holds the GIL), and a worker's death fails its point
-    at once (allowed-failures 0) so that lca-hil's one retry is the only one.
+    at once (allowed-failures 0) so that lca-hil's one retry is the only one. A worker is
+    given one point at a time (worker-saturation 1.0; Dask's default 1.1 queues a second on a
+    one-thread worker), so that a point which kills its worker takes no other point with it.
     """
     import dask  # noqa: PLC0415  (only when a sweep runs)
     from distributed import Client, LocalCluster  # noqa: PLC0415
@@ -375,7 +427,12 @@ def dask_client(scheduler: str | None, workers: int) -> Iterator[Any]:
             yield client
         return
     with (
-        dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+        dask.config.set(
+            {
+                "distributed.scheduler.allowed-failures": 0,
+                "distributed.scheduler.worker-saturation": 1.0,
+            }
+        ),
         LocalCluster(  # type: ignore[no-untyped-call]
             n_workers=workers,
             threads_per_worker=1,
@@ -422,8 +479,10 @@ def run_tasks(
 ) -> RunStats:
     """Compute `tasks` on the client's cluster, writing each point as it finishes.
 
-    A point that raises or whose worker dies is submitted once more, then written as failed
-    with the reason; the others go on.
+    Points of one key (two that resolve to one configuration, e.g. a value given twice) are
+    computed once, by the first of them, and count for all. A point that raises or whose
+    worker dies is submitted once more, then written as failed with the reason; the others
+    go on.
     """
     from distributed import as_completed  # noqa: PLC0415
 
@@ -436,7 +495,11 @@ def run_tasks(
         owner[future.key] = (task, attempt)
         queue.add(future)  # type: ignore[no-untyped-call]
 
+    shares = collections.Counter(task.key for task in tasks)
+    first: dict[str, PointTask] = {}
     for task in tasks:
+        first.setdefault(task.key, task)
+    for task in first.values():
         submit(task, 1)
     for future in queue:
         task, attempt = owner.pop(future.key)
@@ -446,7 +509,7 @@ def run_tasks(
             store.write(task.key, _outcome_row(task, outcome, ""), outcome.trajectory)
             stats.computed += 1
             stats.point_wall_s[task.index] = wall_s
-            progress.update()
+            progress.update(points=shares[task.key])
         elif attempt < ATTEMPTS:
             stats.errors[task.index] = _reason(future)
             submit(task, attempt + 1)
@@ -456,7 +519,7 @@ def run_tasks(
             stats.computed += 1
             stats.failed += 1
             stats.errors[task.index] = reason
-            progress.update(failed=True)
+            progress.update(failed=True, points=shares[task.key])
         future.release()
     return stats
 
@@ -605,12 +668,13 @@ def plot_sweep(out: Path) -> list[Path]:
     """PNGs of DIR's results: a metric over one or two grid parameters, histograms for random.
 
     One figure per metric in DIR/plots/: a line over one varying parameter; over two, lines
-    (one per value of `plot.lines_by`, or of the parameter with at most 4 values) or a heatmap;
-    a histogram of the metric for a random sweep. `plot.mark` ({parameter: value}) marks a
-    point (e.g. the paper's gains) on a heatmap.
+    (one per value of `plot.lines_by`, of the parameter with at most 4 values, or of the one
+    that is not a number) or a heatmap; a histogram of the metric for a random sweep.
+    `plot.mark` ({parameter: value}) marks a point (e.g. the paper's gains) on a heatmap.
 
     Raises:
-        OutputError: DIR has no results.
+        OutputError: DIR has no results, or a grid these plots cannot draw (more than two
+            varying parameters, or two that are not numbers): the figure would mix points.
     """
     import matplotlib  # noqa: PLC0415
 
@@ -628,6 +692,11 @@ def plot_sweep(out: Path) -> list[Path]:
     varying = [
         p["name"] for p in record["parameters"] if p["values"] is None or len(p["values"]) > 1
     ]
+    if record["sampling"] != "random" and len(varying) > 2:
+        raise OutputError(
+            f"{out}: the plots draw a metric over one or two parameters, this grid varies "
+            f"{len(varying)} ({', '.join(varying)}): read {RESULTS} with pandas or pyarrow"
+        )
     title = Path(record["spec"]).stem
     degrees = set(record["plot"].get("degrees", []))
     for metric in record["metrics"]:
@@ -700,6 +769,11 @@ def _two(
 
     values = {p["name"]: p["values"] for p in record["parameters"]}
     lines_by = record["plot"].get("lines_by")
+    words = [v for v in varying if not all(_is_number(x) for x in values[v])]
+    if len(words) == 2:
+        raise OutputError(f"no plot of {name} over two parameters that are not numbers: {words}")
+    if words and lines_by not in varying:
+        lines_by = words[0]  # a heatmap needs numbers on both axes
     if lines_by is None:
         small = [v for v in varying if len(values[v]) <= 4]
         lines_by = small[-1] if small else None
@@ -708,7 +782,10 @@ def _two(
         for value in values[lines_by]:
             pairs = sorted((r[x], r[name]) for r in rows if r[lines_by] == value)
             ax.plot(
-                [p[0] for p in pairs], [p[1] for p in pairs], "o-", label=f"{lines_by} = {value:g}"
+                [p[0] for p in pairs],
+                [p[1] for p in pairs],
+                "o-",
+                label=f"{lines_by} = {value:g}" if _is_number(value) else f"{lines_by} = {value}",
             )
         ax.set_xlabel(x)
         ax.set_ylabel(label)
@@ -737,6 +814,10 @@ def _two(
             label=str(mark.get("label", "mark")),
         )
         ax.legend(loc="upper right")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _is_log(values: Sequence[float]) -> bool:

@@ -229,3 +229,113 @@ def test_an_existing_cluster_with_a_worker_killed_mid_sweep(
     assert [r["status"] for r in rows] == ["ok"] * n
     log = _log(out)
     assert log["scheduler"] == address and log["computed"] == n
+
+
+def _dying(task: PointTask) -> tuple[PointOutcome, float]:
+    """timed_point, except that point 1 kills the worker process running it."""
+    if task.index == 1:
+        os._exit(3)
+    return timed_point(task)
+
+
+def test_a_point_whose_worker_dies_is_retried_once_then_recorded_failed(tmp_path: Path) -> None:
+    """Point 1 kills its worker, twice: a failed row saying so; the others are computed."""
+    import cloudpickle  # type: ignore[import-untyped]
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the worker has no tests/
+    try:
+        spec = _spec(tmp_path, 3, 0.005)
+        out = tmp_path / "out"
+        log = run_sweep(spec, out, workers=1, stream=None, function=_dying)
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    rows = _rows(out)
+    assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
+    assert rows[1]["error"] == "KilledWorker: the worker running it died"
+    assert log["retried"]["1"] == rows[1]["error"] and log["failed"] == 1
+
+
+def test_points_of_one_configuration_are_computed_once(tmp_path: Path) -> None:
+    """A value given twice: one computation, two equal rows (the driver once died of it)."""
+    from distributed import Client, LocalCluster
+
+    spec_doc = yaml.safe_load(_spec(tmp_path, 2, 0.005).read_text(encoding="utf-8"))
+    spec_doc["parameters"][0] = {
+        "name": "kp", "path": "base.current_kp_v_per_a", "values": [20.0, 20.0, 30.0]
+    }  # fmt: skip
+    spec = tmp_path / "twice.yaml"
+    spec.write_text(yaml.safe_dump(spec_doc), encoding="utf-8")
+    out = tmp_path / "out"
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
+                     host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
+        Client(cluster) as client,  # type: ignore[no-untyped-call]
+    ):  # fmt: skip
+        log = run_sweep(spec, out, stream=None, client=client)
+    rows = _rows(out)
+    assert [r["status"] for r in rows] == ["ok"] * 3 and log["computed"] == 2
+    assert rows[0]["key"] == rows[1]["key"] != rows[2]["key"]
+    assert rows[0]["overshoot_pct"] == rows[1]["overshoot_pct"] != rows[2]["overshoot_pct"]
+
+
+def test_closed_and_open_loop_sweeps_run_on_worker_processes(tmp_path: Path) -> None:
+    """A closed loop with a fault schedule and an open-loop scenario, through worker processes.
+
+    The points are pickled to a worker process and back: the results are those of the same
+    points computed here, bit for bit.
+    """
+    from distributed import Client, LocalCluster
+
+    from lca_sim.analysis.sweep import run_point
+    from lca_sim.cli.sweep import build_tasks, load_spec, package_version
+
+    (tmp_path / "jam.yaml").write_text(
+        yaml.safe_dump(
+            {"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 1.5}]}
+        ),
+        encoding="utf-8",
+    )
+    (tmp_path / "lift.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "duration_s": 2.0,
+                "dt_s": 1e-4,
+                "record_period_s": 0.01,
+                "initial": {"position": {"pivot": 0.44}},
+                "inputs": {"pivot": {"time_s": [0.0, 0.5], "voltage_v": [0.0, 20.0]}},
+            }
+        ),
+        encoding="utf-8",
+    )
+    specs = {
+        "closed": {
+            "base": {"kind": "closed_loop", "duration_s": 2.5, "axis": "pivot",
+                     "faults": "jam.yaml"},
+            "parameters": [{"name": "jam_s", "path": "faults.0.start_s", "values": [1.5, 2.2]}],
+            "metrics": [{"metric": "peak_current_a"}, {"metric": "hold_drift", "from_s": 2.3}],
+        },
+        "open": {
+            "base": {"kind": "open_loop", "scenario": "lift.yaml", "axis": "pivot"},
+            "parameters": [{"name": "r_scale", "mode": "scale", "values": [1.0, 1.2],
+                            "path": "robot.axes.pivot.motor.resistance_ohm"}],
+            "metrics": [{"metric": "peak_current_a"}, {"metric": "hold_drift"}],
+        },
+    }  # fmt: skip
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
+        Client(cluster) as client,  # type: ignore[no-untyped-call]
+    ):  # fmt: skip
+        for name, doc in specs.items():
+            path = tmp_path / f"{name}.yaml"
+            path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+            out = tmp_path / name
+            log = run_sweep(path, out, stream=None, client=client)
+            assert log["computed"] == 2 and log["failed"] == 0, log
+            spec, documents = load_spec(path)
+            here = [run_point(t).metrics for t in build_tasks(spec, documents, package_version())]
+            rows = _rows(out)
+            for row, metrics in zip(rows, here, strict=True):
+                assert {k: row[k] for k in metrics} == metrics, name
+            assert rows[0]["peak_current_a"] != rows[1]["peak_current_a"], name

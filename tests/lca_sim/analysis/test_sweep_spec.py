@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
@@ -14,7 +16,7 @@ from support import CONFIG
 
 from lca_sim.analysis.metrics import MetricArgs, Trace, parse_metric
 from lca_sim.analysis.paper import current_step
-from lca_sim.analysis.sweep import CurrentStepRun, run_point
+from lca_sim.analysis.sweep import CurrentStepRun, PointTask, build_task, run_point
 from lca_sim.analysis.sweep_spec import (
     Documents,
     add_payload,
@@ -24,7 +26,9 @@ from lca_sim.analysis.sweep_spec import (
     point_key,
 )
 from lca_sim.cli import hil
-from lca_sim.cli.sweep import build_tasks, load_spec
+from lca_sim.cli.run import node_parameters
+from lca_sim.cli.sweep import build_tasks, load_spec, package_version, timed_point
+from lca_sim.config.loader import load_robot, read_yaml
 from lca_sim.errors import EXIT_BAD_INPUT, ConfigError
 from lca_sim.model.params import RobotParams
 
@@ -102,6 +106,26 @@ BAD_SPECS: list[tuple[str, dict[str, Any], str]] = [
         "a column given twice",
         _spec(metrics=[{"name": "kp", "metric": "peak_current_a"}]),
         "metrics[0].name: 'kp' is taken",
+    ),
+    (
+        "a path to a file read once",
+        _spec(parameters=[{"name": "k", "path": "base.robot", "values": ["reversible"]}]),
+        "parameters[0].path: base.robot names a file the sweep reads once",
+    ),
+    (
+        "an empty window",
+        _spec(metrics=[{"metric": "peak_current_a", "from_s": 2.0, "to_s": 1.0}]),
+        "metrics[0].to_s: expected to_s >= from_s",
+    ),
+    (
+        "a negative band",
+        _spec(metrics=[{"metric": "settling_time_s", "band": -0.05}]),
+        "metrics[0].band: expected a fraction of the target > 0",
+    ),
+    (
+        "rise levels the wrong way round",
+        _spec(metrics=[{"metric": "rise_time_s", "low": 0.9, "high": 0.1}]),
+        "metrics[0].high: expected low < high",
     ),
     (
         "a range of zero points",
@@ -409,3 +433,62 @@ def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
     spec, documents = load_spec(_write(tmp_path, bad))
     with pytest.raises(ConfigError, match="velocity_kp"):
         build_tasks(spec, documents, "0")
+
+
+def test_what_a_point_cannot_compute_is_refused_before_it_runs(tmp_path: Path) -> None:
+    """Trajectories of an axis the robot lacks; tracking error of a run with no reference."""
+    bad_axes = _spec(trajectories={"every_s": 0.01, "axes": ["elbow"]})
+    spec, documents = load_spec(_write(tmp_path, bad_axes))
+    with pytest.raises(ConfigError, match=r"trajectories\.axes: expected axes among"):
+        build_tasks(spec, documents, "0")
+    open_loop = {
+        "base": {"kind": "open_loop", "scenario": "hold_pivot", "axis": "pivot"},
+        "parameters": [],
+        "metrics": [{"metric": "tracking_error_rms"}],
+    }
+    spec, documents = load_spec(_write(tmp_path, open_loop))
+    with pytest.raises(ConfigError, match=r"metrics\[0\]\.metric: tracking_error_rms needs a"):
+        build_tasks(spec, documents, "0")
+
+
+def test_a_closed_loop_takes_the_simulators_robot_unless_the_base_names_one(
+    tmp_path: Path,
+) -> None:
+    """The simulator params' robot is the run's robot, as for the node and lca-hil run."""
+    simulator = node_parameters(CONFIG / "ros" / "simulator.yaml", "simulator")
+    (tmp_path / "sim.yaml").write_text(
+        yaml.safe_dump({"simulator": {"ros__parameters": {**simulator, "robot": "reversible"}}}),
+        encoding="utf-8",
+    )
+    base: dict[str, Any] = {
+        "kind": "closed_loop", "duration_s": 0.1, "simulator": "sim.yaml", "axis": "pivot"
+    }  # fmt: skip
+    doc = {"base": base, "parameters": [], "metrics": [{"metric": "peak_current_a"}]}
+    spec, documents = load_spec(_write(tmp_path, doc))
+    (task,) = build_tasks(spec, documents, "0")
+    assert task.run.robot.name == load_robot("reversible").name
+    base["robot"] = "default"
+    spec, documents = load_spec(_write(tmp_path, doc))
+    (task,) = build_tasks(spec, documents, "0")
+    assert task.run.robot.name == load_robot("default").name
+
+
+def test_the_version_in_a_key_names_the_code_and_a_worker_checks_it() -> None:
+    """The key's version carries a hash of the code; a worker with other code refuses a point."""
+    version = package_version()
+    assert re.fullmatch(r".+\+code\.[0-9a-f]{12}", version), version
+    task = dataclasses.replace(_current_step_task(), version="0.1.0+code.000000000000")
+    with pytest.raises(RuntimeError, match="install the driver's lca_hil on every worker"):
+        timed_point(task)
+    outcome, wall_s = timed_point(dataclasses.replace(task, version=version))
+    assert outcome.metrics["overshoot_pct"] > 0.0 and wall_s > 0.0
+
+
+def _current_step_task() -> PointTask:
+    spec = parse_spec(_spec(), "spec.yaml")
+    documents = Documents(
+        base=dict(spec.base),
+        robot=read_yaml(CONFIG / "robots" / "default.yaml"),
+        urdf_xml=(CONFIG / "urdf" / "lca_gantry.urdf").read_text(encoding="utf-8"),
+    )
+    return build_task(spec, documents, expand_points(spec)[0], package_version())
