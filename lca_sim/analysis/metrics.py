@@ -113,6 +113,7 @@ class MetricArgs:
         low, high: the rise-time levels, fractions of the target.
         states: drive-state names (time in state, state change into).
         margin: how close to an end stop counts as contact, rad (m).
+        occurrence: which change into `states` (1 the first, 2 the second, -1 the last).
     """
 
     axis: str
@@ -125,6 +126,7 @@ class MetricArgs:
     high: float = 0.9
     states: tuple[str, ...] = ()
     margin: float = 1e-6
+    occurrence: int = 1
 
 
 MetricFunction = Callable[[Trace, MetricArgs], float]
@@ -285,22 +287,24 @@ def _changes(trace: Trace, args: MetricArgs) -> tuple[IntArray, int]:
     return changed[keep[changed]], a
 
 
-def _first_change_into(trace: Trace, args: MetricArgs) -> int | None:
+def _change_into(trace: Trace, args: MetricArgs) -> int | None:
+    """The sample of the `occurrence`-th change into any of `states` in the window (or None)."""
     changed, a = _changes(trace, args)
     wanted = _state_indices(trace, args.states)
     into = changed[np.isin(trace.drive_state[changed, a], wanted)]
-    return int(into[0]) if len(into) else None
+    k = args.occurrence - 1 if args.occurrence > 0 else len(into) + args.occurrence
+    return int(into[k]) if 0 <= k < len(into) else None
 
 
 def state_change_position(trace: Trace, args: MetricArgs) -> float:
-    """The position at the first change into any of `states` in the window, rad (m)."""
-    k = _first_change_into(trace, args)
+    """The position at the `occurrence`-th change into any of `states` in the window, rad (m)."""
+    k = _change_into(trace, args)
     return math.nan if k is None else float(trace.position[k, trace.axis(args.axis)])
 
 
 def state_change_time_s(trace: Trace, args: MetricArgs) -> float:
-    """The time of the first change into any of `states` in the window, s."""
-    k = _first_change_into(trace, args)
+    """The time of the `occurrence`-th change into any of `states` in the window, s."""
+    k = _change_into(trace, args)
     return math.nan if k is None else float(trace.time_s[k])
 
 
@@ -356,10 +360,13 @@ METRICS: dict[str, MetricDef] = {
         time_in_state_s, "s", "time in any of the states", _WINDOW | {"states"}
     ),
     "state_change_position": MetricDef(
-        state_change_position, "rad (m)", "position at the first change into", _WINDOW | {"states"}
+        state_change_position,
+        "rad (m)",
+        "position at the k-th change into",
+        _WINDOW | {"states", "occurrence"},
     ),
     "state_change_time_s": MetricDef(
-        state_change_time_s, "s", "time of the first change into", _WINDOW | {"states"}
+        state_change_time_s, "s", "time of the k-th change into", _WINDOW | {"states", "occurrence"}
     ),
     "state_change_count": MetricDef(state_change_count, "1", "drive-state changes", _WINDOW),
     "travel": MetricDef(travel, "rad (m)", "position(to) - position(from)", _WINDOW),
@@ -398,6 +405,7 @@ class MetricSpec:
             "high": a.high,
             "states": list(a.states),
             "margin": a.margin,
+            "occurrence": a.occurrence,
         }
 
 
@@ -459,6 +467,15 @@ def _metric_args(
         if raw["signal"] not in SIGNALS:
             raise ConfigError(source, f"{where}.signal", f"expected one of {', '.join(SIGNALS)}")
         kwargs["signal"] = raw["signal"]
+    if "occurrence" in raw:
+        occurrence = raw["occurrence"]
+        if isinstance(occurrence, bool) or not isinstance(occurrence, int) or occurrence == 0:
+            raise ConfigError(
+                source,
+                f"{where}.occurrence",
+                f"expected a whole number, 1 the first change, -1 the last; got {occurrence!r}",
+            )
+        kwargs["occurrence"] = occurrence
     if "states" in definition.args:
         states = raw.get("states")
         states = [states] if isinstance(states, str) else states

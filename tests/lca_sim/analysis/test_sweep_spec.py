@@ -397,6 +397,23 @@ def test_drive_states_travel_drift_and_end_stop() -> None:
     assert MetricArgs("pivot").band == 0.05
 
 
+def test_each_change_into_a_state_by_its_occurrence() -> None:
+    """Three changes into motor_driving: the 1st, 2nd, 3rd and last, then none (NaN)."""
+    t = np.arange(8) * 0.1
+    drive = np.array([0, 1, 1, 0, 1, 2, 1, 1])
+    trace = _trace(t, drive=drive, position=t * 2.0)
+    entry = {"metric": "state_change_position", "states": ["motor_driving"]}
+    assert [_metric(trace, **entry, occurrence=k) for k in (1, 2, 3, -1)] == pytest.approx(
+        [0.2, 0.8, 1.2, 1.2]
+    )
+    assert math.isnan(_metric(trace, **entry, occurrence=4))
+    assert _metric(
+        trace, metric="state_change_time_s", states=["motor_driving"], occurrence=-2
+    ) == (pytest.approx(0.4))
+    with pytest.raises(ConfigError, match=r"metrics\[0\]\.occurrence: expected a whole number"):
+        _metric(trace, **entry, occurrence=0)
+
+
 def test_documents_root_names() -> None:
     """Documents answers each root a path can start at."""
     documents = Documents(base={"a": 1}, robot={}, urdf_xml="")
