@@ -37,6 +37,7 @@ setup(
             "can/*.eds",
             "faults/*.yaml",
             "sweeps/*.yaml",
+            "runs/*.yaml",
             "layouts/*",
             "ros2_control/*",
         ]
@@ -51,6 +52,7 @@ setup(
         ("share/" + PACKAGE + "/config/can", _config_files("can")),
         ("share/" + PACKAGE + "/config/faults", _config_files("faults")),
         ("share/" + PACKAGE + "/config/sweeps", _config_files("sweeps")),
+        ("share/" + PACKAGE + "/config/runs", _config_files("runs")),
         ("share/" + PACKAGE + "/config/layouts", _config_files("layouts")),
         ("share/" + PACKAGE + "/config/ros2_control", _config_files("ros2_control")),
     ],

@@ -1,7 +1,13 @@
 """`lca-hil run`: the closed loop of the controller and simulator nodes, in one process, no ROS.
 
     lca-hil run --out out/run                         # Fig. 15's ramp, 13 s
+    lca-hil run fig15_encoder_freeze --out out/freeze # a closed-loop scenario (config/runs/)
     lca-hil run --controller-config my_gains.yaml --duration-s 5 --out out/gains
+
+A closed-loop scenario is a small YAML file naming what a run is made of: `controller` and
+`simulator` (the nodes' params files), `robot`, `faults` (a fault schedule) and `duration_s`,
+each optional (the same keys as a closed-loop sweep's base, docs/sweeps.md); a file it names is
+a shipped name or a path from the scenario's folder. The options override it.
 
 Reads the two nodes' parameter files (config/ros/controller.yaml and simulator.yaml by default),
 runs the composed loop (`lca_sim.analysis.closed_loop`): the same numbers as the lockstep run of
@@ -27,13 +33,20 @@ from lca_control.controller import validate_controller_params
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
 from lca_sim.cli.output import number_cell, write_json, write_table
-from lca_sim.config.loader import config_dir, load_fault_schedule, load_robot, read_yaml
+from lca_sim.config.loader import (
+    config_dir,
+    load_fault_schedule,
+    load_robot,
+    read_yaml,
+    resolve,
+)
 from lca_sim.errors import EXIT_OK, ConfigError, run_guarded
 from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter, standing_faults
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil run"
+SCENARIO_KEYS = ("description", "controller", "simulator", "robot", "faults", "duration_s")
 DEFAULT_DURATION_S = 13.0  # Fig. 15: 1 s still, the 10 s ramp, 2 s after it
 PARAMS_KEY = "ros__parameters"
 MAX_LISTED_CHANGES = 50  # drive-state changes listed per joint in summary.json
@@ -120,8 +133,68 @@ def closed_loop_config(
     )
 
 
+def file_ref(ref: object, home: Path, kind: str, key: str) -> Path:
+    """A shipped name (config/KIND/NAME.yaml) or a path from `home`'s folder, as a file.
+
+    Raises:
+        ConfigError: `home`, `key`: not a name or path, or no such file.
+        UnknownNameError: no shipped file of that name.
+    """
+    if not isinstance(ref, str):
+        raise ConfigError(str(home), key, f"expected a shipped {kind} name or a path")
+    if "/" in ref or ref.endswith((".yaml", ".yml")):
+        path = Path(ref) if Path(ref).is_absolute() else home.parent / ref
+        if not path.is_file():
+            raise ConfigError(str(home), key, f"file not found: {path}")
+        return path
+    return resolve(ref, kind)
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class RunScenario:
+    """A closed-loop scenario file: what a run is made of (None: not given)."""
+
+    controller: Path | None = None
+    simulator: Path | None = None
+    robot: Path | None = None
+    faults: Path | None = None
+    duration_s: float | None = None
+
+
+def load_run_scenario(name_or_path: str) -> RunScenario:
+    """A closed-loop scenario: a shipped name (config/runs/) or a path.
+
+    Raises:
+        ConfigError: the file, the bad key and what was expected.
+    """
+    path = resolve(name_or_path, "runs")
+    document = read_yaml(path)
+    if not isinstance(document, Mapping):
+        raise ConfigError(str(path), "", "expected a closed-loop scenario (a mapping)")
+    for key in document:
+        if key not in SCENARIO_KEYS:
+            raise ConfigError(
+                str(path), str(key), f"unknown key (valid: {', '.join(SCENARIO_KEYS)})"
+            )
+    duration = document.get("duration_s")
+    if duration is not None and (
+        isinstance(duration, bool) or not isinstance(duration, int | float) or not duration > 0
+    ):
+        raise ConfigError(str(path), "duration_s", f"expected seconds > 0, got {duration!r}")
+    kinds = {"controller": "ros", "simulator": "ros", "robot": "robots", "faults": "faults"}
+    files = {
+        key: file_ref(document[key], path, kind, key)
+        for key, kind in kinds.items()
+        if document.get(key) is not None
+    }
+    return RunScenario(**files, duration_s=None if duration is None else float(duration))
+
+
 def load_config(
-    controller_path: Path, simulator_path: Path, duration_s: float | None
+    controller_path: Path,
+    simulator_path: Path,
+    duration_s: float | None,
+    robot: RobotParams | None = None,
 ) -> ClosedLoopConfig:
     """`closed_loop_config` from the two params files; a bad value names its file.
 
@@ -140,7 +213,7 @@ def load_config(
         )
     except ParameterError as exc:
         raise _in_file(simulator_path, "simulator", exc) from exc
-    return closed_loop_config(controller_values, simulator_values, duration_s)
+    return closed_loop_config(controller_values, simulator_values, duration_s, robot=robot)
 
 
 def _in_file(path: Path, node: str, exc: ParameterError) -> ConfigError:
@@ -223,35 +296,41 @@ def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -
 
 def add_parser(sub: Any) -> None:
     """Register `run` on the lca-hil subcommands (an argparse subparsers object)."""
-    ros = config_dir() / "ros"
     parser = sub.add_parser(
         "run",
         help="the controller and simulator closed loop in one process, without ROS 2",
         description=__doc__.split("\n\n")[0],
     )
     parser.add_argument(
+        "scenario",
+        nargs="?",
+        default="",
+        help="a closed-loop scenario: a name in config/runs/ or a YAML path (controller, "
+        "simulator, robot, faults, duration_s); the options below override it",
+    )
+    parser.add_argument(
         "--controller-config",
         type=Path,
-        default=ros / "controller.yaml",
-        help="the controller node's params file (default: config/ros/controller.yaml)",
+        help="the controller node's params file (default: the scenario's, else "
+        "config/ros/controller.yaml)",
     )
     parser.add_argument(
         "--simulator-config",
         type=Path,
-        default=ros / "simulator.yaml",
-        help="the simulator node's params file (default: config/ros/simulator.yaml)",
+        help="the simulator node's params file (default: the scenario's, else "
+        "config/ros/simulator.yaml)",
     )
     parser.add_argument(
         "--duration-s",
         type=float,
-        default=DEFAULT_DURATION_S,
-        help=f"simulated seconds (default {DEFAULT_DURATION_S:g}); a whole number of dt_s",
+        help=f"simulated seconds (default: the scenario's, else {DEFAULT_DURATION_S:g}); a "
+        "whole number of dt_s",
     )
     parser.add_argument(
         "--faults",
         default="",
         help="a fault schedule (docs/faults.md): a YAML path, or a name in config/faults/; "
-        "overrides the simulator config's fault_schedule",
+        "overrides the scenario's and the simulator config's fault_schedule",
     )
     parser.add_argument("--out", type=Path, default=Path("out/run"), help="output folder")
 
@@ -270,17 +349,27 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    config = load_config(args.controller_config, args.simulator_config, args.duration_s)
-    values = node_parameters(args.simulator_config, "simulator")
-    schedule = args.faults or str(values.get(FAULT_SCHEDULE, ""))
+    scenario = load_run_scenario(args.scenario) if args.scenario else RunScenario()
+    ros = config_dir() / "ros"
+    controller_path = args.controller_config or scenario.controller or ros / "controller.yaml"
+    simulator_path = args.simulator_config or scenario.simulator or ros / "simulator.yaml"
+    duration_s = args.duration_s or scenario.duration_s or DEFAULT_DURATION_S
+    robot = None if scenario.robot is None else load_robot(str(scenario.robot))
+    config = load_config(controller_path, simulator_path, duration_s, robot=robot)
+    values = node_parameters(simulator_path, "simulator")
+    schedule = (
+        args.faults
+        or (str(scenario.faults) if scenario.faults else "")
+        or str(values.get(FAULT_SCHEDULE, ""))
+    )
     try:
         standing = standing_faults(values, config.robot.axis_names)
     except ParameterError as exc:
-        raise _in_file(args.simulator_config, "simulator", exc) from exc
+        raise _in_file(simulator_path, "simulator", exc) from exc
     faults = (*standing, *load_fault_schedule(schedule, config.robot.axis_names))
     if faults:
         config = dataclasses.replace(config, faults=faults)
-        print(f"{PROG}: {len(faults)} faults ({schedule or args.simulator_config})")
+        print(f"{PROG}: {len(faults)} faults ({schedule or simulator_path})")
     loop = ClosedLoop(config)
     start = time.perf_counter()
     result = loop.run()

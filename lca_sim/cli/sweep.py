@@ -46,7 +46,7 @@ from lca_sim.analysis.metrics import METRICS
 from lca_sim.analysis.sweep import PointOutcome, PointTask, build_task, run_point
 from lca_sim.analysis.sweep_spec import Documents, SweepSpec, expand_points, parse_spec
 from lca_sim.cli.output import atomic_path, save_png, write_json
-from lca_sim.cli.run import closed_loop_config, node_parameters
+from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
 from lca_sim.config.loader import _read_with_base, config_dir, read_yaml, resolve
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
 from lca_sim.model.faults import (
@@ -99,18 +99,6 @@ def package_version() -> str:
 # --- the spec and its documents ----------------------------------------------------------------
 
 
-def _file_ref(ref: object, spec_path: Path, kind: str, key: str) -> Path:
-    """A shipped name or a path (relative to the spec's folder) as an existing file."""
-    if not isinstance(ref, str):
-        raise ConfigError(str(spec_path), key, f"expected a shipped {kind} name or a path")
-    if "/" in ref or ref.endswith((".yaml", ".yml")):
-        path = Path(ref) if Path(ref).is_absolute() else spec_path.parent / ref
-        if not path.is_file():
-            raise ConfigError(str(spec_path), key, f"file not found: {path}")
-        return path
-    return resolve(ref, kind)
-
-
 def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
     """The validated spec and the base documents it names.
 
@@ -127,12 +115,12 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
     ros = config_dir() / "ros"
     if spec.kind == "closed_loop":
         controller_path = (
-            _file_ref(base["controller"], spec_path, "ros", "base.controller")
+            file_ref(base["controller"], spec_path, "ros", "base.controller")
             if "controller" in base
             else ros / "controller.yaml"
         )
         simulator_path = (
-            _file_ref(base["simulator"], spec_path, "ros", "base.simulator")
+            file_ref(base["simulator"], spec_path, "ros", "base.simulator")
             if "simulator" in base
             else ros / "simulator.yaml"
         )
@@ -142,7 +130,7 @@ def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:
     if spec.kind == "open_loop":
         if "scenario" not in base:
             raise ConfigError(spec.source, "base.scenario", "missing (an open-loop scenario)")
-        scenario = read_yaml(_file_ref(base["scenario"], spec_path, "scenarios", "base.scenario"))
+        scenario = read_yaml(file_ref(base["scenario"], spec_path, "scenarios", "base.scenario"))
         if not isinstance(scenario, Mapping):
             raise ConfigError(spec.source, "base.scenario", "expected a scenario document")
     urdf_xml, robot_doc = _robot(base, simulator, spec_path)
@@ -171,7 +159,7 @@ def _robot(
         ConfigError: a missing or unreadable robot or URDF.
     """
     if "robot" in base:
-        robot_path = _file_ref(base["robot"], spec_path, "robots", "base.robot")
+        robot_path = file_ref(base["robot"], spec_path, "robots", "base.robot")
     elif isinstance(simulator.get("robot"), str) and simulator["robot"]:
         robot_path = resolve(simulator["robot"], "robots")
     else:
@@ -204,7 +192,7 @@ def _fault_schedule(
         ConfigError: a missing file, or one that is not a schedule (a mapping with a list).
     """
     if "faults" in base:
-        path = _file_ref(base["faults"], spec_path, "faults", "base.faults")
+        path = file_ref(base["faults"], spec_path, "faults", "base.faults")
     elif simulator.get(FAULT_SCHEDULE):
         ref = simulator[FAULT_SCHEDULE]
         if not isinstance(ref, str):

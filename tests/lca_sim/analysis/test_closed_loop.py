@@ -33,6 +33,7 @@ from lca_control.ros.controller_node import ControllerNode
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopResult, stamp_time_s
 from lca_sim.cli import hil
 from lca_sim.cli.run import closed_loop_config, node_parameters
+from lca_sim.config.loader import load_robot
 from lca_sim.errors import EXIT_BAD_INPUT
 from lca_sim.ros.node_util import from_stamp, to_stamp
 
@@ -270,4 +271,47 @@ def test_lca_hil_run_names_the_file_of_a_bad_value(
     err = capsys.readouterr().err.strip().splitlines()
     assert code == EXIT_BAD_INPUT and len(err) == 1, err
     assert f"{bad}: controller.ros__parameters.velocity_ti_s: expected" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_lca_hil_run_of_a_scenario_is_the_run_of_its_files(tmp_path: Path) -> None:
+    """A shipped scenario equals the options it stands for; a scenario's robot and length act."""
+    by_name, by_options = tmp_path / "name", tmp_path / "options"
+    assert hil.main(["run", "fig15_encoder_freeze", "--duration-s", "2.6",
+                     "--out", str(by_name)]) == 0  # fmt: skip
+    assert hil.main(["run", "--faults", "pivot_encoder_freeze", "--duration-s", "2.6",
+                     "--out", str(by_options)]) == 0  # fmt: skip
+    csv_name = (by_name / "trajectory.csv").read_bytes()
+    assert csv_name == (by_options / "trajectory.csv").read_bytes()
+    healthy = tmp_path / "healthy"
+    assert hil.main(["run", "--duration-s", "2.6", "--out", str(healthy)]) == 0
+    assert csv_name != (healthy / "trajectory.csv").read_bytes()  # the freeze at 2 s acted
+    (tmp_path / "gains.yaml").write_bytes(CONTROLLER_YAML.read_bytes())
+    scenario = tmp_path / "mine.yaml"
+    scenario.write_text(
+        yaml.safe_dump({"robot": "reversible", "duration_s": 0.4, "controller": "gains.yaml"}),
+        encoding="utf-8",
+    )
+    out = tmp_path / "mine"
+    assert hil.main(["run", str(scenario), "--out", str(out)]) == 0
+    summary = support.strict_loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert isinstance(summary, dict)
+    assert summary["robot"] == load_robot("reversible").name and summary["duration_s"] == 0.4
+
+
+def test_lca_hil_run_names_a_bad_scenario_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An unknown key or a missing file: exit 2, one line naming the scenario and the key."""
+    scenario = tmp_path / "bad.yaml"
+    for doc, message in (
+        ({"duraton_s": 2.0}, "duraton_s: unknown key (valid: description, controller"),
+        ({"controller": "nope.yaml"}, "controller: file not found"),
+        ({"duration_s": -1.0}, "duration_s: expected seconds > 0"),
+    ):
+        scenario.write_text(yaml.safe_dump(doc), encoding="utf-8")
+        code = hil.main(["run", str(scenario), "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == EXIT_BAD_INPUT and len(err) == 1, err
+        assert f"{scenario}: {message}" in err[0], err
     assert not (tmp_path / "out").exists()
