@@ -109,12 +109,17 @@ def _plain_loop(tasks: Sequence[PointTask]) -> float:
     return time.perf_counter() - start
 
 
-def _dask(client: Any, tasks: Sequence[PointTask]) -> float:
-    """The sweep's wall time on the client's cluster, s (each point written as it finishes)."""
+def _dask(client: Any, tasks: Sequence[PointTask], workers: int) -> float:
+    """The sweep's wall time on the client's cluster, s (each point written as it finishes).
+
+    As `lca-hil sweep` runs on the local cluster it starts: one point in flight per worker.
+    """
     with tempfile.TemporaryDirectory(prefix="lca-bench-sweep-") as tmp:
         store = PointStore(Path(tmp))
         start = time.perf_counter()
-        stats = run_tasks(client, tasks, store, Progress(len(tasks), 0, None))
+        stats = run_tasks(
+            client, tasks, store, Progress(len(tasks), 0, None), one_per_worker=workers
+        )
         wall_s = time.perf_counter() - start
     assert stats.failed == 0 and stats.computed == len(tasks)
     return wall_s
@@ -188,7 +193,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for r in range(args.repeats):  # interleaved: a busy spell of the machine hits all
             plain.append(_plain_loop(_tasks(args.points, f"p{r}")))
             for workers in counts:
-                walls[workers].append(_dask(clients[workers], _tasks(args.points, f"{workers}{r}")))
+                points = _tasks(args.points, f"{workers}{r}")
+                walls[workers].append(_dask(clients[workers], points, workers))
     plain_s = statistics.median(plain)
     wall = {n: statistics.median(w) for n, w in walls.items()}
     n = len(tasks)

@@ -353,7 +353,9 @@ def _run(args: argparse.Namespace) -> int:
     ros = config_dir() / "ros"
     controller_path = args.controller_config or scenario.controller or ros / "controller.yaml"
     simulator_path = args.simulator_config or scenario.simulator or ros / "simulator.yaml"
-    duration_s = args.duration_s or scenario.duration_s or DEFAULT_DURATION_S
+    duration_s = next(
+        d for d in (args.duration_s, scenario.duration_s, DEFAULT_DURATION_S) if d is not None
+    )  # an explicit 0 goes on to the validation, which refuses it
     robot = None if scenario.robot is None else load_robot(str(scenario.robot))
     config = load_config(controller_path, simulator_path, duration_s, robot=robot)
     values = node_parameters(simulator_path, "simulator")

@@ -23,7 +23,6 @@ import argparse
 import collections
 import contextlib
 import dataclasses
-import functools
 import hashlib
 import importlib.metadata
 import itertools
@@ -71,29 +70,43 @@ ATTEMPTS = 2  # a point is submitted at most twice: once, and once more after a 
 # answering well within Dask's timeouts (seconds) and the point at the plain loop's speed
 # (bench/sweep.py).
 WORKER_SWITCH_INTERVAL_S = 0.05
+# How long a sweep on its own cluster waits for a dead worker's restart before going on.
+WORKER_RESTART_S = 60.0
 OK, FAILED = "ok", "failed"
 
 
-@functools.cache
-def package_version() -> str:
-    """lca_hil's version and a hash of its code (part of every point's key).
+def _code_hash() -> str:
+    """SHA-256 (12 hex) of every module of lca_sim and lca_control as this process loaded them.
 
-    `<release>+code.<12 hex>`: the installed release, and the SHA-256 of every module of
-    lca_sim and lca_control as they are on disk. The release alone is not bumped by every
-    change of the model, and a result of older code must not be taken for a result of this one;
-    nor may a worker with other code compute a point (`timed_point` refuses it).
+    Taken when this module is imported, so a long-lived worker reports the code it runs, not
+    what a later upgrade put on its disk.
     """
-    try:
-        release = importlib.metadata.version("lca_hil")
-    except importlib.metadata.PackageNotFoundError:
-        release = "0+unknown"
     digest = hashlib.sha256()
     for package in (lca_control, lca_sim):
         root = Path(str(package.__file__)).resolve().parent
         for module in sorted(root.rglob("*.py")):
             digest.update(module.relative_to(root.parent).as_posix().encode())
             digest.update(module.read_bytes())
-    return f"{release}+code.{digest.hexdigest()[:12]}"
+    return digest.hexdigest()[:12]
+
+
+_CODE_HASH = _code_hash()
+
+
+def package_version() -> str:
+    """lca_hil's version and a hash of its code (part of every point's key).
+
+    `<release>+code.<12 hex>`: the installed release, and the SHA-256 of every module of
+    lca_sim and lca_control when this process loaded them (`_code_hash`). The release alone is
+    not bumped by every change of the model, and a result of older code must not be taken for a
+    result of this one; nor may a worker with other code compute a point (`timed_point`
+    refuses it).
+    """
+    try:
+        release = importlib.metadata.version("lca_hil")
+    except importlib.metadata.PackageNotFoundError:
+        release = "0+unknown"
+    return f"{release}+code.{_CODE_HASH}"
 
 
 # --- the spec and its documents ----------------------------------------------------------------
@@ -204,6 +217,9 @@ def _fault_schedule(
     entries = document.get("faults") if isinstance(document, Mapping) else None
     if not isinstance(entries, list):
         raise ConfigError(str(path), "faults", "expected a fault schedule: a 'faults' list")
+    extra = sorted(str(k) for k in document if k != "faults")
+    if extra:  # as parse_fault_schedule says it for lca-hil run
+        raise ConfigError(str(path), extra[0], "unknown key; a fault schedule has only 'faults'")
     return tuple(entries), str(path)
 
 
@@ -404,8 +420,8 @@ def dask_client(scheduler: str | None, workers: int) -> Iterator[Any]:
     The local cluster's scheduler and its dashboard bind 127.0.0.1; each worker is a
     single-threaded process (the model holds the GIL), and a worker's death fails its point
     at once (allowed-failures 0) so that lca-hil's one retry is the only one. A worker is
-    given one point at a time (worker-saturation 1.0; Dask's default 1.1 queues a second on a
-    one-thread worker), so that a point which kills its worker takes no other point with it.
+    given one point at a time (worker-saturation 1.0, with `run_tasks`'s `one_per_worker`),
+    so that a point which kills its worker takes no other point with it.
     """
     import dask  # noqa: PLC0415  (only when a sweep runs)
     from distributed import Client, LocalCluster  # noqa: PLC0415
@@ -464,6 +480,7 @@ def run_tasks(
     store: PointStore,
     progress: Progress,
     function: Callable[[PointTask], tuple[PointOutcome, float]] = timed_point,
+    one_per_worker: int | None = None,
 ) -> RunStats:
     """Compute `tasks` on the client's cluster, writing each point as it finishes.
 
@@ -471,24 +488,38 @@ def run_tasks(
     computed once, by the first of them, and count for all. A point that raises or whose
     worker dies is submitted once more, then written as failed with the reason; the others
     go on.
+
+    Args:
+        one_per_worker: the number of single-threaded workers of a cluster this process
+            started: then no more points are in flight than workers, and after a worker died
+            none is submitted until the cluster has them all again. Dask sends every point of
+            a small sweep at once (worker-saturation holds back only large groups), so a
+            worker would otherwise queue a second point, which a point that kills its worker
+            takes down with it. None (an existing cluster): every point is submitted at once.
     """
     from distributed import as_completed  # noqa: PLC0415
 
     stats = RunStats()
     owner: dict[str, tuple[PointTask, int]] = {}
     queue = as_completed()  # type: ignore[no-untyped-call]
+    waiting: collections.deque[tuple[PointTask, int]] = collections.deque()
+    limit = one_per_worker or math.inf
 
     def submit(task: PointTask, attempt: int) -> None:
         future = client.submit(function, task, key=f"lca-point-{task.key}-{attempt}", pure=False)
         owner[future.key] = (task, attempt)
         queue.add(future)  # type: ignore[no-untyped-call]
 
+    def fill() -> None:
+        while waiting and len(owner) < limit:
+            submit(*waiting.popleft())
+
     shares = collections.Counter(task.key for task in tasks)
     first: dict[str, PointTask] = {}
     for task in tasks:
         first.setdefault(task.key, task)
-    for task in first.values():
-        submit(task, 1)
+    waiting.extend((task, 1) for task in first.values())
+    fill()
     for future in queue:
         task, attempt = owner.pop(future.key)
         stats.attempts[task.index] = attempt
@@ -498,17 +529,22 @@ def run_tasks(
             stats.computed += 1
             stats.point_wall_s[task.index] = wall_s
             progress.update(points=shares[task.key])
-        elif attempt < ATTEMPTS:
-            stats.errors[task.index] = _reason(future)
-            submit(task, attempt + 1)
         else:
             reason = _reason(future)
-            store.write(task.key, _outcome_row(task, None, reason), None)
-            stats.computed += 1
-            stats.failed += 1
-            stats.errors[task.index] = reason
-            progress.update(failed=True, points=shares[task.key])
+            if one_per_worker and reason.startswith("KilledWorker"):
+                with contextlib.suppress(TimeoutError):  # a cluster that lost one for good
+                    client.wait_for_workers(one_per_worker, timeout=WORKER_RESTART_S)
+            if attempt < ATTEMPTS:
+                stats.errors[task.index] = reason
+                waiting.appendleft((task, attempt + 1))
+            else:
+                store.write(task.key, _outcome_row(task, None, reason), None)
+                stats.computed += 1
+                stats.failed += 1
+                stats.errors[task.index] = reason
+                progress.update(failed=True, points=shares[task.key])
         future.release()
+        fill()
     return stats
 
 
@@ -623,11 +659,13 @@ def run_sweep(
     if pending:
         setup = time.perf_counter()
         with contextlib.ExitStack() as stack:
+            own_workers = None  # the local cluster this call starts: one point per worker
             if client is None:
                 client = stack.enter_context(dask_client(scheduler, n_workers))
                 client.run(warm_up, pending[0])
+                own_workers = None if scheduler else n_workers
             setup_s = time.perf_counter() - setup
-            stats = run_tasks(client, pending, store, progress, function)
+            stats = run_tasks(client, pending, store, progress, function, own_workers)
     progress.show(final=True)
     failed = merge(spec, tasks, store, out)
     log = {
@@ -638,6 +676,8 @@ def run_sweep(
         "points": len(tasks),
         "reused": len(tasks) - len(pending),
         "computed": stats.computed,
+        # points whose key another point computed (one configuration, computed once)
+        "shared": len(pending) - len({t.key for t in pending}),
         "computed_indices": sorted(stats.attempts),
         "failed": failed,
         "retried": {str(i): e for i, e in sorted(stats.errors.items())},

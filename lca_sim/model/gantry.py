@@ -135,8 +135,10 @@ class Gantry:
         rng = np.random.default_rng(0)
         lo = np.array([j.position_min for j in self.joints])
         hi = np.array([j.position_max for j in self.joints])
+        bounded = np.isfinite(lo) & np.isfinite(hi)
         for _ in range(3):
-            q = np.where(np.isfinite(lo) & np.isfinite(hi), rng.uniform(lo, hi), rng.normal())
+            q = rng.normal(size=self.nv)
+            q[bounded] = rng.uniform(lo[bounded], hi[bounded])
             v = rng.normal(size=self.nv)
             mass, nle = self.terms_in_place(q, v)
             ref_mass, ref_nle = self.pinocchio_terms(q, v)

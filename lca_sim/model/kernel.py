@@ -117,6 +117,9 @@ FIRST_MOVING = 4
 # Return codes.
 OK = 0
 BAD_INPUT = 1
+# `step_in_frame` was loaded from numba's cache compiled against another `rigid_body` than the
+# one running (its cache is keyed on kernel.py alone): nothing was touched; recompile it.
+STALE_CODE = 2
 
 
 @njit(cache=True)
@@ -510,7 +513,8 @@ F_N = 4  # number of axes
 F_MODEL_ROWS = 5
 F_TREE = 6  # address of the packed rigid-body tree: (n + 1) x rigid_body.TREE_COLS
 F_BODY = 7  # address of its scratch: (n + 1) x rigid_body.BODY_COLS
-N_FRAME = 8
+F_CODE = 8  # rigid_body.CODE_VERSION of the running Python (see STALE_CODE)
+N_FRAME = 9
 
 
 @intrinsic
@@ -569,6 +573,7 @@ def make_frame(
     frame[F_MODEL_ROWS] = model.shape[0]
     frame[F_TREE] = tree.ctypes.data
     frame[F_BODY] = body.ctypes.data
+    frame[F_CODE] = rigid_body.CODE_VERSION
     return frame
 
 
@@ -583,6 +588,8 @@ def step_in_frame(voltage_cmd_v: FloatArray, frame_address: int, dt_s: float) ->
     hot path.
     """
     frame = carray(_void_pointer(frame_address), (N_FRAME,), np.int64)  # type: ignore[call-arg]
+    if frame[F_CODE] != rigid_body.CODE_VERSION:  # a global: frozen into the compiled code
+        return STALE_CODE
     n = frame[F_N]
     mass_matrix = farray(_void_pointer(frame[F_MASS]), (n, n), np.float64)
     nonlinear_effects = carray(_void_pointer(frame[F_NLE]), (n,), np.float64)
@@ -592,6 +599,11 @@ def step_in_frame(voltage_cmd_v: FloatArray, frame_address: int, dt_s: float) ->
     body = carray(_void_pointer(frame[F_BODY]), (n + 1, rigid_body.BODY_COLS), np.float64)
     rigid_body.terms(work[X_POSITION], work[X_VELOCITY], tree, body, mass_matrix, nonlinear_effects)
     return step(mass_matrix, nonlinear_effects, voltage_cmd_v, work, model, dt_s)
+
+
+def recompile_step_in_frame() -> None:
+    """Compile `step_in_frame` again from the running code (and rewrite numba's cache)."""
+    step_in_frame.recompile()
 
 
 def step_in_frame_entry() -> Callable[[FloatArray, int, float], int]:

@@ -339,8 +339,15 @@ class Simulator:
                 return code
 
             return exact_kernel_step
-        step_in_frame = kernel.step_in_frame_entry()  # `step` checked the voltages' type
         frame_address = int(frame.ctypes.data)  # `frame` is kept in `_frame_arrays`
+        # A dry run on the zero state (reset follows): the compiled step may come from numba's
+        # cache of an older rigid_body (kernel.STALE_CODE), then it is compiled again.
+        zero_volts = np.zeros(self.n_axes)
+        if kernel.step_in_frame_entry()(zero_volts, frame_address, 0.0) == kernel.STALE_CODE:
+            kernel.recompile_step_in_frame()
+            if kernel.step_in_frame_entry()(zero_volts, frame_address, 0.0) != kernel.OK:
+                raise RuntimeError("kernel.step_in_frame does not run the loaded rigid_body")
+        step_in_frame = kernel.step_in_frame_entry()  # `step` checked the voltages' type
 
         def exact_frame_step(command: FloatArray) -> int:
             code: int = step_in_frame(command, frame_address, dt_s)

@@ -286,17 +286,31 @@ def test_lca_hil_run_of_a_scenario_is_the_run_of_its_files(tmp_path: Path) -> No
     healthy = tmp_path / "healthy"
     assert hil.main(["run", "--duration-s", "2.6", "--out", str(healthy)]) == 0
     assert csv_name != (healthy / "trajectory.csv").read_bytes()  # the freeze at 2 s acted
-    (tmp_path / "gains.yaml").write_bytes(CONTROLLER_YAML.read_bytes())
+    params = yaml.safe_load(CONTROLLER_YAML.read_text(encoding="utf-8"))
+    params["controller"]["ros__parameters"]["ramp_start_s"] = 0.1  # the ramp starts 0.9 s early
+    (tmp_path / "gains.yaml").write_text(yaml.safe_dump(params), encoding="utf-8")
     scenario = tmp_path / "mine.yaml"
     scenario.write_text(
-        yaml.safe_dump({"robot": "reversible", "duration_s": 0.4, "controller": "gains.yaml"}),
+        yaml.safe_dump({"robot": "reversible", "duration_s": 0.8, "controller": "gains.yaml"}),
         encoding="utf-8",
     )
     out = tmp_path / "mine"
     assert hil.main(["run", str(scenario), "--out", str(out)]) == 0
     summary = support.strict_loads((out / "summary.json").read_text(encoding="utf-8"))
     assert isinstance(summary, dict)
-    assert summary["robot"] == load_robot("reversible").name and summary["duration_s"] == 0.4
+    assert summary["robot"] == load_robot("reversible").name and summary["duration_s"] == 0.8
+    shipped = tmp_path / "shipped"
+    assert hil.main(["run", str(scenario), "--controller-config", str(CONTROLLER_YAML),
+                     "--out", str(shipped)]) == 0  # fmt: skip
+    early = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1, usecols=0)
+    assert len(early) == 201  # 0.8 s of 4 ms periods
+    ends = []
+    for folder in (out, shipped):
+        report = support.strict_loads((folder / "summary.json").read_text(encoding="utf-8"))
+        assert isinstance(report, dict)
+        ends.append(report["joints"]["pivot"]["end_position"])
+    assert ends[0] > ends[1] + 1e-4  # the early ramp moved the pivot further
+    assert hil.main(["run", str(scenario), "--duration-s", "0", "--out", str(out)]) == 2
 
 
 def test_lca_hil_run_names_a_bad_scenario_key(

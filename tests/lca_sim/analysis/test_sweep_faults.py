@@ -139,8 +139,21 @@ def test_a_swept_standing_fault_changes_the_run(tmp_path: Path) -> None:
             {"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 1.0}]},
             "faults: no item '3'",
         ),
+        (
+            {"name": "k", "path": "faults.0.start_s", "values": [1.0]},
+            {
+                "faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 1.0}],
+                "fault": [],
+            },
+            "fault: unknown key; a fault schedule has only 'faults'",
+        ),
     ],
-    ids=["unknown fault parameter", "unknown joint in the schedule", "no such entry"],
+    ids=[
+        "unknown fault parameter",
+        "unknown joint in the schedule",
+        "no such entry",
+        "unknown schedule key",
+    ],
 )
 def test_a_bad_fault_is_one_error_before_anything_runs(
     tmp_path: Path, parameter: dict[str, Any], schedule: dict[str, Any] | None, message: str

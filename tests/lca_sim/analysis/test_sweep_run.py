@@ -30,6 +30,14 @@ from lca_sim.cli.sweep import LOG, POINTS_DIR, RESULTS, TRAJECTORIES, run_sweep,
 DEADLINE_S = 240.0  # a loaded, shared 2-core machine
 
 
+@pytest.fixture(autouse=True)
+def _keep_the_switch_interval() -> Iterator[None]:
+    """`timed_point` sets the worker's GIL switch interval; in this process, put it back."""
+    interval = sys.getswitchinterval()
+    yield
+    sys.setswitchinterval(interval)
+
+
 def _spec(tmp_path: Path, n: int, duration_s: float, trajectories: bool = False) -> Path:
     """A spec of n current-step points (Kp values), each `duration_s` of simulated time."""
     spec: dict[str, Any] = {
@@ -238,19 +246,26 @@ def _dying(task: PointTask) -> tuple[PointOutcome, float]:
     return timed_point(task)
 
 
-def test_a_point_whose_worker_dies_is_retried_once_then_recorded_failed(tmp_path: Path) -> None:
-    """Point 1 kills its worker, twice: a failed row saying so; the others are computed."""
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_point_whose_worker_dies_is_retried_once_then_recorded_failed(
+    tmp_path: Path, workers: int
+) -> None:
+    """Point 1 kills its worker, twice: a failed row saying so; the others are all computed.
+
+    4 points on 2 workers is a sweep Dask would send out at once, two to a worker: the point
+    queued behind the dying one would die with it.
+    """
     import cloudpickle  # type: ignore[import-untyped]
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the worker has no tests/
     try:
-        spec = _spec(tmp_path, 3, 0.005)
+        spec = _spec(tmp_path, 4, 0.005)
         out = tmp_path / "out"
-        log = run_sweep(spec, out, workers=1, stream=None, function=_dying)
+        log = run_sweep(spec, out, workers=workers, stream=None, function=_dying)
     finally:
         cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     rows = _rows(out)
-    assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
+    assert [r["status"] for r in rows] == ["ok", "failed", "ok", "ok"], rows
     assert rows[1]["error"] == "KilledWorker: the worker running it died"
     assert log["retried"]["1"] == rows[1]["error"] and log["failed"] == 1
 
@@ -274,7 +289,8 @@ def test_points_of_one_configuration_are_computed_once(tmp_path: Path) -> None:
     ):  # fmt: skip
         log = run_sweep(spec, out, stream=None, client=client)
     rows = _rows(out)
-    assert [r["status"] for r in rows] == ["ok"] * 3 and log["computed"] == 2
+    assert [r["status"] for r in rows] == ["ok"] * 3
+    assert (log["computed"], log["shared"], log["reused"]) == (2, 1, 0)
     assert rows[0]["key"] == rows[1]["key"] != rows[2]["key"]
     assert rows[0]["overshoot_pct"] == rows[1]["overshoot_pct"] != rows[2]["overshoot_pct"]
 
@@ -339,3 +355,52 @@ def test_closed_and_open_loop_sweeps_run_on_worker_processes(tmp_path: Path) -> 
             for row, metrics in zip(rows, here, strict=True):
                 assert {k: row[k] for k in metrics} == metrics, name
             assert rows[0]["peak_current_a"] != rows[1]["peak_current_a"], name
+
+
+class _Recording:
+    """A Dask client that counts, at every submit, the futures submitted and not yet done."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.futures: list[Any] = []
+        self.most = 0
+
+    def submit(self, *args: Any, **kwargs: Any) -> Any:
+        future = self.client.submit(*args, **kwargs)
+        self.futures.append(future)
+        self.most = max(self.most, sum(not f.done() for f in self.futures))
+        return future
+
+    def wait_for_workers(self, n: int, timeout: float) -> None:
+        self.client.wait_for_workers(n, timeout=timeout)
+
+
+def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path: Path) -> None:
+    """6 points on 2 workers: never more than 2 out at once (Dask alone sends all 6)."""
+    from distributed import Client, LocalCluster
+
+    from lca_sim.cli.sweep import (
+        PointStore,
+        Progress,
+        build_tasks,
+        load_spec,
+        package_version,
+        run_tasks,
+    )
+
+    spec, documents = load_spec(_spec(tmp_path, 6, 0.02))
+    tasks = build_tasks(spec, documents, package_version())
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://",
+                     host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
+        Client(cluster) as client,  # type: ignore[no-untyped-call]
+    ):  # fmt: skip
+        most = {}
+        for own in (2, None):
+            recording = _Recording(client)
+            store = PointStore(tmp_path / f"out{own}")
+            stats = run_tasks(recording, tasks, store, Progress(6, 0, None), timed_point, own)
+            assert stats.computed == 6 and stats.failed == 0
+            most[own] = recording.most
+    assert most == {2: 2, None: 6}

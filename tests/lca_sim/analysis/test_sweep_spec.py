@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import sys
 import xml.etree.ElementTree as ET
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,14 @@ from lca_sim.errors import EXIT_BAD_INPUT, ConfigError
 from lca_sim.model.params import RobotParams
 
 SWEEPS = CONFIG / "sweeps"
+
+
+@pytest.fixture(autouse=True)
+def _keep_the_switch_interval() -> Iterator[None]:
+    """`timed_point` sets the worker's GIL switch interval; in this process, put it back."""
+    interval = sys.getswitchinterval()
+    yield
+    sys.setswitchinterval(interval)
 
 
 def _spec(**changes: Any) -> dict[str, Any]:

@@ -81,3 +81,35 @@ def test_a_simulator_refuses_copies() -> None:
     for clone in (copy.copy, copy.deepcopy, pickle.dumps):
         with pytest.raises(TypeError, match="raw addresses"):
             clone(sim)
+
+
+def test_a_step_compiled_against_another_rigid_body_is_recompiled(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A cached step compiled against another rigid_body.py is refused, then compiled again.
+
+    A different rigid_body.CODE_VERSION stands for an edited rigid_body.py: the cached step
+    refuses to run (nothing touched), the simulator recompiles it, and it then steps as the
+    general path does.
+    """
+    from lca_sim.model import rigid_body
+
+    recompiled: list[bool] = []
+    recompile = kernel.recompile_step_in_frame
+    monkeypatch.setattr(rigid_body, "CODE_VERSION", rigid_body.CODE_VERSION ^ 1)
+
+    def counted_recompile() -> None:
+        recompiled.append(True)
+        recompile()
+
+    monkeypatch.setattr(kernel, "recompile_step_in_frame", counted_recompile)
+    sim = Simulator(load_robot("default"), 1e-4)
+    assert recompiled == [True]
+    reference = sim._work.copy()
+    volts = np.array([3.0, 30.0, 3.0, 6.0])
+    for _ in range(50):
+        sim.step(volts)
+        _reference_step(sim, reference, volts)
+    np.testing.assert_array_equal(sim._work, reference)
+    monkeypatch.undo()
+    Simulator(load_robot("default"), 1e-4)  # back on the real version: compiled again
