@@ -46,7 +46,7 @@ from lca_sim.analysis.sweep import PointOutcome, PointTask, build_task, run_poin
 from lca_sim.analysis.sweep_spec import Documents, SweepSpec, expand_points, parse_spec
 from lca_sim.cli.output import atomic_path, save_png, write_json
 from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
-from lca_sim.config.loader import _read_with_base, config_dir, read_yaml, resolve
+from lca_sim.config.loader import config_dir, read_robot_document, read_yaml, resolve
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
 from lca_sim.model.faults import (
     FAULT_SCHEDULE,
@@ -177,18 +177,7 @@ def _robot(
         robot_path = resolve(simulator["robot"], "robots")
     else:
         robot_path = resolve("default", "robots")
-    robot_doc, urdf_home = _read_with_base(robot_path)
-    if not isinstance(robot_doc, Mapping):
-        raise ConfigError(str(robot_path), "", "expected a robot document (a mapping)")
-    robot_section = robot_doc.get("robot")
-    urdf_ref = robot_section.get("urdf") if isinstance(robot_section, Mapping) else None
-    if not isinstance(urdf_ref, str):
-        raise ConfigError(str(robot_path), "robot.urdf", "expected the path of the gantry URDF")
-    urdf_path = (urdf_home.parent / urdf_ref).resolve()
-    try:
-        urdf_xml = urdf_path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(robot_path), "robot.urdf", f"cannot read {urdf_path}") from exc
+    robot_doc, urdf_xml = read_robot_document(robot_path)
     return urdf_xml, robot_doc
 
 

@@ -149,6 +149,18 @@ def load_robot(name_or_path: str = "default") -> RobotParams:
 
     """
     path = resolve(name_or_path, "robots")
+    data, urdf_xml = read_robot_document(path)
+    return parse_robot(data, str(path), urdf_xml)
+
+
+def read_robot_document(path: Path) -> tuple[Mapping[str, Any], str]:
+    """A robot file's document (its `base:` merged in) and its gantry URDF's text, unparsed.
+
+    For a caller that changes the document before parsing it (a sweep's points).
+
+    Raises:
+        ConfigError: the file, the key and what was expected, in one line.
+    """
     data, urdf_home = _read_with_base(path)
     if not isinstance(data, Mapping):
         kind = "nothing (an empty file)" if data is None else type(data).__name__
@@ -167,7 +179,7 @@ def load_robot(name_or_path: str = "default") -> RobotParams:
     except UnicodeDecodeError as exc:
         raise ConfigError(str(path), "robot.urdf", f"expected UTF-8 text in {urdf_path}") from exc
     _check_urdf(urdf_xml, str(path), urdf_path)
-    return parse_robot(data, str(path), urdf_xml)
+    return data, urdf_xml
 
 
 def _check_urdf(urdf_xml: str, source: str, urdf_path: Path) -> None:

@@ -10,6 +10,7 @@ test needs points in flight (a 0.5 s step is about half a second of work).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -105,6 +106,20 @@ def _start(processes: list[subprocess.Popen[str]], args: list[str], cwd: Path) -
     return proc
 
 
+@contextlib.contextmanager
+def _in_process_cluster(workers: int) -> Iterator[Any]:
+    """A client of a cluster of `workers` one-thread workers in this process, on 127.0.0.1."""
+    from distributed import Client, LocalCluster
+
+    with (
+        LocalCluster(n_workers=workers, threads_per_worker=1, processes=False,
+                     protocol="tcp://", host="127.0.0.1",
+                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
+        Client(cluster) as client,  # type: ignore[no-untyped-call]
+    ):  # fmt: skip
+        yield client
+
+
 def _sweep_args(spec: Path, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "lca_sim.cli.hil", "sweep", str(spec), "--out", str(out),
             "--no-progress", *extra]  # fmt: skip
@@ -161,17 +176,10 @@ def _flaky(calls: Path, task: PointTask) -> tuple[PointOutcome, float]:
 
 def test_a_failing_point_is_retried_once_then_recorded_failed(tmp_path: Path) -> None:
     """Point 1 raises: submitted twice, then a failed row with its reason; the rest are ok."""
-    from distributed import Client, LocalCluster
-
     spec = _spec(tmp_path, 4, 0.005)
     out = tmp_path / "out"
     calls = tmp_path / "calls.txt"
-    with (
-        LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
-                     host="127.0.0.1",
-                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
-        Client(cluster) as client,  # type: ignore[no-untyped-call]
-    ):  # fmt: skip
+    with _in_process_cluster(1) as client:
         log = run_sweep(
             spec, out, stream=None, client=client, function=functools.partial(_flaky, calls)
         )
@@ -272,8 +280,6 @@ def test_a_point_whose_worker_dies_is_retried_once_then_recorded_failed(
 
 def test_points_of_one_configuration_are_computed_once(tmp_path: Path) -> None:
     """A value given twice: one computation, two equal rows (the driver once died of it)."""
-    from distributed import Client, LocalCluster
-
     spec_doc = yaml.safe_load(_spec(tmp_path, 2, 0.005).read_text(encoding="utf-8"))
     spec_doc["parameters"][0] = {
         "name": "kp", "path": "base.current_kp_v_per_a", "values": [20.0, 20.0, 30.0]
@@ -281,12 +287,7 @@ def test_points_of_one_configuration_are_computed_once(tmp_path: Path) -> None:
     spec = tmp_path / "twice.yaml"
     spec.write_text(yaml.safe_dump(spec_doc), encoding="utf-8")
     out = tmp_path / "out"
-    with (
-        LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
-                     host="127.0.0.1",
-                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
-        Client(cluster) as client,  # type: ignore[no-untyped-call]
-    ):  # fmt: skip
+    with _in_process_cluster(1) as client:
         log = run_sweep(spec, out, stream=None, client=client)
     rows = _rows(out)
     assert [r["status"] for r in rows] == ["ok"] * 3
@@ -377,8 +378,6 @@ class _Recording:
 
 def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path: Path) -> None:
     """6 points on 2 workers: never more than 2 out at once (Dask alone sends all 6)."""
-    from distributed import Client, LocalCluster
-
     from lca_sim.cli.sweep import (
         PointStore,
         Progress,
@@ -390,12 +389,7 @@ def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path:
 
     spec, documents = load_spec(_spec(tmp_path, 6, 0.02))
     tasks = build_tasks(spec, documents, package_version())
-    with (
-        LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://",
-                     host="127.0.0.1",
-                     dashboard_address="127.0.0.1:0") as cluster,  # type: ignore[no-untyped-call]
-        Client(cluster) as client,  # type: ignore[no-untyped-call]
-    ):  # fmt: skip
+    with _in_process_cluster(2) as client:
         most = {}
         for own in (2, None):
             recording = _Recording(client)
