@@ -447,6 +447,7 @@ class Cia402Master:
             node = axis.node
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
             _drop_unasked_sdo_responses(node.sdo)
+            _forget_invalid_nmt_state(node)
             try:
                 node.nmt.state = "PRE-OPERATIONAL"
                 supported = int(node.sdo[od.SUPPORTED_DRIVE_MODES].raw)
@@ -494,6 +495,7 @@ class Cia402Master:
                 axis.boot_watch = self._heartbeat_callback(axis)
                 self.network.subscribe(HEARTBEAT_BASE + self.params.node_ids[k], axis.boot_watch)
         for axis in self._axes:
+            _forget_invalid_nmt_state(axis.node)
             axis.node.nmt.state = "OPERATIONAL"
             axis.last_tpdo_t = time.monotonic()
         with self._lock:
@@ -1273,6 +1275,19 @@ def _compile_apply(
     exec("\n".join(lines), namespace)  # fixed field names and decoders, see above
     apply: Callable[[AxisState, bytearray], None] = namespace["apply"]
     return apply
+
+
+def _forget_invalid_nmt_state(node: canopen.RemoteNode) -> None:
+    """Forget a drive's NMT state byte that CiA 301 does not define, before commanding it.
+
+    canopen records the state byte of every frame on the drive's heartbeat COB-ID, valid or
+    not (a random frame, a second producer), and its next NMT command then fails while it logs
+    the old state by name (`KeyError`): `init()` could not reconfigure the drive until a valid
+    heartbeat came. The command (CiA 301 7.2.8.3.1) does not depend on the recorded state, and
+    the next heartbeat records the drive's real one; 0 (initialising) stands in until then.
+    """
+    if node.nmt._state not in canopen.nmt.NMT_STATES:  # canopen keeps it private
+        node.nmt._state = 0
 
 
 def _drop_unasked_sdo_responses(sdo: SdoClient) -> None:

@@ -289,3 +289,24 @@ def test_without_faults_nothing_is_reported_over_several_seconds(rig: Rig) -> No
     assert rig.bridge.counters.heartbeats_lost == rig.bridge.counters.cycle_stalls == 0
     assert rig.bridge.counters.complete_cycles > complete + 900
     assert abs(rig.current_a(1) - PIVOT_A) < 0.05
+
+
+def test_a_heartbeat_with_an_undefined_state_does_not_stop_init(rig: Rig) -> None:
+    """A frame on a drive's heartbeat COB-ID with a state CiA 301 does not define (45).
+
+    canopen records it as the drive's NMT state and then failed to log its next NMT command
+    (KeyError: 45), so init() could not configure the drive (a fuzz test met it). Now init()
+    goes through, and the drive runs again.
+    """
+    rig.bridge.sdo_write("pivot", FAULTS, od.FAULT_HEARTBEAT_OFF, 1)  # only our byte arrives
+    pivot = JOINTS.index("pivot")
+    node = rig.bridge._axes[pivot].node
+    rig.torques.bus.send(
+        can.Message(arbitration_id=0x700 + NODE_IDS[pivot], data=[45], is_extended_id=False)
+    )
+    wait_until(lambda: node.nmt._state == 45, "canopen took the undefined state")
+    rig.bridge.init()
+    rig.bridge.sdo_write("pivot", FAULTS, od.FAULT_HEARTBEAT_OFF, 0)
+    wait_until(lambda: rig.bridge.silent_heartbeats() == (), "pivot's heartbeat again")
+    rig.bridge.recover()
+    rig.enable()
