@@ -377,7 +377,7 @@ class _Recording:
 
 
 def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path: Path) -> None:
-    """6 points on 2 workers: never more than 2 out at once (Dask alone sends all 6)."""
+    """6 points on 2 workers: never more than 2 out at once (without the limit, all of them)."""
     from lca_sim.cli.sweep import (
         PointStore,
         Progress,
@@ -387,7 +387,7 @@ def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path:
         run_tasks,
     )
 
-    spec, documents = load_spec(_spec(tmp_path, 6, 0.02))
+    spec, documents = load_spec(_spec(tmp_path, 6, 0.2))
     tasks = build_tasks(spec, documents, package_version())
     with _in_process_cluster(2) as client:
         most = {}
@@ -397,4 +397,5 @@ def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path:
             stats = run_tasks(recording, tasks, store, Progress(6, 0, None), timed_point, own)
             assert stats.computed == 6 and stats.failed == 0
             most[own] = recording.most
-    assert most == {2: 2, None: 6}
+    # Unthrottled, Dask has them all at once (the first may end while the last are submitted).
+    assert most[2] == 2 and most[None] > 2, most
