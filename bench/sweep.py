@@ -109,17 +109,12 @@ def _plain_loop(tasks: Sequence[PointTask]) -> float:
     return time.perf_counter() - start
 
 
-def _dask(client: Any, tasks: Sequence[PointTask], workers: int) -> float:
-    """The sweep's wall time on the client's cluster, s (each point written as it finishes).
-
-    As `lca-hil sweep` runs on the local cluster it starts: one point in flight per worker.
-    """
+def _dask(client: Any, tasks: Sequence[PointTask]) -> float:
+    """The sweep's wall time on the client's cluster, s (each point written as it finishes)."""
     with tempfile.TemporaryDirectory(prefix="lca-bench-sweep-") as tmp:
         store = PointStore(Path(tmp))
         start = time.perf_counter()
-        stats = run_tasks(
-            client, tasks, store, Progress(len(tasks), 0, None), one_per_worker=workers
-        )
+        stats = run_tasks(client, tasks, store, Progress(len(tasks), 0, None))
         wall_s = time.perf_counter() - start
     assert stats.failed == 0 and stats.computed == len(tasks)
     return wall_s
@@ -194,7 +189,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             plain.append(_plain_loop(_tasks(args.points, f"p{r}")))
             for workers in counts:
                 points = _tasks(args.points, f"{workers}{r}")
-                walls[workers].append(_dask(clients[workers], points, workers))
+                walls[workers].append(_dask(clients[workers], points))
     plain_s = statistics.median(plain)
     wall = {n: statistics.median(w) for n, w in walls.items()}
     n = len(tasks)

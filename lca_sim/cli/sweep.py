@@ -70,8 +70,6 @@ ATTEMPTS = 2  # a point is submitted at most twice: once, and once more after a 
 # answering well within Dask's timeouts (seconds) and the point at the plain loop's speed
 # (bench/sweep.py).
 WORKER_SWITCH_INTERVAL_S = 0.05
-# How long a sweep on its own cluster waits for a dead worker's restart before going on.
-WORKER_RESTART_S = 60.0
 OK, FAILED = "ok", "failed"
 
 
@@ -408,9 +406,8 @@ def dask_client(scheduler: str | None, workers: int) -> Iterator[Any]:
 
     The local cluster's scheduler and its dashboard bind 127.0.0.1; each worker is a
     single-threaded process (the model holds the GIL), and a worker's death fails its point
-    at once (allowed-failures 0) so that lca-hil's one retry is the only one. A worker is
-    given one point at a time (worker-saturation 1.0, with `run_tasks`'s `one_per_worker`),
-    so that a point which kills its worker takes no other point with it.
+    at once (allowed-failures 0) so that lca-hil's one retry is the only one (`run_tasks`
+    retries a point whose worker died alone, so the points queued behind it are computed).
     """
     import dask  # noqa: PLC0415  (only when a sweep runs)
     from distributed import Client, LocalCluster  # noqa: PLC0415
@@ -420,12 +417,7 @@ def dask_client(scheduler: str | None, workers: int) -> Iterator[Any]:
             yield client
         return
     with (
-        dask.config.set(
-            {
-                "distributed.scheduler.allowed-failures": 0,
-                "distributed.scheduler.worker-saturation": 1.0,
-            }
-        ),
+        dask.config.set({"distributed.scheduler.allowed-failures": 0}),
         LocalCluster(  # type: ignore[no-untyped-call]
             n_workers=workers,
             threads_per_worker=1,
@@ -469,47 +461,31 @@ def run_tasks(
     store: PointStore,
     progress: Progress,
     function: Callable[[PointTask], tuple[PointOutcome, float]] = timed_point,
-    one_per_worker: int | None = None,
 ) -> RunStats:
     """Compute `tasks` on the client's cluster, writing each point as it finishes.
 
     Points of one key (two that resolve to one configuration, e.g. a value given twice) are
-    computed once, by the first of them, and count for all. A point that raises or whose
-    worker dies is submitted once more, then written as failed with the reason; the others
-    go on.
-
-    Args:
-        one_per_worker: the number of single-threaded workers of a cluster this process
-            started: then no more points are in flight than workers, and after a worker died
-            none is submitted until the cluster has them all again. Dask sends every point of
-            a small sweep at once (worker-saturation holds back only large groups), so a
-            worker would otherwise queue a second point, which a point that kills its worker
-            takes down with it. None (an existing cluster): every point is submitted at once.
+    computed once, by the first of them, and count for all. A point that raises is submitted
+    once more at once. A point whose worker died is submitted once more after all the others,
+    alone: Dask hands a worker more than one point, and those queued behind a point that kills
+    its worker die with it, so the retry isolates the one that kills (it dies alone and is
+    written as failed) from those that only shared its worker. A second failure is written as
+    failed with its reason; the others go on.
     """
-    from distributed import as_completed  # noqa: PLC0415
+    from distributed import as_completed, wait  # noqa: PLC0415
 
     stats = RunStats()
     owner: dict[str, tuple[PointTask, int]] = {}
     queue = as_completed()  # type: ignore[no-untyped-call]
-    waiting: collections.deque[tuple[PointTask, int]] = collections.deque()
-    limit = one_per_worker or math.inf
+    alone: list[tuple[PointTask, int]] = []  # whose worker died: retried one at a time
+    shares = collections.Counter(task.key for task in tasks)
 
-    def submit(task: PointTask, attempt: int) -> None:
+    def submit(task: PointTask, attempt: int) -> Any:
         future = client.submit(function, task, key=f"lca-point-{task.key}-{attempt}", pure=False)
         owner[future.key] = (task, attempt)
-        queue.add(future)  # type: ignore[no-untyped-call]
+        return future
 
-    def fill() -> None:
-        while waiting and len(owner) < limit:
-            submit(*waiting.popleft())
-
-    shares = collections.Counter(task.key for task in tasks)
-    first: dict[str, PointTask] = {}
-    for task in tasks:
-        first.setdefault(task.key, task)
-    waiting.extend((task, 1) for task in first.values())
-    fill()
-    for future in queue:
+    def settle(future: Any) -> None:
         task, attempt = owner.pop(future.key)
         stats.attempts[task.index] = attempt
         if future.status == "finished":
@@ -518,22 +494,33 @@ def run_tasks(
             stats.computed += 1
             stats.point_wall_s[task.index] = wall_s
             progress.update(points=shares[task.key])
+        elif attempt < ATTEMPTS:
+            reason = _reason(future)
+            stats.errors[task.index] = reason
+            if reason.startswith("KilledWorker"):
+                alone.append((task, attempt + 1))
+            else:
+                queue.add(submit(task, attempt + 1))  # type: ignore[no-untyped-call]
         else:
             reason = _reason(future)
-            if one_per_worker and reason.startswith("KilledWorker"):
-                with contextlib.suppress(TimeoutError):  # a cluster that lost one for good
-                    client.wait_for_workers(one_per_worker, timeout=WORKER_RESTART_S)
-            if attempt < ATTEMPTS:
-                stats.errors[task.index] = reason
-                waiting.appendleft((task, attempt + 1))
-            else:
-                store.write(task.key, _outcome_row(task, None, reason), None)
-                stats.computed += 1
-                stats.failed += 1
-                stats.errors[task.index] = reason
-                progress.update(failed=True, points=shares[task.key])
+            store.write(task.key, _outcome_row(task, None, reason), None)
+            stats.computed += 1
+            stats.failed += 1
+            stats.errors[task.index] = reason
+            progress.update(failed=True, points=shares[task.key])
         future.release()
-        fill()
+
+    first: dict[str, PointTask] = {}
+    for task in tasks:
+        first.setdefault(task.key, task)
+    for task in first.values():
+        queue.add(submit(task, 1))  # type: ignore[no-untyped-call]
+    for future in queue:
+        settle(future)
+    for task, attempt in alone:
+        future = submit(task, attempt)
+        wait(future)  # type: ignore[no-untyped-call]
+        settle(future)
     return stats
 
 
@@ -648,13 +635,11 @@ def run_sweep(
     if pending:
         setup = time.perf_counter()
         with contextlib.ExitStack() as stack:
-            own_workers = None  # the local cluster this call starts: one point per worker
             if client is None:
                 client = stack.enter_context(dask_client(scheduler, n_workers))
                 client.run(warm_up, pending[0])
-                own_workers = None if scheduler else n_workers
             setup_s = time.perf_counter() - setup
-            stats = run_tasks(client, pending, store, progress, function, own_workers)
+            stats = run_tasks(client, pending, store, progress, function)
     progress.show(final=True)
     failed = merge(spec, tasks, store, out)
     log = {

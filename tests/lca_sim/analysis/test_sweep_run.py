@@ -254,28 +254,54 @@ def _dying(task: PointTask) -> tuple[PointOutcome, float]:
     return timed_point(task)
 
 
+class _Recording:
+    """A Dask client that notes, at every submit, its key and the futures then not yet done."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.futures: list[Any] = []
+        self.submits: dict[str, int] = {}
+
+    def submit(self, *args: Any, **kwargs: Any) -> Any:
+        future = self.client.submit(*args, **kwargs)
+        self.futures.append(future)
+        self.submits[kwargs["key"]] = sum(not f.done() for f in self.futures)
+        return future
+
+    def run(self, *args: Any, **kwargs: Any) -> Any:
+        return self.client.run(*args, **kwargs)
+
+
 @pytest.mark.parametrize("workers", [1, 2])
-def test_a_point_whose_worker_dies_is_retried_once_then_recorded_failed(
+def test_a_point_whose_worker_dies_is_retried_alone_then_recorded_failed(
     tmp_path: Path, workers: int
 ) -> None:
     """Point 1 kills its worker, twice: a failed row saying so; the others are all computed.
 
-    4 points on 2 workers is a sweep Dask would send out at once, two to a worker: the point
-    queued behind the dying one would die with it.
+    Dask hands a worker more than one point, and a point queued behind the dying one dies with
+    it: the retry of a point whose worker died comes after the others, alone, so the one that
+    kills dies alone and the ones that shared its worker are computed.
     """
     import cloudpickle  # type: ignore[import-untyped]
+
+    from lca_sim.cli.sweep import dask_client
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the worker has no tests/
     try:
         spec = _spec(tmp_path, 4, 0.005)
         out = tmp_path / "out"
-        log = run_sweep(spec, out, workers=workers, stream=None, function=_dying)
+        with dask_client(None, workers) as client:
+            recording = _Recording(client)
+            log = run_sweep(spec, out, stream=None, client=recording, function=_dying)
     finally:
         cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     rows = _rows(out)
     assert [r["status"] for r in rows] == ["ok", "failed", "ok", "ok"], rows
     assert rows[1]["error"] == "KilledWorker: the worker running it died"
     assert log["retried"]["1"] == rows[1]["error"] and log["failed"] == 1
+    retries = {key: n for key, n in recording.submits.items() if key.endswith("-2")}
+    assert f"lca-point-{rows[1]['key']}-2" in retries
+    assert all(n == 1 for n in retries.values()), retries  # each alone on the cluster
 
 
 def test_points_of_one_configuration_are_computed_once(tmp_path: Path) -> None:
@@ -356,46 +382,3 @@ def test_closed_and_open_loop_sweeps_run_on_worker_processes(tmp_path: Path) -> 
             for row, metrics in zip(rows, here, strict=True):
                 assert {k: row[k] for k in metrics} == metrics, name
             assert rows[0]["peak_current_a"] != rows[1]["peak_current_a"], name
-
-
-class _Recording:
-    """A Dask client that counts, at every submit, the futures submitted and not yet done."""
-
-    def __init__(self, client: Any) -> None:
-        self.client = client
-        self.futures: list[Any] = []
-        self.most = 0
-
-    def submit(self, *args: Any, **kwargs: Any) -> Any:
-        future = self.client.submit(*args, **kwargs)
-        self.futures.append(future)
-        self.most = max(self.most, sum(not f.done() for f in self.futures))
-        return future
-
-    def wait_for_workers(self, n: int, timeout: float) -> None:
-        self.client.wait_for_workers(n, timeout=timeout)
-
-
-def test_a_sweep_on_its_own_cluster_has_one_point_in_flight_per_worker(tmp_path: Path) -> None:
-    """6 points on 2 workers: never more than 2 out at once (without the limit, all of them)."""
-    from lca_sim.cli.sweep import (
-        PointStore,
-        Progress,
-        build_tasks,
-        load_spec,
-        package_version,
-        run_tasks,
-    )
-
-    spec, documents = load_spec(_spec(tmp_path, 6, 0.2))
-    tasks = build_tasks(spec, documents, package_version())
-    with _in_process_cluster(2) as client:
-        most = {}
-        for own in (2, None):
-            recording = _Recording(client)
-            store = PointStore(tmp_path / f"out{own}")
-            stats = run_tasks(recording, tasks, store, Progress(6, 0, None), timed_point, own)
-            assert stats.computed == 6 and stats.failed == 0
-            most[own] = recording.most
-    # Unthrottled, Dask has them all at once (the first may end while the last are submitted).
-    assert most[2] == 2 and most[None] > 2, most
