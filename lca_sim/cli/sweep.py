@@ -52,6 +52,7 @@ from lca_sim.model.faults import (
     FAULT_SCHEDULE,
     is_fault_parameter,
     parse_fault_schedule,
+    schedule_entries,
     standing_faults,
 )
 from lca_sim.model.params import RobotParams
@@ -200,14 +201,7 @@ def _fault_schedule(
         path = resolve(ref, "faults")
     else:
         return (), ""
-    document = read_yaml(path)
-    entries = document.get("faults") if isinstance(document, Mapping) else None
-    if not isinstance(entries, list):
-        raise ConfigError(str(path), "faults", "expected a fault schedule: a 'faults' list")
-    extra = sorted(str(k) for k in document if k != "faults")
-    if extra:  # as parse_fault_schedule says it for lca-hil run
-        raise ConfigError(str(path), extra[0], "unknown key; a fault schedule has only 'faults'")
-    return tuple(entries), str(path)
+    return tuple(schedule_entries(read_yaml(path), str(path))), str(path)
 
 
 def closed_loop_builder(documents: Documents, robot: RobotParams) -> ClosedLoopConfig:

@@ -269,6 +269,18 @@ def parse_fault_schedule(
     Raises:
         ConfigError: the first bad key, named by its path.
     """
+    raw = schedule_entries(data, source)
+    entries = [_parse_entry(item, source, f"faults[{i}]", joints) for i, item in enumerate(raw)]
+    _check_overlaps(entries, source)
+    return tuple(sorted(entries, key=lambda e: (e.start_s, e.owner, e.kind)))
+
+
+def schedule_entries(data: object, source: str) -> list[Any]:
+    """The unparsed entries of a schedule document: a mapping with only a `faults` list.
+
+    Raises:
+        ConfigError: not such a mapping, or another key.
+    """
     if not isinstance(data, Mapping) or "faults" not in data:
         raise ConfigError(source, "faults", "expected a mapping with a 'faults' list")
     extra = sorted(str(k) for k in data if k != "faults")
@@ -277,9 +289,7 @@ def parse_fault_schedule(
     raw = data["faults"]
     if not isinstance(raw, list):
         raise ConfigError(source, "faults", "expected a list of fault entries")
-    entries = [_parse_entry(item, source, f"faults[{i}]", joints) for i, item in enumerate(raw)]
-    _check_overlaps(entries, source)
-    return tuple(sorted(entries, key=lambda e: (e.start_s, e.owner, e.kind)))
+    return raw
 
 
 def _parse_entry(item: object, source: str, path: str, joints: Sequence[str]) -> ScheduledFault:

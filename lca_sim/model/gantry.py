@@ -173,10 +173,8 @@ class Gantry:
 
     def pinocchio_terms(self, q: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Pinocchio's crba (made symmetric) and nonLinearEffects at (q, qdot): the reference."""
-        upper = np.triu(np.array(pin.crba(self._model, self._data, q)))
-        mass: FloatArray = upper + np.triu(upper, 1).T
         nle: FloatArray = np.array(pin.nonLinearEffects(self._model, self._data, q, v))
-        return mass, nle
+        return self.mass_matrix(q), nle
 
     def term_buffers(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The arrays the compiled terms read and write: A(q), C qdot + Q, tree and scratch.
@@ -200,8 +198,9 @@ class Gantry:
         self.pack_tree()
 
     def mass_matrix(self, q: FloatArray) -> FloatArray:
-        """A(q), full symmetric copy (kg m^2 or kg on the diagonal)."""
-        mass, _ = self.pinocchio_terms(q, np.zeros(self.nv))
+        """A(q) from Pinocchio's crba, full symmetric copy (kg m^2 or kg on the diagonal)."""
+        upper = np.triu(np.array(pin.crba(self._model, self._data, q)))
+        mass: FloatArray = upper + np.triu(upper, 1).T
         return mass
 
     def gravity(self, q: FloatArray) -> FloatArray:
