@@ -27,6 +27,7 @@ import queue
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,6 +78,8 @@ EVENT_INHIBIT_100US = 100
 # A controlword in an RPDO of its own is sent when it changes and at least this often, so a
 # drive that restarted (or a frame lost on a real bus) has it again within 0.1 s at 1 kHz.
 CONTROLWORD_REFRESH_CYCLES = 100
+# The most SYNC -> command latencies kept between two `take_command_latencies` (8 s at 500 Hz).
+LATENCY_RECORDS = 4096
 
 
 def configure_compact_pdos(node: Any, slow_every: int, target: int = od.TARGET_TORQUE) -> None:
@@ -376,6 +379,11 @@ class Cia402Master:
         eds: the drives' EDS (config/can/lca_drive.eds for the virtual drive; the vendor's
             EDS for a real one).
         on_state: called (notifier thread) with each complete `Snapshot`.
+        clock: the time the safety watches judge by, s (default `time.monotonic`). A lockstep
+            loop passes its `CycleClock.now`: every deadline is then counted in cycles of
+            simulated time, and the cycle runs only when its driver calls `cycle`.
+        stamp_clock: the stamp of each SYNC's `Snapshot`, s (default `time.time`; a lockstep
+            loop: the same simulated time).
     """
 
     def __init__(
@@ -384,10 +392,14 @@ class Cia402Master:
         params: BridgeParams,
         eds: Path,
         on_state: Callable[[Snapshot], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        stamp_clock: Callable[[], float] = time.time,
     ) -> None:
         self.network = network
         self.params = params
         self.on_state = on_state
+        self._clock = clock
+        self._stamp_clock = stamp_clock
         self.counters = Counters()
         self._lock = threading.Lock()
         self._axes = [
@@ -433,6 +445,9 @@ class Cia402Master:
         self.latencies_s: list[float] = []  # SYNC -> last TPDO of a complete cycle
         self.cycle_starts_s: list[float] = []  # monotonic start of each cycle
         self.keep_latencies = False
+        # Wall time from each SYNC to the first command after it (`take_command_latencies`).
+        self._command_latencies_s: deque[float] = deque(maxlen=LATENCY_RECORDS)
+        self._answered_cycle = 0
 
     # --- configuration -------------------------------------------------------------------
 
@@ -497,10 +512,10 @@ class Cia402Master:
         for axis in self._axes:
             _forget_invalid_nmt_state(axis.node)
             axis.node.nmt.state = "OPERATIONAL"
-            axis.last_tpdo_t = time.monotonic()
+            axis.last_tpdo_t = self._clock()
         with self._lock:
             self._rebooted = []  # configured again: a restart before this no longer matters
-            self._arm_watches(time.monotonic())
+            self._arm_watches(self._clock())
         self._initialized = True
 
     def _bind_pdos(self, axis: _Axis) -> None:
@@ -607,7 +622,7 @@ class Cia402Master:
         carries_statusword = any(int(var.index) == od.STATUSWORD for var in tpdo)
 
         def on_tpdo(_can_id: int, data: bytearray, _timestamp: float) -> None:
-            now = time.monotonic()
+            now = self._clock()
             if len(data) < size:
                 self.counters.bad_pdos += 1
                 return
@@ -661,7 +676,7 @@ class Cia402Master:
                 self._last_complete_cycle = self._stall_armed_cycle = self._cycle
                 self.counters.complete_cycles += 1
                 if self.keep_latencies:
-                    self.latencies_s.append(now - self._sync_mono_s)
+                    self.latencies_s.append(time.monotonic() - self._sync_mono_s)
                 snapshot = Snapshot(
                     self._sync_wall_s,
                     self._cycle,
@@ -687,7 +702,7 @@ class Cia402Master:
         def on_heartbeat(_can_id: int, data: bytearray, _timestamp: float) -> None:
             if len(data) != 1:
                 return  # not a heartbeat (CiA 301: one byte)
-            now = time.monotonic()
+            now = self._clock()
             with self._lock:
                 axis.last_heartbeat_t = now
                 back = axis.heartbeat_lost
@@ -746,7 +761,7 @@ class Cia402Master:
         with self._lock:
             for axis, value in zip(self._axes, currents_a, strict=True):
                 axis.command_a = float(value)
-            self._commands_arrived(time.monotonic() if now is None else now)
+            self._commands_arrived(self._clock() if now is None else now)
         self.counters.commands_accepted += 1
         return None
 
@@ -765,11 +780,14 @@ class Cia402Master:
         with self._lock:
             for axis, value in zip(self._axes, velocities, strict=True):
                 axis.command_rad_s = float(value)
-            self._commands_arrived(time.monotonic() if now is None else now)
+            self._commands_arrived(self._clock() if now is None else now)
         self.counters.commands_accepted += 1
         return None
 
     def _commands_arrived(self, now: float) -> None:
+        if self._answered_cycle != self._cycle:  # the first command after this SYNC
+            self._answered_cycle = self._cycle
+            self._command_latencies_s.append(time.monotonic() - self._sync_mono_s)
         self._last_command_t = now
         self._commanded = True
         if not self._quick_stopped:
@@ -822,7 +840,7 @@ class Cia402Master:
                 axis.statuswords_at_reset = axis.statuswords_received
                 axis.emcy_code = 0
                 axis.advisory_code = axis.advisory_count = 0
-                axis.last_tpdo_t = axis.last_heartbeat_t = time.monotonic()
+                axis.last_tpdo_t = axis.last_heartbeat_t = self._clock()
             self._stale = []
             self._heartbeat_lost = []
             self._stall_latched = ""
@@ -934,7 +952,7 @@ class Cia402Master:
                 self._want = Want.DISABLED
             self._cycle += 1
             self.counters.cycles += 1
-            self._sync_wall_s = time.time()
+            self._sync_wall_s = self._stamp_clock()
             self._sync_mono_s = time.monotonic()
         for cob_id, data in frames:
             self._send(cob_id, data)
@@ -1177,6 +1195,17 @@ class Cia402Master:
         """
         with self._lock:
             return self._stall_text() if self._stalled else ""
+
+    def take_command_latencies(self) -> list[float]:
+        """The SYNC -> first command wall times (s) since the last call, and forget them."""
+        with self._lock:
+            taken = list(self._command_latencies_s)
+            self._command_latencies_s.clear()
+        return taken
+
+    def now(self) -> float:
+        """The master's clock (`clock`): monotonic wall time, or a lockstep loop's."""
+        return self._clock()
 
     def command_age_s(self, now: float) -> float:
         """Seconds since the last accepted command."""

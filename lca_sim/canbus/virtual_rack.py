@@ -134,6 +134,8 @@ EMCY_BUS_OFF_RECOVERED = 0x8140
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
+REALTIME, LOCKSTEP = "realtime", "lockstep"
+TIMING_MODES = (REALTIME, LOCKSTEP)
 # The most of one stall of this process the watchdogs discount (rack.yaml
 # max_stall_discount_s): above the 0.3 s stalls a shared CI machine showed, and short enough
 # that a master silent for longer than it plus a deadline is still caught.
@@ -252,6 +254,9 @@ class RackConfig:
         axes: the drives, in the robot's axis order.
         faults: the fault schedule (none by default: the rack then behaves exactly as without
             fault injection).
+        timing_mode: "realtime" (watchdogs, heartbeats and event TPDOs on the wall clock) or
+            "lockstep" (the rack's time is its plant's, 0x1006 per SYNC: every watchdog, heartbeat
+            and event timer runs on it, so the master is the clock; docs/can.md, "Lockstep").
         source: the file it came from (for messages).
     """
 
@@ -268,6 +273,7 @@ class RackConfig:
     velocity_kp_a_per_rad_s: float = PAPER_VELOCITY_KP_A_PER_RAD_S
     velocity_ti_s: float = PAPER_VELOCITY_TI_S
     faults: tuple[FaultEntry, ...] = ()
+    timing_mode: str = "realtime"
     source: str = ""
 
     @property
@@ -404,6 +410,11 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         )
         axis.finish()
     axes_reader.finish()
+    timing_mode = top.string("timing_mode") if top.has("timing_mode") else REALTIME
+    if timing_mode not in TIMING_MODES:
+        raise ConfigError(
+            source, "timing_mode", f"expected one of {', '.join(TIMING_MODES)}, got {timing_mode!r}"
+        )
     faults: tuple[FaultEntry, ...] = ()
     if top.has("faults"):
         faults = parse_faults(top.raw("faults"), source, "faults", [a.name for a in axes])
@@ -427,6 +438,7 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         velocity_kp_a_per_rad_s=velocity_kp,
         velocity_ti_s=velocity_ti_s,
         faults=faults,
+        timing_mode=timing_mode,
         source=source,
     )
 
@@ -597,6 +609,32 @@ class _NullTask:
         """Nothing is sent."""
 
 
+class _CycleTask:
+    """A periodic send (a heartbeat) of a lockstep rack, timed by the rack's plant time.
+
+    canopen's NMT slave starts its heartbeat with `send_periodic`, a wall-clock thread; in
+    lockstep the rack sends it from its SYNC handling instead (`_RackNetwork.send_due`), every
+    `period_s` of simulated time, the first at the next SYNC, so the bus carries the same
+    frames whatever the host's speed.
+    """
+
+    def __init__(self, network: _RackNetwork, can_id: int, data: bytes, period_s: float) -> None:
+        self._network = network
+        self.can_id = can_id
+        self.data = bytes(data)
+        self.period_s = period_s
+        self.next_s: float | None = None  # None: at the next service
+
+    def stop(self) -> None:
+        """No further sends."""
+        if self in self._network.cycle_tasks:
+            self._network.cycle_tasks.remove(self)
+
+    def update(self, data: bytes) -> None:
+        """The frame's new data (canopen: the NMT state byte)."""
+        self.data = bytes(data)
+
+
 @dataclass
 class _Axis:
     """One drive: its node, its object values and its CiA 402 state."""
@@ -697,6 +735,9 @@ class _RackNetwork(canopen.Network):
         # After the frame with this COB-ID goes out, call this once (bus-off set over SDO
         # takes effect after its SDO answer, which is the node's last frame).
         self.after_send: dict[int, Callable[[], None]] = {}
+        # Lockstep: periodic sends are `_CycleTask`s sent by `send_due`, not threads.
+        self.lockstep = False
+        self.cycle_tasks: list[_CycleTask] = []
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """Send as canopen does, except the frames of a node that fault injection silenced."""
@@ -713,7 +754,19 @@ class _RackNetwork(canopen.Network):
         """Send periodically (the heartbeat) as canopen does, except a heartbeat injected off."""
         if can_id in self.muted_periodic:
             return _NullTask()
+        if self.lockstep:
+            task = _CycleTask(self, can_id, bytes(data), period)
+            self.cycle_tasks.append(task)
+            return task
         return super().send_periodic(can_id, data, period, remote)
+
+    def send_due(self, now_s: float) -> None:
+        """Lockstep: send every periodic frame that is due at the rack's time `now_s`."""
+        for task in list(self.cycle_tasks):
+            if task.next_s is None or now_s >= task.next_s - 1e-9:
+                base = now_s if task.next_s is None else task.next_s
+                task.next_s = base + task.period_s
+                self.send_message(task.can_id, task.data)
 
 
 # --- the rack --------------------------------------------------------------------------------
@@ -775,6 +828,14 @@ class VirtualDriveRack:
         self._counters = RackCounters()
         self._network = _RackNetwork(bus)
         self._network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
+        # Lockstep: the rack's time is its plant's (0x1006 per SYNC), and every deadline,
+        # heartbeat and event timer runs on it; realtime: the wall clock.
+        self._lockstep = config.timing_mode == LOCKSTEP
+        self._network.lockstep = self._lockstep
+        self._lockstep_time_s = 0.0
+        self._clock: Callable[[], float] = (
+            (lambda: self._lockstep_time_s) if self._lockstep else time.monotonic
+        )
         # canopen types its listener list narrowly; any can.Listener works there.
         cast("list[can.Listener]", self._network.listeners)[:] = [_Listener(self)]
         self._axes: list[_Axis] = []
@@ -861,11 +922,13 @@ class VirtualDriveRack:
             settle_heap()  # before the rack's threads run: a full collection would stall them
         self._network.connect()
         with self._lock:
-            now = time.monotonic()
+            now = self._clock()
             for axis in self._axes:
                 self._reset(axis, communication_only=False, now=now)
                 self._boot(axis)
                 self._reassert_faults(axis, now)
+        if self._lockstep:
+            return  # the SYNCs run the watchdogs and timers (`_on_sync`)
         self._monitor_thread = threading.Thread(
             target=self._monitor, name="virtual-drive-monitor", daemon=True
         )
@@ -982,7 +1045,7 @@ class VirtualDriveRack:
         if isinstance(value, bool) or not 0 <= value <= high:
             raise ValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
         with self._lock:
-            self._set_fault(axis, kind, value, "api", time.monotonic())
+            self._set_fault(axis, kind, value, "api", self._clock())
 
     def _axis(self, name: str) -> _Axis:
         try:
@@ -1132,7 +1195,7 @@ class VirtualDriveRack:
             if not isinstance(value, int):
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
             with self._lock:
-                self._write(axis, index, subindex, value, time.monotonic())
+                self._write(axis, index, subindex, value, self._clock())
 
         return on_write
 
@@ -1282,7 +1345,7 @@ class VirtualDriveRack:
             # sees the write succeed), for `value` ms of the rack's time.
             def go_off() -> None:
                 with self._lock:
-                    self._set_fault(axis, "bus_off", 1, "sdo", time.monotonic())
+                    self._set_fault(axis, "bus_off", 1, "sdo", self._clock())
                     axis.faults.bus_off_ms = value
                     axis.faults.bus_off_until_step = self._steps_done + self._step_of(value * 1e-3)
 
@@ -1663,7 +1726,7 @@ class VirtualDriveRack:
         cob = msg.arbitration_id
         data = bytes(msg.data)
         try:
-            now = time.monotonic()
+            now = self._clock()
             if cob == SYNC_COB_ID:
                 # The bus's reception stamp, not `now`: SYNCs queued while this process stood
                 # still keep their spacing for the SYNC rate check (`_sync_in_time`).
@@ -1777,7 +1840,11 @@ class VirtualDriveRack:
         self._advance(now, stamp_s)
         for axis in self._axes:
             self._set_drive(axis, axis.drive, now)
-        done = time.monotonic()
+        done = self._clock()
+        if self._lockstep:  # the monitor's work, at the rack's time after this cycle
+            self._last_sync_done_s = done
+            self._check_watchdogs(done)
+            self._network.send_due(done)
         self._service_event_tpdos(done)
         self._last_sync_done_s = done
 
@@ -1843,7 +1910,13 @@ class VirtualDriveRack:
     def _advance(self, now: float, stamp_s: float) -> None:
         """Command the torque demands and run the plant one cycle (see the module docstring)."""
         period_s = self._cycle_period_s()
-        if period_s > 0.0:
+        if self._lockstep:
+            # The master is the clock: each SYNC is one 0x1006 period, however fast it comes.
+            span_s = period_s
+            if period_s <= 0.0:
+                self._warn_once("lockstep-0x1006", "lockstep needs 0x1006 > 0: the plant stands")
+            self._lockstep_time_s += span_s
+        elif period_s > 0.0:
             span_s = period_s if self._sync_in_time(period_s, stamp_s) else 0.0
         elif self._last_sync_rx_s is None:
             span_s = 0.0
@@ -2072,6 +2145,13 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="YAML with a 'faults:' schedule, replacing the rack config's (docs/can.md)",
     )
     parser.add_argument(
+        "--timing-mode",
+        default=None,
+        choices=TIMING_MODES,
+        help="lockstep: the rack's time advances 0x1006 per SYNC only, every watchdog and "
+        "heartbeat on it (the master is the clock); default: the rack config's (realtime)",
+    )
+    parser.add_argument(
         "--log-level", default="warning", choices=("debug", "info", "warning", "error")
     )
     return parser.parse_args(argv)
@@ -2086,6 +2166,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_rack_config(args.config)
         if args.faults is not None:
             config = load_faults(args.faults, config)
+        if args.timing_mode is not None:
+            config = replace(config, timing_mode=args.timing_mode)
     except USER_ERRORS as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -2115,7 +2197,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         rack.start()  # settles the heap first
         nodes = ", ".join(f"{a.name}={a.node_id}" for a in config.axes)
         print(
-            f"{prog}: nodes {nodes} on {args.interface} {args.channel}; SIGINT or SIGTERM stops",
+            f"{prog}: nodes {nodes} on {args.interface} {args.channel} ({config.timing_mode}); "
+            "SIGINT or SIGTERM stops",
             file=sys.stderr,
             flush=True,
         )

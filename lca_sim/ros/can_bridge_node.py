@@ -30,6 +30,7 @@ and activates itself at start-up; docs/can.md ("The bridge as a managed node").
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import threading
 import time
@@ -53,6 +54,7 @@ from lca_control import contract as ri
 from lca_control.contract import FloatArray, PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_sim.canbus import emcy
+from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
 from lca_sim.canbus.master import (
     AxisState,
     BridgeError,
@@ -86,6 +88,9 @@ if TYPE_CHECKING:
 # More than this share of the cycles sending the previous command again is a WARN.
 LATE_COMMAND_SHARE = 0.05
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
+# Lockstep: how often the node looks whether to start the loop, re-send a state or give up on
+# an incomplete cycle, s (wall time).
+LOCKSTEP_TICK_S = 0.05
 # How long shutdown and error processing wait for the drives to leave OPERATION ENABLED: a
 # disable is one cycle, its statusword the next slow TPDO (50 Hz by default).
 TORQUE_FREE_TIMEOUT_S = 0.5
@@ -260,6 +265,11 @@ class CanBridgeNode(LifecycleNode):
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
         self._last_command_timing = (0, 0)  # commands in time and late, at the previous one
         self._init_lock = threading.Lock()
+        # Lockstep (`timing_mode`): the loop that sends one SYNC per command, its clock, and
+        # the last state handed on (sent again to a silent controller).
+        self._lockstep = p.timing_mode == "lockstep"
+        self._loop: LockstepLoop | None = None
+        self._last_plant: PlantSnapshot | None = None
         self._create_interfaces(p)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
         self.get_logger().info(
@@ -272,7 +282,9 @@ class CanBridgeNode(LifecycleNode):
 
     def _create_interfaces(self, p: CanBridgeNodeParams) -> None:
         """Publishers, subscriptions, services and the diagnostics timer (every state)."""
-        self._plant = PlantPublisher(self, p.joints, joint_state_topic=p.joint_state_topic)
+        self._plant = PlantPublisher(
+            self, p.joints, clock=self._lockstep, joint_state_topic=p.joint_state_topic
+        )
         command_qos = qos_profile(ri.COMMAND_QOS)
         self.create_subscription(
             Float64MultiArray, ri.CURRENT_COMMANDS, self._on_command, command_qos
@@ -310,6 +322,8 @@ class CanBridgeNode(LifecycleNode):
         self.create_service(GetParameters, "~/sdo_read", self._srv_sdo_read)
         self.create_service(SetParameters, "~/sdo_write", self._srv_sdo_write)
         self._diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        if self._lockstep:
+            self._kick_timer = self.create_timer(LOCKSTEP_TICK_S, self._lockstep_tick)
 
     @property
     def params(self) -> CanBridgeNodeParams:
@@ -471,9 +485,22 @@ class CanBridgeNode(LifecycleNode):
             self._start_rack(p)
         self.network = canopen.Network(bus)
         self.network.connect()
-        self._master = Cia402Master(
-            self.network, self._bridge_params(p), self._eds, on_state=self._on_state
+        if not self._lockstep:
+            self._master = Cia402Master(
+                self.network, self._bridge_params(p), self._eds, on_state=self._on_state
+            )
+            return
+        clock = CycleClock(1.0 / p.cycle_hz)
+        master = Cia402Master(
+            self.network,
+            self._bridge_params(p),
+            self._eds,
+            on_state=self._on_state,
+            clock=clock.now,
+            stamp_clock=clock.now,
         )
+        self._master = master
+        self._loop = LockstepLoop(clock, master.cycle, p.lockstep_resend_s)
 
     def _bridge_params(self, p: CanBridgeNodeParams) -> BridgeParams:
         return BridgeParams(
@@ -567,6 +594,8 @@ class CanBridgeNode(LifecycleNode):
             fresh = bridge.counters.cycles >= fresh_from
             if (fresh and not enabled) or time.monotonic() > deadline:
                 break
+            if self._loop is not None and self._loop.started:
+                self._loop.sync_now()  # lockstep: no cycle runs unless sent
             time.sleep(0.005)
         if enabled:
             self.get_logger().warning(
@@ -603,6 +632,7 @@ class CanBridgeNode(LifecycleNode):
         from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config  # noqa: PLC0415
 
         config = load_rack_config(Path(p.rack_config) if p.rack_config else None)
+        config = replace(config, timing_mode=p.timing_mode)  # one clock for the whole loop
         self._rack_bus = open_bus("virtual", p.channel, p.bitrate)
         self._rack = VirtualDriveRack(self._rack_bus, config)
         self._rack.start()
@@ -618,7 +648,8 @@ class CanBridgeNode(LifecycleNode):
                 self._drives_configured, self._init_error = False, str(exc)
                 return str(exc)
             settle_heap()  # before the cycle runs: a full collection would stall it
-            bridge.start()
+            if not self._lockstep:
+                bridge.start()  # lockstep: the loop sends the SYNCs (`_lockstep_tick`)
             self._drives_configured, self._init_error = True, ""
             return ""
 
@@ -651,6 +682,18 @@ class CanBridgeNode(LifecycleNode):
         bridge = self._commanding()
         if bridge is not None:
             self._set_currents(bridge, list(msg.data))
+            if not self._velocity_axes:
+                self._lockstep_command()
+
+    def _lockstep_command(self) -> None:
+        """Lockstep: the controller's answer (taken or refused) releases the next SYNC.
+
+        The answer is the last message the controller sends per state: current_commands, or
+        with CSV axes the velocity_commands it publishes after them (the currents are then in
+        force already), or one JointState command.
+        """
+        if self._loop is not None:
+            self._loop.on_command(time.monotonic())
 
     def _set_currents(self, bridge: Cia402Master, currents_a: list[float]) -> None:
         reason = bridge.set_currents(currents_a)
@@ -666,6 +709,7 @@ class CanBridgeNode(LifecycleNode):
         bridge = self._commanding()
         if bridge is not None:
             self._set_velocities(bridge, list(msg.data))
+            self._lockstep_command()
 
     def _set_velocities(self, bridge: Cia402Master, velocities: list[float]) -> None:
         reason = bridge.set_velocities(velocities)
@@ -718,6 +762,7 @@ class CanBridgeNode(LifecycleNode):
                 f"{counts['unknown_names']} unknown names so far)",
                 throttle_duration_sec=1.0,
             )
+        self._lockstep_command()
 
     def _joint_command_problems(self, cmd: JointCommand, csv: set[str]) -> list[str]:
         """What to warn about in a JointState command (empty: nothing)."""
@@ -753,17 +798,47 @@ class CanBridgeNode(LifecycleNode):
         bridge = self._master
         if not self._active or bridge is None:
             return
-        self._plant.publish(
-            plant_snapshot(
-                snap,
-                self._plant.joints,
-                self._torque_constants,
-                self._gear_ratios,
-                self._state_names,
-                bridge.decoded_fields(),
-            )
+        plant = plant_snapshot(
+            snap,
+            self._plant.joints,
+            self._torque_constants,
+            self._gear_ratios,
+            self._state_names,
+            bridge.decoded_fields(),
         )
+        self._plant.publish(plant)
         self._published += 1
+        if self._loop is not None:
+            self._last_plant = plant
+            self._loop.on_state(time.monotonic())
+
+    def _lockstep_tick(self) -> None:
+        """Lockstep: start the loop once the controller listens; keep it going when stuck.
+
+        The first SYNC goes once the node is active with its drives configured and
+        `lockstep_subscribers` subscribers of joint_states have matched (as the simulator's
+        lockstep start). A controller silent for `lockstep_resend_s` gets the last state again
+        (it ignores a stamp it has seen); a cycle incomplete for as long (a TPDO lost) is
+        given up and the next SYNC sent, so the master's stall watch judges it in SYNCs.
+        """
+        loop = self._loop
+        if loop is None or not (self._active and self._drives_configured):
+            return
+        wall_s = time.monotonic()
+        if not loop.started:
+            p = self.params
+            if self._plant.joint_pub.get_subscription_count() >= p.lockstep_subscribers:
+                loop.start(wall_s)
+            return
+        action = loop.on_tick(wall_s)
+        if action == "resend" and self._last_plant is not None:
+            self._plant.publish(self._last_plant)
+        elif action == "incomplete":
+            self.get_logger().warning(
+                f"lockstep: no complete cycle for {loop.resend_s:g} s; the next SYNC goes "
+                f"({loop.counters.incomplete_cycles} so far)",
+                throttle_duration_sec=5.0,
+            )
 
     # --- services ------------------------------------------------------------------------
 
@@ -978,6 +1053,42 @@ class CanBridgeNode(LifecycleNode):
             "lower cycle_hz or unload the host",
         )
 
+    def _lockstep_findings(self, wall_s: float) -> list[tuple[bytes, str]]:
+        """Lockstep: WARN while the loop waits for its start or for the controller."""
+        loop = self._loop
+        if loop is None or not self._active:
+            return []
+        if not loop.started:
+            matched = self._plant.joint_pub.get_subscription_count()
+            return [
+                (
+                    DiagnosticStatus.WARN,
+                    f"lockstep: waiting for {self.params.lockstep_subscribers} joint_states "
+                    f"subscribers ({matched} so far): simulated time has not started",
+                )
+            ]
+        waited_s = loop.waiting_for_command_s(wall_s)
+        if waited_s > self.params.lockstep_resend_s:
+            return [
+                (
+                    DiagnosticStatus.WARN,
+                    f"lockstep: no command for {waited_s:.1f} s; simulated time stands at "
+                    f"{loop.clock.now():.3f} s (is the controller running?)",
+                )
+            ]
+        return []
+
+    def _lockstep_values(self) -> dict[str, object]:
+        loop = self._loop
+        if loop is None:
+            return {}
+        c = loop.counters
+        return {
+            "timing_mode": "lockstep",
+            "sim_time_s": loop.clock.now(),
+            **{f"lockstep_{k}": getattr(c, k) for k in c.__slots__},
+        }
+
     def _bridge_status(self, bridge: Cia402Master) -> DiagnosticStatus:
         c = bridge.counters
         now = time.monotonic()
@@ -1007,9 +1118,10 @@ class CanBridgeNode(LifecycleNode):
             or self.joint_command_counts["refused"]
         ):
             found.append((DiagnosticStatus.WARN, "rejected commands or failed sends"))
-        peer = self._command_health(bridge, now)
+        peer = self._command_health(bridge, bridge.now())
         if peer is not None:
             found.append(peer)
+        found.extend(self._lockstep_findings(now))
         stall = bridge.cycle_stall()  # no complete cycle: a TPDO lost (latched while enabled)
         if stall and not latched:
             found.append((DiagnosticStatus.WARN, stall))
@@ -1023,7 +1135,9 @@ class CanBridgeNode(LifecycleNode):
             "cycle_hz": self.params.cycle_hz,
             "frames_per_s": frames_per_s,
             "bus_load_pct": bus_load_pct(bits_per_s, float(self.params.bitrate)),
-            "command_age_s": bridge.command_age_s(now),
+            "command_age_s": bridge.command_age_s(bridge.now()),
+            **_latency_values(bridge.take_command_latencies()),
+            **self._lockstep_values(),
             "states_published": self._published,
             "commands_wrong_interface": self._wrong_interface,
             "commands_ignored_inactive": self._ignored_inactive,
@@ -1038,6 +1152,21 @@ class CanBridgeNode(LifecycleNode):
             found.append(graph)
         level, message = worst_first(found)
         return status("lca_hil/can_bridge", level, message, values)
+
+
+def _latency_values(latencies_s: list[float]) -> dict[str, object]:
+    """SYNC -> first command wall latency over a diagnostics period: p50, p99, max in ms.
+
+    NaN when no command came (strict JSON tools read the level and message first).
+    """
+    if not latencies_s:
+        return {f"command_latency_ms_{k}": math.nan for k in ("p50", "p99", "max")}
+    ms = np.asarray(latencies_s) * 1e3
+    return {
+        "command_latency_ms_p50": float(np.percentile(ms, 50)),
+        "command_latency_ms_p99": float(np.percentile(ms, 99)),
+        "command_latency_ms_max": float(ms.max()),
+    }
 
 
 def main(args: Sequence[str] | None = None) -> int:

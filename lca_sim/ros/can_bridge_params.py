@@ -8,7 +8,7 @@ live set goes through the same check, and a read-only parameter is refused while
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from lca_control.parameters import (
@@ -19,7 +19,11 @@ from lca_control.parameters import (
     positive,
 )
 from lca_sim.model.params import AXIS_NAMES
-from lca_sim.ros.simulator_params import ROS2_CONTROL_PARAMETERS, check_topic
+from lca_sim.ros.simulator_params import (
+    ROS2_CONTROL_PARAMETERS,
+    SIMULATOR_PARAMETERS,
+    check_topic,
+)
 
 S, INT = ParamKind.STRING, ParamKind.INTEGER
 
@@ -57,6 +61,14 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
                   "only current (A): target torque = k_t i (CiA 402 torque mode)",
                   choices=("current",), live=False),
         positive("cycle_hz", 500.0, "SYNC and RPDO rate, Hz", high=2000.0, live=False),
+        replace(SIMULATOR_PARAMETERS["timing_mode"],
+                description="realtime (SYNC paced by the wall clock) or lockstep (one SYNC per "
+                "command, simulated time 1/cycle_hz per SYNC; the rack must run in lockstep "
+                "too: interface virtual does it, lca-virtual-drive --timing-mode lockstep)"),
+        SIMULATOR_PARAMETERS["lockstep_subscribers"],
+        replace(SIMULATOR_PARAMETERS["lockstep_resend_s"],
+                description="lockstep: re-publish the last state after this silence of the "
+                "controller, or send the next SYNC after this wait for an incomplete cycle, s"),
         positive("command_timeout_s", 0.1,
                  "controller silence: zero torque and halt after this, s", high=60.0),
         positive("quick_stop_after_s", 0.5, "then quick stop after this much more silence, s",
@@ -108,6 +120,9 @@ class CanBridgeNodeParams:
     master_node_id: int
     modes: tuple[str, ...]
     cycle_hz: float
+    timing_mode: str
+    lockstep_subscribers: int
+    lockstep_resend_s: float
     command_timeout_s: float
     quick_stop_after_s: float
     stale_timeout_s: float
