@@ -806,11 +806,11 @@ class CanBridgeNode(LifecycleNode):
             self._state_names,
             bridge.decoded_fields(),
         )
-        self._plant.publish(plant)
-        self._published += 1
-        if self._loop is not None:
+        if self._loop is not None:  # waiting before the state goes: the answer may be quick
             self._last_plant = plant
             self._loop.on_state(time.monotonic())
+        self._plant.publish(plant)
+        self._published += 1
 
     def _lockstep_tick(self) -> None:
         """Lockstep: start the loop once the controller listens; keep it going when stuck.
