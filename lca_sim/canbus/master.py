@@ -314,6 +314,9 @@ class Counters:
     # after this SYNC, so it acts a cycle later (a loop delay of two periods instead of one).
     commands_in_time: int = 0
     commands_late: int = 0
+    # Complete sets of TPDOs after a SYNC whose state had gone out already (late TPDOs of the
+    # SYNC before): not handed on.
+    extra_complete_sets: int = 0
 
 
 @dataclass(slots=True)
@@ -425,6 +428,7 @@ class Cia402Master:
         self._rebooted: list[str] = []  # drives that sent a boot-up after init()
         self._heartbeat_lost: list[str] = []  # drives whose heartbeat stopped (until recover)
         self._last_complete_cycle = 0  # `_cycle` at the last complete cycle (or init)
+        self._completed_cycle = -1  # the SYNC whose state went out last
         self._stall_armed_cycle = 0  # a stall is judged from here: a complete cycle or recover
         self._stalled = False  # no complete cycle for `stall_cycles` SYNCs, until one comes
         self._stall_latched = ""  # the stall's text, latched while enabled (until recover)
@@ -670,6 +674,14 @@ class Cia402Master:
             if all(a.fresh == a.sync_mask for a in self._axes):
                 for a in self._axes:
                     a.fresh = a.seen = 0
+                if self._completed_cycle == self._cycle:
+                    # A second complete set after one SYNC: the TPDOs of the SYNC before came
+                    # after this one (a TPDO carries no SYNC count, CiA 301 7.2.2). One state
+                    # per SYNC: a second one would carry the same stamp, and a controller
+                    # skips a stamp it has seen, leaving this cycle without a command.
+                    self.counters.extra_complete_sets += 1
+                    return
+                self._completed_cycle = self._cycle
                 if self._stalled:
                     self._stalled = False
                     stalled_for = self._cycle - self._last_complete_cycle

@@ -54,6 +54,7 @@ from lca_control import contract as ri
 from lca_control.contract import FloatArray, PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_sim.canbus import emcy
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
 from lca_sim.canbus.master import (
     AxisState,
@@ -479,12 +480,21 @@ class CanBridgeNode(LifecycleNode):
         return f"init failed: {message}"
 
     def _open(self, p: CanBridgeNodeParams) -> None:
-        bus = open_bus(p.interface, p.channel, p.bitrate)
+        virtual = p.interface == "virtual"
+        bus = (
+            LinkedVirtualBus(channel=p.channel)
+            if virtual
+            else open_bus(p.interface, p.channel, p.bitrate)
+        )
         self._bus = bus
-        if p.interface == "virtual":
+        if virtual:
             self._start_rack(p)
         self.network = canopen.Network(bus)
         self.network.connect()
+        if isinstance(bus, LinkedVirtualBus) and self.network.notifier is not None:
+            # The rack's frames reach the master in the rack's thread, and the master's the
+            # rack in the master's: no copy, queue or thread hand-over per frame.
+            bus.attach(self.network.notifier.listeners)
         if not self._lockstep:
             self._master = Cia402Master(
                 self.network, self._bridge_params(p), self._eds, on_state=self._on_state
@@ -633,7 +643,7 @@ class CanBridgeNode(LifecycleNode):
 
         config = load_rack_config(Path(p.rack_config) if p.rack_config else None)
         config = replace(config, timing_mode=p.timing_mode)  # one clock for the whole loop
-        self._rack_bus = open_bus("virtual", p.channel, p.bitrate)
+        self._rack_bus = LinkedVirtualBus(channel=p.channel)
         self._rack = VirtualDriveRack(self._rack_bus, config)
         self._rack.start()
 

@@ -1,0 +1,106 @@
+"""python-can's in-process `virtual` bus, with frames between linked buses handed over directly.
+
+The CAN bridge with `interface: virtual` runs the virtual rack in its own process. On python-can's
+`VirtualBus` every frame is deep-copied for each other bus of the channel, put in its queue, and
+taken out by that bus's notifier thread: per frame a copy, a queue hand-over, a thread wake-up
+and a GIL hand-over, about ten times a cycle in each direction (docs/can-transport.md, "Where a
+cycle's time goes"). A `LinkedVirtualBus` is a `VirtualBus` on the same channels (other
+`virtual` buses, a test's probe, see every frame as before), but a frame for another linked bus
+whose listeners are attached (`attach`) is handed to them at once, in the sender's thread: the
+rack handles the master's SYNC, and the master its TPDOs, inside the `send` that sent it, as if
+the bus and the other node's controller took no time.
+
+Listeners that are called this way must not send on the bus they were called for while their
+caller holds a lock they need; the master never sends from its receive callbacks, and the
+rack's sends go to the master's callbacks, which do not send: no lock is taken twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable
+from copy import deepcopy
+from typing import Any
+
+import can
+from can.interfaces.virtual import VirtualBus
+
+log = logging.getLogger(__name__)
+
+# queue (by id) of a linked bus -> the handler of its attached listeners
+_handlers: dict[int, Callable[[can.Message], None]] = {}
+_handlers_lock = threading.Lock()
+
+
+class LinkedVirtualBus(VirtualBus):  # type: ignore[misc]  # python-can leaves it untyped
+    """A `VirtualBus` whose frames reach other attached linked buses without a thread hop.
+
+    Args:
+        channel: the virtual channel (any hashable name), shared with plain `virtual` buses.
+        kwargs: as python-can's `VirtualBus`.
+    """
+
+    def __init__(self, channel: Any = None, **kwargs: Any) -> None:
+        super().__init__(channel=channel, **kwargs)
+        self._delivery = threading.RLock()  # one frame at a time into the listeners
+        self.direct_frames = 0  # frames this bus handed over directly
+        self.listener_errors = 0  # exceptions of its attached listeners (logged)
+
+    def attach(self, listeners: Iterable[Callable[[can.Message], Any]]) -> None:
+        """Hand frames from other linked buses to `listeners` directly, in the sender's thread.
+
+        Pass the list a notifier calls (`can.Notifier.listeners`): listeners it gains later are
+        called too. Frames from plain `virtual` buses still come through the queue.
+        """
+        live = listeners
+
+        def handle(msg: can.Message) -> None:
+            with self._delivery:
+                for listener in list(live):
+                    try:
+                        listener(msg)
+                    except Exception:  # a notifier would survive it too: so does the sender
+                        self.listener_errors += 1
+                        log.exception("listener failed on frame 0x%03X", msg.arbitration_id)
+
+        with _handlers_lock:
+            _handlers[id(self.queue)] = handle
+
+    def detach(self) -> None:
+        """Back to the queue for every frame (before the listeners go)."""
+        with _handlers_lock:
+            _handlers.pop(id(self.queue), None)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Send to every other bus of the channel: attached linked ones at once, others queued."""
+        self._check_if_open()
+        timestamp = msg.timestamp if self.preserve_timestamps else time.time()
+        with _handlers_lock:
+            targets = [
+                (q, _handlers.get(id(q)))
+                for q in self.channel
+                if q is not self.queue or self.receive_own_messages
+            ]
+        all_sent = True
+        for bus_queue, handler in targets:
+            copy = deepcopy(msg) if handler is None else msg
+            copy.timestamp = timestamp
+            copy.channel = self.channel_id
+            copy.is_rx = bus_queue is not self.queue
+            if handler is not None:
+                self.direct_frames += 1
+                handler(copy)
+                continue
+            try:
+                bus_queue.put(copy, block=True, timeout=timeout)
+            except Exception:  # queue.Full, as python-can's VirtualBus reports it
+                all_sent = False
+        if not all_sent:
+            raise can.CanOperationError("Could not send message to one or more recipients")
+
+    def shutdown(self) -> None:
+        """Detach, then shut down as a `VirtualBus`."""
+        self.detach()
+        super().shutdown()
