@@ -266,19 +266,36 @@ class LoopMargins:
         phase_margin_deg: phase margin at the crossover (continuous loop).
         gain_margin_db: the gain increase that destabilises (inf if the phase does not cross
             -180 deg above the crossover).
-        sampled_phase_margin_deg: the phase margin left once a sample period T with a
-            zero-order hold (a T/2 delay) is accounted for; equal to the continuous one when
-            no period is given.
+        sampled_phase_margin_deg: the phase margin left once the loop's delay is accounted
+            for: `delay_s` (by default a sample period T's zero-order hold, T/2); equal to the
+            continuous one when there is no delay.
+        delay_s: that delay, s.
     """
 
     crossover_rad_s: float
     phase_margin_deg: float
     gain_margin_db: float
     sampled_phase_margin_deg: float
+    delay_s: float = 0.0
+
+    def phase_margin_with_delay_deg(self, delay_s: float) -> float:
+        """The phase margin with a pure delay of `delay_s` in the loop, deg.
+
+        A delay e^(-s tau) leaves |L| and so the crossover as they are and takes wc tau rad of
+        phase there (the gain margin does move: not computed here).
+        """
+        return self.phase_margin_deg - math.degrees(self.crossover_rad_s * delay_s)
 
 
-def loop_margins(loop: ct.LTI, sample_period_s: float = 0.0) -> LoopMargins:
-    """Margins of an open loop (python-control), with an optional sample-and-hold delay."""
+def loop_margins(
+    loop: ct.LTI, sample_period_s: float = 0.0, delay_periods: float = 0.5
+) -> LoopMargins:
+    """Margins of an open loop (python-control), with its delay in sample periods.
+
+    `delay_periods` x `sample_period_s` is the time from a sample to the command's effect,
+    hold included: 0.5 for a zero-order hold; 1.5 over a synchronous CAN drive (a torque sent
+    before SYNC k acts after it, then is held a period).
+    """
     gm, pm, _, wpc, wgc, _ = ct.stability_margins(loop, returnall=True)
     gm, pm, wpc, wgc = (np.atleast_1d(np.asarray(x, dtype=float)) for x in (gm, pm, wpc, wgc))
     if len(wgc) == 0:
@@ -287,8 +304,9 @@ def loop_margins(loop: ct.LTI, sample_period_s: float = 0.0) -> LoopMargins:
     crossover, phase_margin = float(wgc[k]), float(pm[k])
     above = [g for g, w in zip(gm, wpc, strict=True) if w > crossover and g > 1.0]
     gain_margin_db = 20.0 * math.log10(min(above)) if above else math.inf
-    delay_deg = math.degrees(crossover * sample_period_s / 2.0)
-    return LoopMargins(crossover, phase_margin, gain_margin_db, phase_margin - delay_deg)
+    delay_s = delay_periods * sample_period_s
+    delay_deg = math.degrees(crossover * delay_s)
+    return LoopMargins(crossover, phase_margin, gain_margin_db, phase_margin - delay_deg, delay_s)
 
 
 @dataclass(frozen=True, slots=True)
@@ -315,11 +333,13 @@ def cascade_loops(
     velocity_gains: tuple[float, float],
     current_period_s: float,
     velocity_period_s: float,
+    velocity_delay_periods: float = 0.5,
 ) -> tuple[PointLoops, ...]:
     """Both open loops of the cascade at every model, for (Kp, Ti) gains of each PI (section 6).
 
     `current_period_s` and `velocity_period_s` are the rates the loops run at (the drive's model
-    step, the controller's period), for the sampled phase margins.
+    step, the controller's period), for the sampled phase margins; `velocity_delay_periods` is
+    the velocity loop's delay in its periods (`loop_margins`; the current loop's is a hold).
     """
     c_i = pi_transfer(*current_gains)
     c_v = pi_transfer(*velocity_gains)
@@ -333,7 +353,7 @@ def cascade_loops(
                 current_loop=current_loop,
                 velocity_loop=velocity_loop,
                 current=loop_margins(current_loop, current_period_s),
-                velocity=loop_margins(velocity_loop, velocity_period_s),
+                velocity=loop_margins(velocity_loop, velocity_period_s, velocity_delay_periods),
             )
         )
     return tuple(loops)

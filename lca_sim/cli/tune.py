@@ -8,13 +8,15 @@ t_r ~= 3 Ti, 3 ms -> 1000 rad/s), the velocity loop's from the velocity plants (
 closed with the new gains) at its wc (100 rad/s); `lca_control.tuning` gives the rule. The
 phase and gain margins of both loops are reported at every operating point, also with the
 sample-and-hold delay of the rate each loop runs at (the drive's current loop at the model
-step, the controller's velocity loop at its period), and the gains are written into a params
-file for the controller node.
+step), the velocity loop with the controller's period and delay (`--control-period-s`,
+`--delay-periods`: 0.5 for the simulator's hold, 1.5 over a CAN drive) and at 1 and 2 periods
+of delay, and the gains are written into a params file for the controller node.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +39,8 @@ from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, 
 from lca_sim.model.simulator import Simulator
 
 PAPER_CURRENT_RESPONSE_TIME_S = 3e-3
+HOLD_DELAY_PERIODS = 0.5  # the controller's zero-order hold: the simulator's lockstep
+REPORTED_DELAYS_PERIODS = (1.0, 2.0)  # the margins printed besides: a CAN cycle, a late one
 PAPER_VELOCITY_CROSSOVER_RAD_S = 100.0
 
 
@@ -48,6 +52,13 @@ class TuneReport:
     current: PiTuning
     velocity: PiTuning
     points: tuple[PointLoops, ...]
+    control_period_s: float = CONTROL_PERIOD_S
+    delay_periods: float = 0.5
+
+    def velocity_margin_at_deg(self, periods: float) -> float:
+        """The velocity loop's worst phase margin over the points, with `periods` of delay."""
+        delay_s = periods * self.control_period_s
+        return min(p.velocity.phase_margin_with_delay_deg(delay_s) for p in self.points)
 
 
 def tune_axis(
@@ -57,11 +68,13 @@ def tune_axis(
     velocity_crossover_rad_s: float = PAPER_VELOCITY_CROSSOVER_RAD_S,
     control_period_s: float = CONTROL_PERIOD_S,
     models: Sequence[LinearAxisModel] | None = None,
+    delay_periods: float = HOLD_DELAY_PERIODS,
 ) -> TuneReport:
     """Tune the current loop, then the velocity loop around it (section 6).
 
     `models` are the axis linearised at the default operating points when the caller already
-    has them (`linearise_points`).
+    has them (`linearise_points`). `control_period_s` and `delay_periods` are the velocity
+    loop's period and its delay in periods, for its margins.
     """
     if models is None:
         models = linearise_points(sim, axis)
@@ -78,8 +91,16 @@ def tune_axis(
         (velocity.kp, velocity.ti_s),
         sim.dt_s,
         control_period_s,
+        delay_periods,
     )
-    return TuneReport(axis=axis, current=current, velocity=velocity, points=loops)
+    return TuneReport(
+        axis=axis,
+        current=current,
+        velocity=velocity,
+        points=loops,
+        control_period_s=control_period_s,
+        delay_periods=delay_periods,
+    )
 
 
 def params_document(report: TuneReport, base: dict[str, Any]) -> dict[str, Any]:
@@ -111,14 +132,33 @@ def format_report(report: TuneReport) -> str:
             f"Kp {t.kp:.2f} {unit} ({t.kp_db:.1f} dB); plant at wc {t.plant_gain_db:.2f} dB, "
             f"spread over the points {t.plant_gain_spread_db:.2f} dB"
         )
+    period_s = report.control_period_s
+    lines.append(
+        f"  velocity loop at {period_s * 1e3:g} ms, delay {report.delay_periods:g} periods "
+        f"({report.delay_periods * period_s * 1e3:g} ms) in '(sampled)'; then the PM at "
+        + " and ".join(f"{d:g}" for d in REPORTED_DELAYS_PERIODS)
+        + " periods of delay"
+    )
     lines.append(
         "  operating point          drive state                               "
         "current: wc rad/s  PM deg (sampled)  GM dB | velocity: wc rad/s  PM deg (sampled)  GM dB"
+        "  PM at " + " / ".join(f"{d:g}" for d in REPORTED_DELAYS_PERIODS) + " periods"
     )
     for p in report.points:
+        at = " / ".join(
+            f"{p.velocity.phase_margin_with_delay_deg(d * period_s):5.1f}"
+            for d in REPORTED_DELAYS_PERIODS
+        )
         lines.append(
             f"  {p.model.point.label:22s}  {p.model.drive_state:40s}  "
-            f"{_margins(p.current)} | {_margins(p.velocity)}"
+            f"{_margins(p.current)} | {_margins(p.velocity)}  {at}"
+        )
+    for d in REPORTED_DELAYS_PERIODS:
+        worst = report.velocity_margin_at_deg(d)
+        verdict = "stable" if worst > 0.0 else "UNSTABLE: lower the gains or the delay"
+        lines.append(
+            f"  worst velocity-loop PM with {d:g} periods ({d * period_s * 1e3:g} ms) of delay: "
+            f"{worst:.1f} deg ({verdict})"
         )
     return "\n".join(lines)
 
@@ -148,6 +188,20 @@ def add_parser(sub: Any) -> None:
         help="velocity loop crossover wc = 1 / Ti (default: the paper's 100 rad/s)",
     )
     tune.add_argument(
+        "--control-period-s",
+        type=float,
+        default=CONTROL_PERIOD_S,
+        help="the velocity loop's period: the controller's (default 0.004 s, the simulator's "
+        "lockstep); over CAN 1 / cycle_hz",
+    )
+    tune.add_argument(
+        "--delay-periods",
+        type=float,
+        default=HOLD_DELAY_PERIODS,
+        help="the velocity loop's delay from a state to the command's effect, in periods, hold "
+        "included (default 0.5: the simulator; 1.5: a CAN drive, one cycle of transport)",
+    )
+    tune.add_argument(
         "--base-params",
         type=Path,
         default=None,
@@ -167,12 +221,20 @@ def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     if args.axis not in robot.axis_names:
         raise UnknownNameError("axis", args.axis, robot.axis_names)
+    for name, value, low in (
+        ("--control-period-s", args.control_period_s, 1e-5),
+        ("--delay-periods", args.delay_periods, 0.0),
+    ):
+        if not (math.isfinite(value) and low <= value <= 100.0):
+            raise ConfigError("arguments", name, f"expected a number in {low:g}..100, got {value}")
     sim = Simulator(robot)
     report = tune_axis(
         sim,
         args.axis,
         current_response_time_s=args.current_response_time_s,
         velocity_crossover_rad_s=args.velocity_crossover_rad_s,
+        control_period_s=args.control_period_s,
+        delay_periods=args.delay_periods,
     )
     base_path = args.base_params or config_dir() / "ros" / "controller.yaml"
     base = read_yaml(base_path)

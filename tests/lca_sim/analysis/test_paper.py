@@ -183,6 +183,48 @@ def test_tune_cli_writes_params_the_controller_accepts(tmp_path: Path) -> None:
     assert params["velocity_kp_a_per_rad_s"] == pytest.approx(298.1 / 2, rel=0.05)
 
 
+def test_tune_margins_with_the_loops_period_and_delay(default_robot: RobotParams) -> None:
+    """A pure delay takes wc tau of phase at the crossover: the CAN loop's margins per period.
+
+    Over a synchronous drive the command acts a cycle after its SYNC and is held a cycle (1.5
+    periods); a late command adds one. At the paper's gains the loop keeps its margin at
+    500 Hz and loses it with two periods of delay at 250 Hz (8 ms).
+    """
+    can_500 = tune_axis(
+        Simulator(default_robot), "pivot", control_period_s=0.002, delay_periods=1.5
+    )
+    can_250 = tune_axis(
+        Simulator(default_robot), "pivot", control_period_s=0.004, delay_periods=1.5
+    )
+    for point in can_500.points:
+        v = point.velocity
+        assert v.delay_s == pytest.approx(0.003)
+        assert v.sampled_phase_margin_deg == pytest.approx(
+            v.phase_margin_deg - math.degrees(v.crossover_rad_s * 0.003)
+        )
+        assert v.phase_margin_with_delay_deg(0.0) == v.phase_margin_deg
+    # Crossover about 128-138 rad/s: 2 ms of delay take 15-16 deg, 8 ms 59-63 deg.
+    assert can_500.velocity_margin_at_deg(2.0) > 20.0
+    assert can_250.velocity_margin_at_deg(1.0) == pytest.approx(can_500.velocity_margin_at_deg(2.0))
+    assert can_250.velocity_margin_at_deg(2.0) < 0.0
+
+
+def test_tune_cli_reports_margins_at_one_and_two_periods(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from lca_sim.cli.hil import main
+
+    out = tmp_path / "tuned.yaml"
+    argv = ["tune", "--out", str(out), "--control-period-s", "0.004", "--delay-periods", "1.5"]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "delay 1.5 periods (6 ms)" in text
+    assert "with 1 periods (4 ms) of delay" in text
+    assert "with 2 periods (8 ms) of delay" in text and "UNSTABLE" in text
+    assert main(["tune", "--out", str(out), "--delay-periods", "-1"]) == 2
+    assert "--delay-periods" in capsys.readouterr().err
+
+
 def test_tune_cli_bad_axis_is_one_error_line_and_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
