@@ -12,7 +12,6 @@ import math
 import os
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
@@ -294,59 +293,3 @@ class Diagnostics:
         """A value of the latest status of `name`."""
         values: dict[str, str] = {kv.key: kv.value for kv in self.latest[name].values}
         return values[key]
-
-
-class FreezeWatch(threading.Thread):
-    """Measures the longest stall of this process's Python threads while it runs.
-
-    It wakes every 2 ms; a late wake-up means no thread of this process ran Python (a stalled
-    host, or the GIL held by a long garbage collection): on the wall clock a plant went on
-    meanwhile. Tests that judge wall-clock timing repeat a run that froze.
-    """
-
-    def __init__(self) -> None:
-        super().__init__(daemon=True)
-        self.longest_s = 0.0
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        """Watch until `stop()`."""
-        last = time.monotonic()
-        while not self._stop_event.wait(0.002):
-            now = time.monotonic()
-            self.longest_s = max(self.longest_s, now - last - 0.002)
-            last = now
-
-    def stop(self) -> None:
-        """Stop watching (and wait for the thread)."""
-        self._stop_event.set()
-        if self.is_alive():
-            self.join()
-
-
-# A wall-clock CAN loop whose cycles resend the previous command more often than this has two
-# periods of delay where it was tuned for one; the bridge WARNs at the same share
-# (lca_sim.ros.can_bridge_node.LATE_COMMAND_SHARE).
-LATE_COMMAND_SHARE = 0.05
-
-
-def late_share(late: int, in_time: int) -> float:
-    """The share of the CAN cycles that resent the previous command (the master's counters)."""
-    return late / max(late + in_time, 1)
-
-
-def skip_if_host_too_slow(share: float, what: str) -> None:
-    """Skip a closed-loop comparison over CAN that this host could not run in time.
-
-    The comparison holds the CAN loop to the lockstep simulator's, which assumes the
-    controller answers each state before the next SYNC. Where more than LATE_COMMAND_SHARE of
-    the cycles resent the previous command (measured by the bridge's master, and WARNed on
-    its /diagnostics), the loop has two periods of delay and rings, as any loop tuned for
-    one does: the test says so with the measured share instead of comparing.
-    """
-    if share > LATE_COMMAND_SHARE:
-        pytest.skip(
-            f"{what}: {share:.0%} of the CAN cycles resent the previous command (the "
-            "controller answered after the next SYNC on this host): two periods of loop delay, "
-            "so the comparison with the lockstep loop does not apply here"
-        )
