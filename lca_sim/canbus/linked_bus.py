@@ -34,7 +34,7 @@ _handlers: dict[int, Callable[[can.Message], None]] = {}
 _handlers_lock = threading.Lock()
 
 
-class LinkedVirtualBus(VirtualBus):  # type: ignore[misc]  # python-can leaves it untyped
+class LinkedVirtualBus(VirtualBus):
     """A `VirtualBus` whose frames reach other attached linked buses without a thread hop.
 
     Args:

@@ -45,7 +45,7 @@ What a master must know (CiA 301 / 402 behaviour of these drives):
   largest 0x1006 of the four sets the step (a master writes the same value to all). Without
   SYNC the plant does not move. Event-driven RPDOs (type 254/255) are applied on reception.
   SYNCs faster than 0x1006 allows (a second producer) do not advance the plant: counted, EMCY
-  0x8100 once per episode (`cia402.admit_sync`).
+  0x8100 once per episode (`lca_sim.cia402.sync_rate`).
 * TPDOs: type 0 at a SYNC when their data changed, 1-240 every n-th SYNC, 254/255 when their
   data changed (checked after every SYNC and every `MONITOR_PERIOD_S`; inhibit time sub 3) and
   at least every event timer (sub 5) ms. TPDO3 (0x2010-0x2013) is type 254 with 100 ms;
@@ -101,7 +101,8 @@ from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVari
 
 from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
 from lca_control.pi import PIController, PIParams
-from lca_sim.cia402 import codec
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
+from lca_sim.cia402 import codec, sync_rate
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
@@ -135,6 +136,9 @@ MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this of
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
 REALTIME, LOCKSTEP = "realtime", "lockstep"
+# The simulator node's default (config/ros/simulator.yaml): the two plants hold eq. (2)'s terms
+# alike, and the rack's cycle pays one compiled call per millisecond instead of one per step.
+DEFAULT_RIGID_BODY_PERIOD_S = 1e-3
 TIMING_MODES = (REALTIME, LOCKSTEP)
 # The most of one stall of this process the watchdogs discount (rack.yaml
 # max_stall_discount_s): above the 0.3 s stalls a shared CI machine showed, and short enough
@@ -242,6 +246,8 @@ class RackConfig:
     Attributes:
         robot: robot config, a shipped name or a path.
         dt_s: plant integration step.
+        rigid_body_period_s: eq. (2)'s A(q) and C qdot + Q evaluated this often and held between
+            (a whole multiple of dt_s; the simulator node's `rigid_body_period_s` too).
         current_kp_v_per_a, current_ti_s: the in-drive current PI.
         velocity_kp_a_per_rad_s, velocity_ti_s: the in-drive velocity PI of CSV (mode 9), on
             the joint's velocity, the paper's section 6 gains by default (lca_control's).
@@ -274,7 +280,13 @@ class RackConfig:
     velocity_ti_s: float = PAPER_VELOCITY_TI_S
     faults: tuple[FaultEntry, ...] = ()
     timing_mode: str = "realtime"
+    rigid_body_period_s: float = DEFAULT_RIGID_BODY_PERIOD_S
     source: str = ""
+
+    @property
+    def rigid_body_update_steps(self) -> int:
+        """Model steps per evaluation of the rigid-body terms."""
+        return max(1, round(self.rigid_body_period_s / self.dt_s))
 
     @property
     def axis_names(self) -> tuple[str, ...]:
@@ -350,6 +362,30 @@ def parse_faults(
     return tuple(entries)
 
 
+def _timing(top: MappingReader, dt_s: float, source: str) -> tuple[float, str]:
+    """The rack's `rigid_body_period_s` (a whole multiple of dt_s) and `timing_mode`."""
+    rigid_body_period_s = top.number(
+        "rigid_body_period_s",
+        default=DEFAULT_RIGID_BODY_PERIOD_S,
+        min_value=0.0,
+        max_value=0.01,
+        min_exclusive=True,
+    )
+    steps = rigid_body_period_s / dt_s
+    if abs(steps - round(steps)) > 1e-6 * steps or round(steps) < 1:
+        raise ConfigError(
+            source,
+            "rigid_body_period_s",
+            f"expected a whole multiple of dt_s = {dt_s:g}, got {rigid_body_period_s:g}",
+        )
+    timing_mode = top.string("timing_mode") if top.has("timing_mode") else REALTIME
+    if timing_mode not in TIMING_MODES:
+        raise ConfigError(
+            source, "timing_mode", f"expected one of {', '.join(TIMING_MODES)}, got {timing_mode!r}"
+        )
+    return rigid_body_period_s, timing_mode
+
+
 def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -> RackConfig:
     """Validate a parsed rack YAML document.
 
@@ -366,6 +402,7 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
     if ("/" in robot or robot.endswith((".yaml", ".yml"))) and base_dir is not None:
         robot = str((base_dir / robot).resolve()) if not Path(robot).is_absolute() else robot
     dt_s = top.number("dt_s", min_value=0.0, max_value=0.01, min_exclusive=True)
+    rigid_body_period_s, timing_mode = _timing(top, dt_s, source)
     kp = top.number("current_kp_v_per_a", min_value=0.0)
     ti_s = top.number("current_ti_s", min_value=0.0, min_exclusive=True)
     velocity_kp = top.number(
@@ -410,11 +447,6 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         )
         axis.finish()
     axes_reader.finish()
-    timing_mode = top.string("timing_mode") if top.has("timing_mode") else REALTIME
-    if timing_mode not in TIMING_MODES:
-        raise ConfigError(
-            source, "timing_mode", f"expected one of {', '.join(TIMING_MODES)}, got {timing_mode!r}"
-        )
     faults: tuple[FaultEntry, ...] = ()
     if top.has("faults"):
         faults = parse_faults(top.raw("faults"), source, "faults", [a.name for a in axes])
@@ -439,6 +471,7 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         velocity_ti_s=velocity_ti_s,
         faults=faults,
         timing_mode=timing_mode,
+        rigid_body_period_s=rigid_body_period_s,
         source=source,
     )
 
@@ -790,7 +823,9 @@ class VirtualDriveRack:
     ) -> None:
         self.config = config
         robot = load_robot(config.robot) if robot is None else robot
-        self._sim = Simulator(robot, dt_s=config.dt_s)
+        self._sim = Simulator(
+            robot, dt_s=config.dt_s, rigid_body_update_steps=config.rigid_body_update_steps
+        )
         for axis_config in config.axes:
             if axis_config.name not in self._sim.axis_names:
                 raise ConfigError(
@@ -845,12 +880,11 @@ class VirtualDriveRack:
         self._last_sync_rx_s: float | None = None
         self._last_sync_done_s = -math.inf
         self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
-        # The SYNC rate check (`_sync_in_time`): the period it runs for, its credit, the bus
-        # stamp of the previous SYNC, and whether this episode of early SYNCs is reported.
+        # The SYNC rate check (`_sync_in_time`): the period it runs for, its parameters for
+        # that period, and the judge's state (`lca_sim.cia402.sync_rate`).
         self._sync_period_s = 0.0
-        self._sync_credit_s = 0.0
-        self._last_sync_stamp_s: float | None = None
-        self._sync_too_fast_reported = False
+        self._sync_rate: sync_rate.SyncRateParams | None = None
+        self._sync_judge = sync_rate.SyncRateState()
         self._longest_stall_s = 0.0  # 0x2021
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
@@ -921,6 +955,9 @@ class VirtualDriveRack:
         if settle:
             settle_heap()  # before the rack's threads run: a full collection would stall them
         self._network.connect()
+        bus, notifier = self._network.bus, self._network.notifier
+        if isinstance(bus, LinkedVirtualBus) and notifier is not None:
+            bus.attach(notifier.listeners)  # a linked master's frames come in its thread
         with self._lock:
             now = self._clock()
             for axis in self._axes:
@@ -939,6 +976,8 @@ class VirtualDriveRack:
         if not self._started or self._stopped:
             return
         self._stopped = True
+        if isinstance(self._network.bus, LinkedVirtualBus):
+            self._network.bus.detach()  # a master sending on: its frames queue, unread
         self._stop_event.set()
         if self._monitor_thread is not None:
             self._monitor_thread.join()
@@ -1876,28 +1915,25 @@ class VirtualDriveRack:
     def _sync_in_time(self, period_s: float, stamp_s: float) -> bool:
         """Whether this SYNC may advance the plant a period (0x1006 > 0), or comes too early.
 
-        CiA 301 gives a network one SYNC producer. SYNCs faster than 0x1006 (a second
-        producer, a master whose cycle does not match what it wrote to 0x1006) would run the
-        plant faster than the wall clock: beyond a burst allowance (`cia402.admit_sync`) the
+        CiA 301 7.2.5 gives a network one SYNC producer, 0x1006 (7.5.2.6) its period. SYNCs
+        faster than that (a second producer, a master whose cycle does not match what it
+        wrote to 0x1006) would run the plant faster than the wall clock. The pure judge
+        (`lca_sim.cia402.sync_rate`) counts the SYNCs against the time their bus stamps say
+        passed, over a window, so jitter and stalls (up to the SYNC-loss deadline, and a
+        freeze of this process up to 0.2 s) with their catch-up bursts never count. The
         excess SYNCs are handled as any SYNC (RPDOs applied, TPDOs sent) but do not advance
         the plant; each is counted (`syncs_too_fast`), and every node sends EMCY 0x8100 once
-        per episode (re-armed once the SYNCs have kept the rate for a burst allowance).
+        per episode (over after a window without excess).
         """
-        if period_s != self._sync_period_s or self._last_sync_stamp_s is None:
+        if period_s != self._sync_period_s or self._sync_rate is None:
             self._sync_period_s = period_s
-            self._sync_credit_s = cia402.sync_credit_cap_s(period_s)
-            elapsed_s = 0.0
-        else:
-            elapsed_s = stamp_s - self._last_sync_stamp_s
-        self._last_sync_stamp_s = stamp_s
-        self._sync_credit_s, admitted = cia402.admit_sync(self._sync_credit_s, elapsed_s, period_s)
-        if admitted:
-            if self._sync_credit_s >= cia402.sync_credit_cap_s(period_s) - period_s * 1.000001:
-                self._sync_too_fast_reported = False  # a full allowance again: re-armed
+            self._sync_rate = sync_rate.sync_rate_params(period_s, self.config.sync_loss_periods)
+            self._sync_judge = sync_rate.SyncRateState()
+        self._sync_judge, verdict = sync_rate.judge_sync(self._sync_judge, stamp_s, self._sync_rate)
+        if verdict is sync_rate.SyncVerdict.IN_TIME:
             return True
         self._counters.syncs_too_fast += 1
-        if not self._sync_too_fast_reported:
-            self._sync_too_fast_reported = True
+        if verdict is sync_rate.SyncVerdict.TOO_FAST_REPORT:
             self._warn_once(
                 "sync-too-fast",
                 f"SYNCs faster than 0x1006 ({period_s * 1e6:.0f} us), a second SYNC producer? "

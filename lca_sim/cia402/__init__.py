@@ -1,5 +1,6 @@
 """Pure CANopen CiA 301 / CiA 402 logic: no bus, no clock, no file.
 
 `objects` declares the object dictionary once, `codec` its units, `device` what a drive decides
-(power state machine, statusword, torque demand), `master` what the bridge decides.
+(power state machine, statusword, torque demand), `sync_rate` which SYNCs come faster than
+0x1006 allows, `master` what the bridge decides.
 """

@@ -92,7 +92,7 @@ EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error (shorter than 
 EMCY_PDO_LENGTH_EXCEEDED = 0x8220  # PDO length exceeded (longer than its mapping)
 EMCY_SYNC_LENGTH = 0x8240  # unexpected SYNC data length
 # Communication, generic: SYNCs come faster than the communication cycle period 0x1006 (a
-# second SYNC producer on the bus); the excess ones do not advance the plant (`admit_sync`).
+# second SYNC producer on the bus); the excess ones do not advance the plant (`sync_rate`).
 EMCY_SYNC_TOO_FAST = 0x8100
 # Device specific (CiA 301: 0xFF00-0xFFFF), documented in docs/can.md: the node left NMT
 # OPERATIONAL (NMT stop, enter pre-operational, reset communication) while its drive could
@@ -409,41 +409,3 @@ def is_valid_transmission_type(transmission_type: int) -> bool:
         0 <= transmission_type <= SYNC_TRANSMISSION_MAX
         or transmission_type in TRANSMISSION_EVENT_TYPES
     )
-
-
-# --- SYNC rate (CiA 301 0x1006) ---------------------------------------------------------------
-
-# SYNCs may come this much faster than 0x1006 for good (a master's clock is not the drive's).
-SYNC_RATE_TOLERANCE = 0.02
-# A burst of up to this many periods' worth of early SYNCs is admitted (a master catching up).
-SYNC_BURST_PERIODS = 10.0
-
-
-def sync_credit_cap_s(period_s: float) -> float:
-    """The most credit `admit_sync` holds: `SYNC_BURST_PERIODS` cycle periods, s."""
-    return SYNC_BURST_PERIODS * period_s
-
-
-def admit_sync(credit_s: float, elapsed_s: float, period_s: float) -> tuple[float, bool]:
-    """Whether a SYNC may advance the plant one cycle period, and the credit left after it.
-
-    A token bucket over the SYNCs' reception times: the wall time since the previous SYNC
-    (`elapsed_s`, x (1 + `SYNC_RATE_TOLERANCE`)) earns credit, up to `sync_credit_cap_s`, and
-    each admitted SYNC spends one period (0x1006). SYNCs at the configured rate, with jitter, or
-    a master's burst of up to `SYNC_BURST_PERIODS` are all admitted; with a second SYNC producer
-    (twice the rate) the credit runs out and every SYNC beyond the rate is refused, so the
-    plant never runs faster than the wall clock for longer than the burst allowance.
-
-    Args:
-        credit_s: credit before this SYNC (start with `sync_credit_cap_s(period_s)`).
-        elapsed_s: time since the previous SYNC's reception, s (negative counts as 0).
-        period_s: the communication cycle period (0x1006), > 0.
-
-    Returns:
-        (credit after this SYNC, whether it advances the plant).
-    """
-    earned_s = max(elapsed_s, 0.0) * (1.0 + SYNC_RATE_TOLERANCE)
-    credit_s = min(sync_credit_cap_s(period_s), credit_s + earned_s)
-    if credit_s >= period_s * (1.0 - 1e-9):
-        return credit_s - period_s, True
-    return credit_s, False

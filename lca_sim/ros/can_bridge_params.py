@@ -68,7 +68,8 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
         SIMULATOR_PARAMETERS["lockstep_subscribers"],
         replace(SIMULATOR_PARAMETERS["lockstep_resend_s"],
                 description="lockstep: re-publish the last state after this silence of the "
-                "controller, or send the next SYNC after this wait for an incomplete cycle, s"),
+                "controller, or send the next SYNC after this wait for an incomplete cycle, s",
+                live=False),
         positive("command_timeout_s", 0.1,
                  "controller silence: zero torque and halt after this, s", high=60.0),
         positive("quick_stop_after_s", 0.5, "then quick stop after this much more silence, s",

@@ -442,8 +442,12 @@ FRAMES_BEFORE_FAULT_INJECTION = (
 
 
 def test_without_faults_the_rack_sends_the_frames_it_sent_before() -> None:
-    """No fault configured: every frame of a scripted run is the one of the rack before 0x2030."""
-    run = _scripted_run(load_rack_config(None))
+    """No fault configured: every frame of a scripted run is the one of the rack before 0x2030.
+
+    With eq. (2)'s terms evaluated at every step, as the rack did then (it holds them for
+    `rigid_body_period_s`, 1 ms, since; that moves the plant by microradians).
+    """
+    run = _scripted_run(replace(load_rack_config(None), rigid_body_period_s=1e-4))
     assert _digest(run.frames) == FRAMES_BEFORE_FAULT_INJECTION
     assert run.rack.fault_log == ()
 

@@ -52,7 +52,7 @@ def _params(file: str, node: str, **changes: object) -> list[Parameter]:
     with (CONFIG / "ros" / file).open() as f:
         values = yaml.safe_load(f)[node]["ros__parameters"]
     values.update(changes)
-    return [Parameter(k, value=v) for k, v in values.items()]
+    return [Parameter(k, value=v) for k, v in values.items()]  # type: ignore[no-untyped-call]
 
 
 @dataclass
@@ -82,7 +82,8 @@ class Trace:
         t, _, v = self.pivot()
         n = min(len(self.reference), len(v))
         keep = (t[:n] >= TRACK_FROM_S) & (t[:n] <= TRACK_TO_S)
-        return (np.array(self.reference[:n]) - v[:n])[keep]
+        error: np.ndarray = (np.array(self.reference[:n]) - v[:n])[keep]
+        return error
 
     def switch_deg(self) -> float:
         """The pivot's angle at its first load-driving state after motor driving, deg."""
@@ -178,7 +179,7 @@ def _run(plant: str, tmp_path: Path) -> Trace:
         return trace
     finally:
         for node in reversed(nodes):
-            node.destroy_node()
+            node.destroy_node()  # type: ignore[no-untyped-call]
         executor.shutdown()
         rclpy.shutdown(context=ctx)
 
