@@ -868,6 +868,7 @@ class VirtualDriveRack:
         self._lockstep = config.timing_mode == LOCKSTEP
         self._network.lockstep = self._lockstep
         self._lockstep_time_s = 0.0
+        self._linked = False  # on a LinkedVirtualBus, attached (`start`)
         self._clock: Callable[[], float] = (
             (lambda: self._lockstep_time_s) if self._lockstep else time.monotonic
         )
@@ -958,6 +959,7 @@ class VirtualDriveRack:
         bus, notifier = self._network.bus, self._network.notifier
         if isinstance(bus, LinkedVirtualBus) and notifier is not None:
             bus.attach(notifier.listeners)  # a linked master's frames come in its thread
+            self._linked = True
         with self._lock:
             now = self._clock()
             for axis in self._axes:
@@ -1852,16 +1854,8 @@ class VirtualDriveRack:
 
     def _on_sync(self, data: bytes, now: float, stamp_s: float) -> None:
         """Apply the latched RPDOs, send the synchronous TPDOs, advance the plant one cycle."""
-        if len(data) > 1:
-            # CiA 301: a SYNC carries no data, or the 1-byte counter; anything else is EMCY
-            # 0x8240 "unexpected SYNC data length" from each consumer (once per run).
-            self._counters.bad_frames += 1
-            if not self._sync_length_error:
-                self._sync_length_error = True
-                for axis in self._axes:
-                    self._emcy(axis, cia402.EMCY_SYNC_LENGTH)
+        if not self._sync_length_ok(data):
             return
-        self._sync_length_error = False
         self._counters.syncs += 1
         if self._schedule or self._fault_log:
             self._run_fault_clock(now)
@@ -1875,7 +1869,9 @@ class VirtualDriveRack:
             self._send_sync_tpdos(axis, now)
         # A real drive's TPDOs leave in hardware while its CPU goes on; here the master reads
         # them on a thread of this process, so let it before the plant's period is computed.
-        yield_gil()
+        # A linked master has read them already, inside the sends (`LinkedVirtualBus`).
+        if not self._linked:
+            yield_gil()
         self._advance(now, stamp_s)
         for axis in self._axes:
             self._set_drive(axis, axis.drive, now)
@@ -1886,6 +1882,22 @@ class VirtualDriveRack:
             self._network.send_due(done)
         self._service_event_tpdos(done)
         self._last_sync_done_s = done
+
+    def _sync_length_ok(self, data: bytes) -> bool:
+        """CiA 301: a SYNC carries no data, or the 1-byte counter.
+
+        Anything else is EMCY 0x8240 "unexpected SYNC data length" from each consumer (once per
+        run of them), counted, and not a SYNC.
+        """
+        if len(data) <= 1:
+            self._sync_length_error = False
+            return True
+        self._counters.bad_frames += 1
+        if not self._sync_length_error:
+            self._sync_length_error = True
+            for axis in self._axes:
+                self._emcy(axis, cia402.EMCY_SYNC_LENGTH)
+        return False
 
     def _apply_latched_rpdos(self, axis: _Axis, now: float) -> None:
         """At a SYNC: the synchronous RPDOs received since the previous one (the latest wins)."""
