@@ -96,6 +96,7 @@ from typing import Any, cast
 
 import can
 import canopen
+from can.interfaces.virtual import VirtualBus
 from canopen import SdoAbortedError
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
@@ -868,7 +869,7 @@ class VirtualDriveRack:
         self._lockstep = config.timing_mode == LOCKSTEP
         self._network.lockstep = self._lockstep
         self._lockstep_time_s = 0.0
-        self._linked = False  # on a LinkedVirtualBus, attached (`start`)
+        self._yield_after_tpdos = False  # a master may read on a thread of this process
         self._clock: Callable[[], float] = (
             (lambda: self._lockstep_time_s) if self._lockstep else time.monotonic
         )
@@ -959,7 +960,8 @@ class VirtualDriveRack:
         bus, notifier = self._network.bus, self._network.notifier
         if isinstance(bus, LinkedVirtualBus) and notifier is not None:
             bus.attach(notifier.listeners)  # a linked master's frames come in its thread
-            self._linked = True
+        else:
+            self._yield_after_tpdos = isinstance(bus, VirtualBus)
         with self._lock:
             now = self._clock()
             for axis in self._axes:
@@ -1867,10 +1869,12 @@ class VirtualDriveRack:
             axis.sync_loss_reported = False
         for axis in operational:
             self._send_sync_tpdos(axis, now)
-        # A real drive's TPDOs leave in hardware while its CPU goes on; here the master reads
-        # them on a thread of this process, so let it before the plant's period is computed.
-        # A linked master has read them already, inside the sends (`LinkedVirtualBus`).
-        if not self._linked:
+        # A real drive's TPDOs leave in hardware while its CPU goes on; a master in this
+        # process on python-can's virtual bus reads them on another thread, so let it before
+        # the plant's period is computed. A linked master has read them already, inside the
+        # sends (`LinkedVirtualBus`); a master behind a socket (lca_remote, socketcan) is in
+        # another process.
+        if self._yield_after_tpdos:
             yield_gil()
         self._advance(now, stamp_s)
         for axis in self._axes:
