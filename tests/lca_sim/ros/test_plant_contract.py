@@ -454,6 +454,8 @@ def test_the_run_went_through(run: ContractRun) -> None:
         assert run.counts.get(topic, 0) > 500, run.counts  # 4.2 s at 250 Hz: about 1050
     assert run.latched_reason == ""
     assert run.commands_late == 0  # lockstep: every command answers the state before it
+    # Every backend runs on simulated time and publishes it: one /clock per state.
+    assert run.counts.get(pc.CLOCK, 0) >= run.counts[pc.JOINT_STATES] - 1, run.counts
     reached_deg = math.degrees(max(run.pivot_position.values()))
     assert reached_deg > SWITCH_DEG + 3.0
 
