@@ -5,7 +5,9 @@ What it measures, in one process: the controller core and the commanded plant of
 (the 4-axis robot, the cascade on current commands at a 4 ms control period, the plant at a
 0.1 ms step with Pinocchio's terms held for 1 ms, Fig. 15's 10 s ramp of the pivot), over a
 13 s run: the same loop as the lockstep run of the two nodes over ROS 2, bit for bit
-(tests/lca_sim/analysis/test_closed_loop.py).
+(tests/lca_sim/analysis/test_closed_loop.py). It prints the run's velocity tracking error as
+`lca-hil run` does (`lca_sim.analysis.metrics.VelocityTracking`), a check that the timed loop
+is the loop that tracks.
 
 1. ``ClosedLoop.run``: the whole composed run (the model and the plant are built once,
    outside the timing, as a sweep builds them once per point); the real-time factor is the
@@ -114,6 +116,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"steps), {config.controller.reference_source} on {config.controller.profile_joint}, "
         f"{config.duration_s:g} s = {periods} periods; built in {build_s:.2f} s"
     )
+    tracking = result.velocity_tracking(config.controller, config.controller.profile_joint)
+    print(tracking.describe())  # the figure lca-hil run and lca-hil fig15 report
 
     replay = _plant_alone(loop, result.command)
     replay()
@@ -167,6 +171,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "controller_us_per_period": round(controller_s * per_period_us, 2),
         "loop_overhead_us_per_period": round(overhead_us, 2),
         "replayed_plant_same_state": replayed_same,
+        **tracking.figures(),
+        "tracking_window_s": [tracking.from_s, tracking.to_s],
         "duration_s": duration_s,
         "periods": periods,
         "axes": len(config.robot.axes),

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 from lca_control.pi import ControlParamError
 
@@ -31,6 +32,38 @@ class ConfigError(LcaHilError):
         self.expected = expected
         where = f"{source}: " if source else ""
         super().__init__(f"{where}{key or '<top level>'}: {expected}")
+
+
+# One wording per kind of failure, in every tool: a file that is not there, one that cannot be
+# read, a key that is not one, a number out of its range.
+FILE_NOT_FOUND = "file not found"
+
+
+def file_problem(exc: OSError, path: object = None) -> str:
+    """What keeps a file from being read, in the tools' one wording.
+
+    `file not found` or `cannot read the file (reason)`, with `: PATH` after `file` when the
+    error is reported against another file (the one that names it).
+    """
+    where = "" if path is None else f": {path}"
+    if isinstance(exc, FileNotFoundError):
+        return f"{FILE_NOT_FOUND}{where}"
+    return f"cannot read the file{where} ({exc.strerror or exc})"
+
+
+def close_key(name: str, candidates: Iterable[str], cutoff: float = 0.6) -> str | None:
+    """The candidate `name` is most likely a misspelling of (difflib), or None."""
+    match = difflib.get_close_matches(name, list(candidates), n=1, cutoff=cutoff)
+    return match[0] if match else None
+
+
+def unknown_key(name: str, valid: Iterable[str]) -> str:
+    """`unknown key NAME; did you mean KEY?`, or the valid keys when none is close."""
+    valid = sorted(valid)
+    match = close_key(name, valid)
+    if match is not None:
+        return f"unknown key {name}; did you mean {match}?"
+    return f"unknown key {name} (valid keys here: {', '.join(valid) or 'none'})"
 
 
 class UnknownNameError(LcaHilError):

@@ -31,6 +31,7 @@ nodes' parameter files and writes the result.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,7 @@ import numpy.typing as npt
 from lca_control.controller import ControllerParams, JointController
 from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
+from lca_sim.analysis.metrics import VelocityTracking, tracking_window_s, velocity_tracking
 from lca_sim.errors import UnknownNameError
 from lca_sim.model.commanded_plant import VOLTAGE, CommandedPlant
 from lca_sim.model.faults import LINK, FaultInjector, ScheduledFault
@@ -62,6 +64,22 @@ def stamp_time_s(t_s: float) -> float:
     if nanosec >= _NS_PER_S:
         sec, nanosec = sec + 1, nanosec - _NS_PER_S
     return float(int(sec)) + 1e-9 * float(int(nanosec))
+
+
+def check_time_s(name: str, value: float, dt_s: float | None = None) -> None:
+    """A time of a run (its duration, its control period): > 0 s, a whole number of dt_s.
+
+    Raises:
+        ParameterError: `NAME: expected a time > 0 s, a whole multiple of dt_s = 0.0001 s,
+            got VALUE` (without the multiple when `dt_s` is None), the whole range in one line.
+    """
+    expected = "a time > 0 s" + ("" if dt_s is None else f", a whole multiple of dt_s = {dt_s:g} s")
+    if not (math.isfinite(value) and value > 0.0):
+        raise ParameterError(name, expected, value)
+    if dt_s is not None:
+        steps = value / dt_s
+        if not (round(steps) >= 1 and abs(steps - round(steps)) <= 1e-6 * steps):
+            raise ParameterError(name, expected, value)
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,10 +142,7 @@ class ClosedLoopConfig:
         if not (math.isfinite(self.dt_s) and self.dt_s > 0.0):
             raise ParameterError("dt_s", "a positive step", self.dt_s)
         for name in ("control_period_s", "duration_s"):
-            value = getattr(self, name)
-            steps = value / self.dt_s if math.isfinite(value) else math.nan
-            if not (round(steps) >= 1 and abs(steps - round(steps)) <= 1e-6 * steps):
-                raise ParameterError(name, f"a whole multiple of dt_s = {self.dt_s:g}", value)
+            check_time_s(name, getattr(self, name), self.dt_s)
         link = sorted({f.kind for f in self.faults if f.owner == LINK})
         if link:
             raise ParameterError("fault_schedule", "no link faults in a composed run", link)
@@ -193,12 +208,71 @@ class ClosedLoopResult:
     command: FloatArray
     command_interface: str
     commands_rejected: int
+    prismatic: tuple[bool, ...] = ()
 
     def tracking_error(self) -> FloatArray:
         """Velocity reference minus joint velocity, per state and controller joint."""
         index = [self.axes.index(j) for j in self.joints]
         error: FloatArray = self.velocity_reference - self.velocity[:, index]
         return error
+
+    def velocity_tracking(self, controller: ControllerParams, joint: str) -> VelocityTracking:
+        """The velocity tracking error of `joint` over the controller's profile span.
+
+        Raises:
+            UnknownNameError: not a joint of the controller.
+        """
+        if joint not in self.joints:
+            raise UnknownNameError("controller joint", joint, self.joints)
+        j, a = self.joints.index(joint), self.axes.index(joint)
+        return velocity_tracking(
+            joint,
+            self.prismatic[a] if self.prismatic else False,
+            tracking_window(controller, float(self.time_s[-1])),
+            self.time_s,
+            self.velocity_reference[:, j],
+            self.velocity[:, a],
+        )
+
+
+def tracking_window(controller: ControllerParams, duration_s: float) -> tuple[float, float]:
+    """The velocity tracking window of a run: the built-in profile's span, else the whole run.
+
+    The profile's times count from the first state, which is t = 0 in lockstep
+    (`metrics.tracking_window_s` says why the end is left out).
+    """
+    profile = controller.profile
+    if profile is None:
+        return 0.0, duration_s
+    return tracking_window_s(profile.start_s, profile.end_s)
+
+
+def replay_references(
+    controller: ControllerParams,
+    time_s: Sequence[float],
+    position: Sequence[Sequence[float]],
+    velocity: Sequence[Sequence[float]],
+    current_a: Sequence[Sequence[float]] | None = None,
+) -> FloatArray:
+    """The velocity references a controller core computes on these states, one row per state.
+
+    What the controller node followed on a recorded run: the same core on the same float64
+    values gives the same references to the bit.
+
+    Args:
+        controller: the controller's parameters (reference source `topic`: references of 0).
+        time_s: the states' stamps, s.
+        position, velocity: per state, the controller's joints in its order, rad (m) and
+            rad/s (m/s).
+        current_a: per state, their armature currents, A (the voltage interface only).
+    """
+    core = JointController(controller)
+    rows = np.empty((len(time_s), len(controller.joints)))
+    for k, t_s in enumerate(time_s):
+        amps = None if current_a is None else list(current_a[k])
+        core.update(t_s, list(position[k]), list(velocity[k]), amps)
+        rows[k] = core.last_velocity_reference
+    return rows
 
 
 class ClosedLoop:
@@ -327,4 +401,5 @@ class ClosedLoop:
             command=command,
             command_interface=c.command_interface,
             commands_rejected=plant.counters.rejected - rejected_before,
+            prismatic=sim.prismatic,
         )

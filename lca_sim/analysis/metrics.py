@@ -157,21 +157,116 @@ def tracking_error(trace: Trace, args: MetricArgs) -> FloatArray:
     if not trace.reference_signal:
         return np.full(0, math.nan)
     a = trace.axis(args.axis)
-    keep = trace.window(args.from_s, args.to_s)
-    error: FloatArray = trace.reference[keep, a] - trace.signal(trace.reference_signal)[keep, a]
+    return window_error(
+        trace.time_s,
+        trace.reference[:, a],
+        trace.signal(trace.reference_signal)[:, a],
+        args.from_s,
+        args.to_s,
+    )
+
+
+def window_error(
+    time_s: FloatArray,
+    reference: FloatArray,
+    signal: FloatArray,
+    from_s: float | None,
+    to_s: float | None,
+) -> FloatArray:
+    """Reference minus signal at the samples in [from_s, to_s] (None: open), NaNs left out."""
+    keep = np.ones(len(time_s), dtype=bool)
+    if from_s is not None:
+        keep &= time_s >= from_s
+    if to_s is not None:
+        keep &= time_s <= to_s
+    error: FloatArray = reference[keep] - signal[keep]
     return error[np.isfinite(error)]
+
+
+def error_rms(error: FloatArray) -> float:
+    """Root mean square of an error's samples (NaN for none)."""
+    return float(np.sqrt(np.mean(error**2))) if len(error) else math.nan
+
+
+def error_max(error: FloatArray) -> float:
+    """Largest |error| of the samples (NaN for none)."""
+    return float(np.max(np.abs(error))) if len(error) else math.nan
 
 
 def tracking_error_rms(trace: Trace, args: MetricArgs) -> float:
     """Root mean square of reference minus signal over the window's samples."""
-    error = tracking_error(trace, args)
-    return float(np.sqrt(np.mean(error**2))) if len(error) else math.nan
+    return error_rms(tracking_error(trace, args))
 
 
 def tracking_error_max(trace: Trace, args: MetricArgs) -> float:
     """Largest |reference - signal| over the window's samples."""
-    error = tracking_error(trace, args)
-    return float(np.max(np.abs(error))) if len(error) else math.nan
+    return error_max(tracking_error(trace, args))
+
+
+# --- the velocity tracking error of a closed-loop run (lca-hil fig15, lca-hil run, bench) -----
+
+
+@dataclass(frozen=True, slots=True)
+class VelocityTracking:
+    """The velocity tracking error of one joint over the reference profile's span.
+
+    The one definition `lca-hil fig15`, `lca-hil run` and bench/closed_loop.py report: the
+    library's `tracking_error_max` / `tracking_error_rms` (reference minus velocity at every
+    state) over `tracking_window_s`.
+
+    Attributes:
+        joint: the joint the profile moves.
+        unit: `rad/s`, or `m/s` for a prismatic joint.
+        from_s, to_s: the window, s (closed; see `tracking_window_s`).
+        max, rms: the error's largest magnitude and root mean square, in `unit`.
+    """
+
+    joint: str
+    unit: str
+    from_s: float
+    to_s: float
+    max: float
+    rms: float
+
+    def figures(self) -> dict[str, float]:
+        """The figures by name, the unit in the name: `tracking_error_max_rad_s`, ..."""
+        suffix = self.unit.replace("/", "_")
+        return {f"tracking_error_max_{suffix}": self.max, f"tracking_error_rms_{suffix}": self.rms}
+
+    def describe(self) -> str:
+        """One line: the joint, the window, the figures with their unit."""
+        return (
+            f"{self.joint} velocity tracking error over {self.from_s:g}-{self.to_s:.6g} s: "
+            f"max {self.max:.4g} {self.unit}, rms {self.rms:.4g} {self.unit}"
+        )
+
+
+def tracking_window_s(start_s: float, end_s: float) -> tuple[float, float]:
+    """The velocity tracking window of a profile: its span, the start in, the end out.
+
+    A built-in profile (`lca_control.profiles`) gives its reference from `start_s` on and steps
+    it back to 0 at `end_s`: the state at `end_s` meets a step, which is no tracking, so the
+    closed window ends at the float just before `end_s` ([start_s, end_s) on any time grid;
+    the sweeps' `to_s: 10.99` for the Fig. 15 ramp at 4 ms states). The breakaway from the
+    self-locking hold at the ramp's start is in the window: the gear's stop states are part of
+    what the loop has to follow through.
+    """
+    return start_s, math.nextafter(end_s, -math.inf)
+
+
+def velocity_tracking(
+    joint: str,
+    prismatic: bool,
+    window_s: tuple[float, float],
+    time_s: FloatArray,
+    reference: FloatArray,
+    velocity: FloatArray,
+) -> VelocityTracking:
+    """`VelocityTracking` of one joint's states: reference minus velocity in `window_s`."""
+    error = window_error(time_s, reference, velocity, *window_s)
+    return VelocityTracking(
+        joint, "m/s" if prismatic else "rad/s", *window_s, error_max(error), error_rms(error)
+    )
 
 
 def _target(values: FloatArray, args: MetricArgs) -> float:

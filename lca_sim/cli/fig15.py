@@ -2,11 +2,17 @@
 
     lca-hil fig15 --out out/fig15
 
-Starts the simulator (lockstep, current loop in the drive), the controller (the section 6
-velocity PI replaying the Fig. 15 ramp) and the recorder as separate ROS 2 processes, shows the
-simulated time while they run, and writes the bag, its plots and a summary: where the pivot
-left motor driving (the paper has 55 deg), the velocity tracking error and the closed-loop
-steps per second.
+Starts the simulator (lockstep), the controller (the section 6 velocity PI replaying the
+Fig. 15 ramp) and the recorder as separate ROS 2 processes, shows the simulated time while they
+run, and writes the bag, its plots and a summary: where the pivot left motor driving (the paper
+has 55 deg), the velocity tracking error and the closed-loop steps per second.
+
+The run is the one `lca-hil run fig15` computes without ROS, to the last bit: both read the
+closed-loop scenario config/runs/fig15.yaml, so the nodes get its params files (initial pose,
+gains, ramp, command interface and control period) unchanged, and the tracking error is the
+one definition of `lca_sim.analysis.metrics.VelocityTracking`, on the references the controller
+core computes on the recorded states. The recorder takes `velocity_commands` too (the
+controller publishes it only while something subscribes), so the plots show the reference.
 
 The end of the run is the simulator's: it is started with `lockstep_end_s` = the duration, so
 its last state is stamped exactly the duration however slowly the machine runs, and it then
@@ -28,9 +34,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
@@ -40,19 +48,54 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from lca_control import contract as ri
-from lca_control.cascade import CONTROL_PERIOD_S
-from lca_control.profiles import RampProfile
-from lca_sim.cli.bagplot import BagReadError, JointSeries, read_bag
+from lca_sim.analysis.closed_loop import ClosedLoopConfig, replay_references, tracking_window
+from lca_sim.analysis.metrics import VelocityTracking, velocity_tracking
+from lca_sim.cli.bagplot import NS_PER_S, BagData, BagReadError, JointSeries, read_bag
 from lca_sim.cli.output import write_json
-from lca_sim.config.loader import config_dir
+from lca_sim.cli.run import load_config, load_run_scenario
+from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
+from lca_sim.model.gantry import Gantry
 from lca_sim.ros.node_util import from_stamp
 from lca_sim.ros.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 
-PIVOT_START_DEG = 35.0
+SCENARIO = "fig15"  # config/runs/fig15.yaml: the run `lca-hil run fig15` computes too
 END_WAIT_S = 60.0  # wall time for start-up and shut-down, on top of ...
 END_WAIT_PER_SIM_S = 20.0  # ... this much wall time per simulated second (a loaded machine)
-TRACKING_WINDOW_S = (2.0, 10.9)  # the ramp's steady part, where the tracking error is taken
+
+
+@dataclass(frozen=True, slots=True)
+class Fig15Run:
+    """The Fig. 15 run as its closed-loop scenario defines it.
+
+    Attributes:
+        controller_yaml, simulator_yaml: the nodes' params files, passed to them unchanged.
+        robot, faults: the scenario's robot and fault schedule files (None: the params
+            file's).
+        config: the run as `lca-hil run` computes it (validated: the same checks and words).
+    """
+
+    controller_yaml: Path
+    simulator_yaml: Path
+    robot: Path | None
+    faults: Path | None
+    config: ClosedLoopConfig
+
+
+def fig15_run(duration_s: float) -> Fig15Run:
+    """The scenario's files (config/runs/fig15.yaml; by default the shipped nodes' files).
+
+    Raises:
+        ConfigError: a bad scenario or params file, named with its key.
+        ParameterError: a duration that is not > 0 s and a whole multiple of dt_s.
+    """
+    scenario = load_run_scenario(SCENARIO)
+    ros = config_dir() / "ros"
+    controller_yaml = scenario.controller or ros / "controller.yaml"
+    simulator_yaml = scenario.simulator or ros / "simulator.yaml"
+    robot = None if scenario.robot is None else load_robot(str(scenario.robot))
+    config = load_config(controller_yaml, simulator_yaml, duration_s, robot=robot)
+    return Fig15Run(controller_yaml, simulator_yaml, scenario.robot, scenario.faults, config)
 
 
 def _script(name: str) -> str:
@@ -97,7 +140,7 @@ class _Progress:
             if values.get(ENDED_KEY) == "True":
                 self.ended, self.end_message = True, status.message
 
-    def steps_per_s(self) -> float:
+    def steps_per_s(self, control_period_s: float) -> float:
         """Closed-loop steps per wall second over the span this node saw (NaN: too short).
 
         It may match /clock after the loop has started (the simulator waits for the
@@ -106,33 +149,41 @@ class _Progress:
         seen_wall_s = self.last_wall_s - self.first_wall_s
         if not seen_wall_s > 0.0:
             return math.nan
-        return (self.t_s - self.first_t_s) / CONTROL_PERIOD_S / seen_wall_s
+        return (self.t_s - self.first_t_s) / control_period_s / seen_wall_s
 
 
-def _argvs(bag: Path, duration_s: float) -> dict[str, list[str]]:
-    """The three processes' command lines, in the order they start."""
-    params = config_dir() / "ros"
-    start_rad = math.radians(PIVOT_START_DEG)
+def _argvs(bag: Path, duration_s: float, run: Fig15Run) -> dict[str, list[str]]:
+    """The three processes' command lines, in the order they start.
+
+    The nodes get the scenario's params files unchanged; the simulator only its lockstep
+    settings on top (the loop `lca-hil run` computes is the lockstep one), and the scenario's
+    robot and faults when it names them, as `lca-hil run` takes them.
+    """
+    scenario_params = []
+    if run.robot is not None:
+        scenario_params += ["-p", f"robot:={run.robot}"]
+    if run.faults is not None:
+        scenario_params += ["-p", f"fault_schedule:={run.faults}"]
     return {
         "recorder": [
             _script("lca-record"), "-o", str(bag), "--wait-s", "30",
             ri.JOINT_STATES, ri.MOTOR_STATES, ri.DRIVE_CHAIN_STATES, ri.VOLTAGE_COMMANDS,
-            ri.CURRENT_COMMANDS, ri.CLOCK, "--ros-args", "-p", "use_sim_time:=true",
+            ri.CURRENT_COMMANDS, ri.VELOCITY_COMMANDS, ri.CLOCK,
+            "--ros-args", "-p", "use_sim_time:=true",
         ],
         # No use_sim_time for the controller: it steps on the state stamps, and a /clock
         # subscription would cost it one more message per step.
         "controller": [
             _script("lca-controller"), "--ros-args",
-            "--params-file", str(params / "controller.yaml"),
+            "--params-file", str(run.controller_yaml),
         ],
         "simulator": [
             _script("lca-simulator"), "--ros-args",
-            "--params-file", str(params / "simulator.yaml"),
-            "-p", "timing_mode:=lockstep", "-p", "command_interface:=current",
-            "-p", f"control_period_s:={CONTROL_PERIOD_S!r}",
-            "-p", f"initial_position:=[0.0,{start_rad!r},0.0,0.0]",
+            "--params-file", str(run.simulator_yaml),
+            "-p", "timing_mode:=lockstep",
             "-p", "lockstep_subscribers:=2",
             "-p", f"lockstep_end_s:={float(duration_s)!r}",
+            *scenario_params,
         ],
     }  # fmt: skip
 
@@ -185,10 +236,13 @@ def _stop(procs: Sequence[subprocess.Popen[bytes]]) -> None:
 
 
 def run_fig15(out: Path, duration_s: float) -> int:
-    """Run the Fig. 15 loop for `duration_s` of simulated time; return the exit code."""
-    if not (math.isfinite(duration_s) and duration_s > 0.0):
-        print(f"lca-hil: error: --duration-s must be > 0, not {duration_s:g}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    """Run the Fig. 15 loop for `duration_s` of simulated time; return the exit code.
+
+    Raises:
+        ConfigError, ParameterError: a bad scenario, params file or duration (one line, as
+            `lca-hil run` words it), before anything starts or is written.
+    """
+    run = fig15_run(duration_s)
     out.mkdir(parents=True, exist_ok=True)
     bag = out / "bag"
     if bag.exists():
@@ -208,7 +262,7 @@ def run_fig15(out: Path, duration_s: float) -> int:
     executor.add_node(node)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
-        for name, argv in _argvs(bag, duration_s).items():
+        for name, argv in _argvs(bag, duration_s, run).items():
             procs[name] = _start(argv, out / f"{name}.log")
         code = _wait_for_end(executor, progress, procs, out, duration_s)
     except KeyboardInterrupt:
@@ -222,7 +276,7 @@ def run_fig15(out: Path, duration_s: float) -> int:
         _stop([procs[n] for n in ("recorder", "controller", "simulator") if n in procs])
     if code != 0:
         return code
-    return _summarise(out, bag, duration_s, progress.steps_per_s())
+    return _summarise(out, bag, run, progress.steps_per_s(run.config.control_period_s))
 
 
 def _transition(
@@ -242,18 +296,49 @@ def _transition(
     return math.nan, math.nan, "none"
 
 
-def _tracking_errors(joint: JointSeries) -> list[float]:
-    """|velocity - ramp| (rad/s) over the ramp's steady part (`TRACKING_WINDOW_S`)."""
-    ramp = ramp_profile()
-    low, high = TRACKING_WINDOW_S
-    return [
-        abs(v - ramp(t))
-        for t, v in zip(joint.time_s, joint.values["velocity"], strict=True)
-        if low < t < high
-    ]
+def _stamp_s(header_ns: int) -> float:
+    """A header stamp as the controller read it (`from_stamp`: sec + 1e-9 * nanosec), s."""
+    return float(header_ns // NS_PER_S) + 1e-9 * float(header_ns % NS_PER_S)
 
 
-def _summarise(out: Path, bag: Path, duration_s: float, steps_per_s: float) -> int:
+def recorded_tracking(data: BagData, run: Fig15Run) -> VelocityTracking:
+    """The velocity tracking error of the recorded run, as `lca-hil run` computes its own.
+
+    The references are the ones the controller core computes on the recorded states (the node
+    ran the same core on the same float64 values); `velocity_commands` in the bag holds them
+    too, but as arrays without a stamp, which the plots align and this must not.
+
+    Raises:
+        KeyError: the bag lacks one of the controller's joints.
+    """
+    controller = run.config.controller
+    series = [data.joints[j] for j in controller.joints]
+    stamps = series[0].header_ns
+    keep = [k for k in range(len(stamps)) if k == 0 or stamps[k] != stamps[k - 1]]  # re-sends
+    time_s = np.array([_stamp_s(stamps[k]) for k in keep])
+    position = [[s.values["position"][k] for s in series] for k in keep]
+    velocity = [[s.values["velocity"][k] for s in series] for k in keep]
+    currents = None
+    if controller.command_interface == "voltage":
+        currents = [[data.motors[j].values["effort"][k] for j in controller.joints] for k in keep]
+    reference = replay_references(controller, time_s.tolist(), position, velocity, currents)
+    joint = controller.profile_joint
+    j = controller.joints.index(joint)
+    prismatic = _prismatic(run, joint)
+    window = tracking_window(controller, float(time_s[-1]))
+    measured = np.array([row[j] for row in velocity])
+    return velocity_tracking(joint, prismatic, window, time_s, reference[:, j], measured)
+
+
+def _prismatic(run: Fig15Run, joint: str) -> bool:
+    """Whether the robot's `joint` is prismatic (its velocity in m/s), from its URDF."""
+    robot = run.config.robot
+    gantry = Gantry(robot.urdf_xml, robot.gravity_m_s2, robot.source)
+    return next(j.prismatic for j in gantry.joints if j.name == joint)
+
+
+def _summarise(out: Path, bag: Path, run: Fig15Run, steps_per_s: float) -> int:
+    duration_s = run.config.duration_s
     subprocess.run([_script("lca-plot"), str(bag), "--out", str(out)], env=_env(), check=False)
     try:
         data = read_bag(bag)
@@ -262,12 +347,13 @@ def _summarise(out: Path, bag: Path, duration_s: float, steps_per_s: float) -> i
         return EXIT_FAILED
     joint = data.joints.get("pivot")
     drive = data.drives.get("pivot")
-    if joint is None or drive is None or not drive.state or not joint.time_s:
+    missing = [j for j in run.config.controller.joints if j not in data.joints]
+    if joint is None or drive is None or not drive.state or not joint.time_s or missing:
         print("lca-hil: error: the bag has no pivot states", file=sys.stderr)
         return EXIT_FAILED
     positions = joint.values["position"]
     transition_deg, transition_t, transition_state = _transition(joint, drive.time_s, drive.state)
-    errors = _tracking_errors(joint)
+    tracking = recorded_tracking(data, run)
     last_state_s = joint.time_s[-1]
     if abs(last_state_s - duration_s) > 1e-9:
         print(
@@ -279,24 +365,23 @@ def _summarise(out: Path, bag: Path, duration_s: float, steps_per_s: float) -> i
         "transition_from_motor_driving_deg": transition_deg,
         "transition_time_s": transition_t,
         "paper_transition_deg": 55.0,
-        "max_velocity_error_deg_s": math.degrees(max(errors)) if errors else math.nan,
-        "rms_velocity_error_deg_s": (
-            math.degrees(math.sqrt(sum(e * e for e in errors) / len(errors)))
-            if errors
-            else math.nan
-        ),
+        "tracking_joint": tracking.joint,
+        "tracking_window_s": [tracking.from_s, tracking.to_s],
+        **tracking.figures(),
+        # the same figures in deg/s, the paper's unit (lca-hil paper's Fig. 15 reads them)
+        "max_velocity_error_deg_s": math.degrees(tracking.max),
+        "rms_velocity_error_deg_s": math.degrees(tracking.rms),
         "travel_deg": math.degrees(positions[-1] - positions[0]),
         "states_recorded": len(joint.time_s),
         "duration_s": duration_s,
         "last_state_s": last_state_s,
         "closed_loop_steps_per_s": steps_per_s,
     }
-    write_json(out / "summary.json", summary, _null_reasons(duration_s))
+    write_json(out / "summary.json", summary, _null_reasons(duration_s, tracking))
     print(
         f"motor driving -> {transition_state} at {transition_deg:.2f} deg (paper: 55 deg), "
         f"t = {transition_t:.3f} s\n"
-        f"velocity tracking error: max {summary['max_velocity_error_deg_s']:.3f} deg/s, "
-        f"rms {summary['rms_velocity_error_deg_s']:.4f} deg/s\n"
+        f"{tracking.describe()} ({summary['max_velocity_error_deg_s']:.3f} deg/s max)\n"
         f"pivot travel {summary['travel_deg']:.2f} deg; {len(joint.time_s)} closed-loop steps "
         f"at {steps_per_s:.0f} steps/s; last state at {last_state_s:.3f} s\n"
         f"wrote {bag}, plots and {out / 'summary.json'} in {out}"
@@ -304,14 +389,17 @@ def _summarise(out: Path, bag: Path, duration_s: float, steps_per_s: float) -> i
     return 0
 
 
-def _null_reasons(duration_s: float) -> dict[str, str]:
+def _null_reasons(duration_s: float, tracking: VelocityTracking) -> dict[str, str]:
     """Why a summary figure may be null (summary.json is strict JSON: no NaN)."""
     no_transition = f"the pivot did not leave motor driving within the {duration_s:g} s run"
-    low, high = TRACKING_WINDOW_S
-    no_window = f"no state between {low:g} s and {high:g} s of simulated time (the ramp)"
+    no_window = (
+        f"no state between {tracking.from_s:g} s and {tracking.to_s:.6g} s of simulated time "
+        "(the reference profile's span)"
+    )
     return {
         "transition_from_motor_driving_deg": no_transition,
         "transition_time_s": no_transition,
+        **dict.fromkeys(tracking.figures(), no_window),
         "max_velocity_error_deg_s": no_window,
         "rms_velocity_error_deg_s": no_window,
         "closed_loop_steps_per_s": "this process saw fewer than two /clock samples",
@@ -319,5 +407,13 @@ def _null_reasons(duration_s: float) -> dict[str, str]:
 
 
 def ramp_profile() -> Callable[[float], float]:
-    """The controller's Fig. 15 ramp, as config/ros/controller.yaml sets it."""
-    return RampProfile(1.0, 10.0, math.radians(5.0), 0.0).velocity
+    """The controller's Fig. 15 reference profile, as the scenario's controller file sets it.
+
+    Raises:
+        ConfigError: a bad scenario or controller file.
+    """
+    run = fig15_run(13.0)
+    profile = run.config.controller.profile
+    if profile is None:
+        return lambda _t_s: 0.0
+    return profile.velocity

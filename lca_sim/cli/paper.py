@@ -44,6 +44,7 @@ from lca_sim.analysis.paper import (
     open_loop_phases,
 )
 from lca_sim.cli.output import save_png, write_json, write_table
+from lca_sim.cli.plotting import clip_spikes
 from lca_sim.cli.ros_guard import ros_required
 from lca_sim.cli.tune import tune_axis
 from lca_sim.config.loader import load_robot, load_scenario
@@ -398,8 +399,10 @@ def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
     )
     fig = Figure(figsize=(8, 8))
     panels = [fig.add_subplot(3, 1, k + 1) for k in range(3)]
-    panels[0].plot(t, current, color="C1")
+    panels[0].plot(t, current, color="C1", label="pivot current")
     panels[0].set_ylabel("current (A)")
+    clip_spikes(panels[0], [(t, current)], "A")  # the braking peak at 11 s would squash the ramp
+    panels[0].legend(fontsize=8, loc="upper right")
     panels[1].plot(t, np.degrees(reference), "--", color="grey", label="reference")
     panels[1].plot(t, velocity, color="C2", label="pivot velocity")
     panels[1].set_ylabel("velocity (deg/s)")

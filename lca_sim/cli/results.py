@@ -18,6 +18,8 @@ from lca_sim.cli.output import number_cell, save_png, write_table
 from lca_sim.model.simulator import SIGNAL_NAMES
 
 if TYPE_CHECKING:
+    from matplotlib.patches import Patch
+
     from lca_sim.model.scenario import ScenarioResult
 
 # Per-axis CSV columns after the axis-name prefix, in order.
@@ -98,7 +100,7 @@ def write_plot(result: ScenarioResult, path: Path, title: str) -> None:
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     axes_idx = active_axes(result)
-    fig, panels = plt.subplots(5, 1, figsize=(9, 11), sharex=True)
+    fig, panels = plt.subplots(5, 1, figsize=(9, 12), sharex=True)
     t = result.time_s
     for a in axes_idx:
         name = result.axis_names[a]
@@ -111,23 +113,38 @@ def write_plot(result: ScenarioResult, path: Path, title: str) -> None:
         panels[4].step(t, result.drive[:, a], where="post", label=name)
     panels[0].set_ylabel("voltage (V)")
     panels[1].set_ylabel("current (A)")
-    panels[2].set_ylabel("velocity")
-    panels[3].set_ylabel("position")
+    units = {"m" if result.axis_names[a] == "lift" else "deg" for a in axes_idx}
+    unit = f" ({units.pop()})" if len(units) == 1 else ""  # else each curve's label says it
+    panels[2].set_ylabel(f"velocity{unit[:-1] + '/s)' if unit else ''}")
+    panels[3].set_ylabel(f"position{unit}")
     panels[4].set_ylabel("drive state")
     panels[4].set_yticks(range(len(result.state_names)))
     panels[4].set_yticklabels(result.state_names, fontsize=7)
     panels[4].set_xlabel("time (s)")
-    if len(axes_idx) == 1:
-        _shade_phases(result, axes_idx[0], panels)
     for panel in panels:
         panel.grid(True, alpha=0.3)
         panel.legend(loc="upper left", fontsize=7)
+    if len(axes_idx) == 1:
+        shaded = _shade_phases(result, axes_idx[0], panels)
+        # The shades' key below the time axis, where it hides no curve.
+        panels[4].legend(
+            handles=shaded,
+            title=f"{result.axis_names[axes_idx[0]]}: shaded",
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.3),
+            ncol=3,
+            fontsize=7,
+            title_fontsize=7,
+        )
     fig.suptitle(title)
     save_png(fig, path)
     plt.close(fig)
 
 
-def _shade_phases(result: ScenarioResult, axis: int, panels: np.ndarray) -> None:
+def _shade_phases(result: ScenarioResult, axis: int, panels: np.ndarray) -> list[Patch]:
+    """Shade each drive-state phase of `axis` on every panel; one legend patch per state."""
+    from matplotlib.patches import Patch  # noqa: PLC0415
+
     name = result.axis_names[axis]
     phases = result.phases(name)
     colours = [
@@ -142,9 +159,13 @@ def _shade_phases(result: ScenarioResult, axis: int, panels: np.ndarray) -> None
         "#d0fff4",
     ]
     end_time = float(result.time_s[-1])
+    keys: dict[str, Patch] = {}
     for i, phase in enumerate(phases):
         start = phase.time_s
         stop = phases[i + 1].time_s if i + 1 < len(phases) else end_time
         colour = colours[result.state_names.index(phase.state) % len(colours)]
         for panel in panels:
             panel.axvspan(start, stop, color=colour, alpha=0.5, linewidth=0)
+        if phase.state not in keys:
+            keys[phase.state] = Patch(color=colour, alpha=0.5, label=phase.state)
+    return list(keys.values())

@@ -31,7 +31,12 @@ import numpy as np
 
 from lca_control.controller import validate_controller_params
 from lca_control.parameters import ParameterError
-from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
+from lca_sim.analysis.closed_loop import (
+    ClosedLoop,
+    ClosedLoopConfig,
+    ClosedLoopResult,
+    tracking_window,
+)
 from lca_sim.cli.output import number_cell, write_json, write_table
 from lca_sim.config.loader import (
     config_dir,
@@ -40,7 +45,7 @@ from lca_sim.config.loader import (
     read_yaml,
     resolve,
 )
-from lca_sim.errors import EXIT_OK, ConfigError, run_guarded
+from lca_sim.errors import EXIT_OK, FILE_NOT_FOUND, ConfigError, run_guarded, unknown_key
 from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter, standing_faults
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.simulator_params import validate_simulator_params
@@ -145,7 +150,7 @@ def file_ref(ref: object, home: Path, kind: str, key: str) -> Path:
     if "/" in ref or ref.endswith((".yaml", ".yml")):
         path = Path(ref) if Path(ref).is_absolute() else home.parent / ref
         if not path.is_file():
-            raise ConfigError(str(home), key, f"file not found: {path}")
+            raise ConfigError(str(home), key, f"{FILE_NOT_FOUND}: {path}")
         return path
     return resolve(ref, kind)
 
@@ -173,14 +178,12 @@ def load_run_scenario(name_or_path: str) -> RunScenario:
         raise ConfigError(str(path), "", "expected a closed-loop scenario (a mapping)")
     for key in document:
         if key not in SCENARIO_KEYS:
-            raise ConfigError(
-                str(path), str(key), f"unknown key (valid: {', '.join(SCENARIO_KEYS)})"
-            )
+            raise ConfigError(str(path), str(key), unknown_key(str(key), SCENARIO_KEYS))
     duration = document.get("duration_s")
     if duration is not None and (
         isinstance(duration, bool) or not isinstance(duration, int | float) or not duration > 0
     ):
-        raise ConfigError(str(path), "duration_s", f"expected seconds > 0, got {duration!r}")
+        raise ConfigError(str(path), "duration_s", f"expected a time > 0 s, got {duration!r}")
     kinds = {"controller": "ros", "simulator": "ros", "robot": "robots", "faults": "faults"}
     files = {
         key: file_ref(document[key], path, kind, key)
@@ -253,16 +256,17 @@ def trajectory_rows(result: ClosedLoopResult) -> Iterator[list[str]]:
 
 
 def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -> dict[str, Any]:
-    """summary.json: the run, its speed, and per controller joint its tracking and current."""
-    error = result.tracking_error()
+    """summary.json: the run, its speed, and per controller joint its tracking and current.
+
+    The tracking error is `ClosedLoopResult.velocity_tracking`'s, over `tracking_window_s`.
+    """
     joints: dict[str, Any] = {}
-    for j, joint in enumerate(result.joints):
+    for joint in result.joints:
         a = result.axes.index(joint)
         drive = result.drive_state[:, a]
         changes = np.flatnonzero(drive[1:] != drive[:-1]) + 1
         joints[joint] = {
-            "max_abs_tracking_error": float(np.max(np.abs(error[:, j]))),
-            "rms_tracking_error": float(np.sqrt(np.mean(error[:, j] ** 2))),
+            **result.velocity_tracking(config.controller, joint).figures(),
             "max_abs_current_a": float(np.max(np.abs(result.current_a[:, a]))),
             "start_position": float(result.position[0, a]),
             "end_position": float(result.position[-1, a]),
@@ -290,6 +294,7 @@ def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -
         "commands_rejected": result.commands_rejected,
         "wall_s": wall_s,
         "realtime_factor": duration_s / wall_s if wall_s > 0.0 else math.inf,
+        "tracking_window_s": list(tracking_window(config.controller, duration_s)),
         "joints": joints,
     }
 
@@ -333,6 +338,12 @@ def add_parser(sub: Any) -> None:
         "overrides the scenario's and the simulator config's fault_schedule",
     )
     parser.add_argument("--out", type=Path, default=Path("out/run"), help="output folder")
+    parser.add_argument(
+        "--plot",
+        type=Path,
+        metavar="DIR",
+        help="also draw the trajectory as PNGs into DIR, as lca-plot draws a bag's",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -386,10 +397,19 @@ def _run(args: argparse.Namespace) -> int:
         f"{out / 'trajectory.csv'}, {out / 'summary.json'}"
     )
     for joint, figures in report["joints"].items():
-        if figures["drive_state_changes"] or figures["max_abs_tracking_error"] > 0.0:
+        tracking = result.velocity_tracking(config.controller, joint)
+        if figures["drive_state_changes"] or tracking.max > 0.0:
             print(
-                f"  {joint}: max |velocity error| {figures['max_abs_tracking_error']:.4g}, "
+                f"  {tracking.describe()}; "
                 f"max |current| {figures['max_abs_current_a']:.3g} A, "
                 f"{figures['drive_state_change_count']} drive-state changes"
             )
+    if args.plot is not None:
+        from lca_sim.cli.bagplot import plot_run  # noqa: PLC0415  (matplotlib: when asked)
+
+        plots = plot_run(result, args.plot, f"{PROG} {args.scenario}".strip())
+        for note in plots.notes:
+            print(f"{PROG}: note: {note}")
+        for path in plots.written:
+            print(f"wrote {path}")
     return EXIT_OK

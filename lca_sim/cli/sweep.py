@@ -45,6 +45,7 @@ from lca_sim.analysis.metrics import METRICS
 from lca_sim.analysis.sweep import PointOutcome, PointTask, build_task, run_point
 from lca_sim.analysis.sweep_spec import Documents, SweepSpec, expand_points, parse_spec
 from lca_sim.cli.output import atomic_path, save_png, write_json
+from lca_sim.cli.plotting import metric_label, metric_unit
 from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
 from lca_sim.config.loader import config_dir, read_robot_document, read_yaml, resolve
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
@@ -696,12 +697,14 @@ def plot_sweep(out: Path) -> list[Path]:
     title = Path(record["spec"]).stem
     degrees = set(record["plot"].get("degrees", []))
     for metric in record["metrics"]:
-        name, unit = metric["name"], metric["unit"]
-        fig, ax = plt.subplots(figsize=(7.0, 4.6))
-        label = f"{name} ({unit})"
+        name = metric["name"]
+        scale, unit = metric_unit(metric["unit"], metric.get("axis"), _REFERENCE[record["kind"]])
         if name in degrees:  # plot.degrees: a radian metric drawn in degrees
-            label = f"{name} (deg)"
-            ok = [{**r, name: None if r[name] is None else math.degrees(r[name])} for r in ok]
+            scale, unit = 180.0 / math.pi, "deg"
+        label = metric_label(name, unit)
+        fig, ax = plt.subplots(figsize=(7.0, 4.6))
+        if scale != 1.0:
+            ok = [{**r, name: None if r[name] is None else r[name] * scale} for r in ok]
         if record["sampling"] == "random" or not varying:
             _histogram(ax, [r[name] for r in ok], label, len(rows) - len(ok))
         elif len(varying) == 1:
@@ -714,6 +717,10 @@ def plot_sweep(out: Path) -> list[Path]:
         plt.close(fig)
         written.append(path)
     return written
+
+
+# What the reference of each kind of run is for (the tracking metrics' unit).
+_REFERENCE = {"closed_loop": "velocity", "current_step": "current_a", "open_loop": ""}
 
 
 def _finite(values: Sequence[Any]) -> list[float]:

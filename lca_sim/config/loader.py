@@ -18,7 +18,7 @@ from typing import Any
 import pinocchio as pin
 import yaml
 
-from lca_sim.errors import ConfigError, UnknownNameError
+from lca_sim.errors import FILE_NOT_FOUND, ConfigError, UnknownNameError, file_problem
 from lca_sim.model.faults import ScheduledFault, parse_fault_schedule
 from lca_sim.model.params import RobotParams, parse_robot
 from lca_sim.model.scenario import Scenario, parse_scenario
@@ -54,7 +54,7 @@ def resolve(name_or_path: str, kind: str) -> Path:
     if looks_like_path:
         path = Path(name_or_path)
         if not path.is_file():
-            raise ConfigError(str(path), "", "file not found")
+            raise ConfigError(str(path), "", FILE_NOT_FOUND)
         return path
     path = config_dir() / kind / f"{name_or_path}.yaml"
     if not path.is_file():
@@ -85,7 +85,7 @@ def read_yaml(path: Path) -> Any:
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError(str(path), "", f"cannot read the file ({exc.strerror})") from exc
+        raise ConfigError(str(path), "", file_problem(exc)) from exc
     except UnicodeDecodeError as exc:
         raise ConfigError(str(path), "", f"expected UTF-8 text ({exc.reason})") from exc
     try:
@@ -126,7 +126,7 @@ def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> tuple[Any, Path]
     if "/" in base_ref or base_ref.endswith((".yaml", ".yml")):
         base_path = (path.parent / base_ref).resolve()
         if not base_path.is_file():
-            raise ConfigError(str(path), "base", f"file not found: {base_path}")
+            raise ConfigError(str(path), "base", f"{FILE_NOT_FOUND}: {base_path}")
     else:
         try:
             base_path = resolve(base_ref, "robots")
@@ -173,9 +173,7 @@ def read_robot_document(path: Path) -> tuple[Mapping[str, Any], str]:
     try:
         urdf_xml = urdf_path.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError(
-            str(path), "robot.urdf", f"cannot read {urdf_path} ({exc.strerror})"
-        ) from exc
+        raise ConfigError(str(path), "robot.urdf", file_problem(exc, urdf_path)) from exc
     except UnicodeDecodeError as exc:
         raise ConfigError(str(path), "robot.urdf", f"expected UTF-8 text in {urdf_path}") from exc
     _check_urdf(urdf_xml, str(path), urdf_path)

@@ -10,7 +10,12 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from lca_sim.errors import ConfigError
+from lca_sim.errors import ConfigError, close_key, unknown_key
+
+# How alike an unknown key and a missing required one must be to name it as its misspelling
+# (difflib's ratio: resistence_ohm / resistance_ohm is 0.93). Higher than for a key known to be
+# wrong: the unknown one may still be a valid key that is read later.
+MISSPELLING_CUTOFF = 0.8
 
 
 class MappingReader:
@@ -46,7 +51,10 @@ class MappingReader:
         """The raw value of a required key."""
         self._seen.add(key)
         if key not in self._data:
-            raise ConfigError(self.source, self.key_path(key), "missing required key")
+            unseen = [k for k in self._data if isinstance(k, str) and k not in self._seen]
+            typo = close_key(key, unseen, MISSPELLING_CUTOFF)
+            hint = "" if typo is None else f"; unknown key {typo}; did you mean {key}?"
+            raise ConfigError(self.source, self.key_path(key), f"missing required key{hint}")
         return self._data[key]
 
     def sub(self, key: str) -> MappingReader:
@@ -111,9 +119,8 @@ class MappingReader:
         """Fail on any key that no getter asked for (a misspelling or an unsupported option)."""
         unknown = [k for k in self.key_names() if k not in self._seen]
         if unknown:
-            known = ", ".join(sorted(self._seen)) or "none"
             raise ConfigError(
-                self.source, self.key_path(unknown[0]), f"unknown key (known keys here: {known})"
+                self.source, self.key_path(unknown[0]), unknown_key(unknown[0], self._seen)
             )
 
 

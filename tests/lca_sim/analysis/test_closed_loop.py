@@ -31,6 +31,7 @@ from lca_control import contract as ri
 from lca_control.parameters import ParameterError
 from lca_control.ros.controller_node import ControllerNode
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopResult, stamp_time_s
+from lca_sim.analysis.metrics import Trace
 from lca_sim.cli import hil
 from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import load_robot
@@ -231,7 +232,7 @@ def test_the_loop_refuses_what_the_nodes_could_not_run() -> None:
     controller_values, simulator_values = _values("current", 1.0)
     with pytest.raises(ParameterError, match=r"^command_interface: expected the controller's"):
         closed_loop_config({**controller_values, "command_interface": "voltage"}, simulator_values)
-    with pytest.raises(ParameterError, match=r"^duration_s: expected a whole multiple of dt_s"):
+    with pytest.raises(ParameterError, match=r"^duration_s: expected a time > 0 s, a whole mul"):
         closed_loop_config(controller_values, simulator_values, duration_s=1.00005)
     with pytest.raises(ParameterError, match=r"^velocity_ti_s: expected"):
         closed_loop_config({**controller_values, "velocity_ti_s": -1.0}, simulator_values)
@@ -319,9 +320,10 @@ def test_lca_hil_run_names_a_bad_scenario_key(
     """An unknown key or a missing file: exit 2, one line naming the scenario and the key."""
     scenario = tmp_path / "bad.yaml"
     for doc, message in (
-        ({"duraton_s": 2.0}, "duraton_s: unknown key (valid: description, controller"),
-        ({"controller": "nope.yaml"}, "controller: file not found"),
-        ({"duration_s": -1.0}, "duration_s: expected seconds > 0"),
+        ({"duraton_s": 2.0}, "duraton_s: unknown key duraton_s; did you mean duration_s?"),
+        ({"colour": "red"}, "colour: unknown key colour (valid keys here: controller, desc"),
+        ({"controller": "nope.yaml"}, "controller: file not found: "),
+        ({"duration_s": -1.0}, "duration_s: expected a time > 0 s, got -1.0"),
     ):
         scenario.write_text(yaml.safe_dump(doc), encoding="utf-8")
         code = hil.main(["run", str(scenario), "--out", str(tmp_path / "out")])
@@ -329,3 +331,64 @@ def test_lca_hil_run_names_a_bad_scenario_key(
         assert code == EXIT_BAD_INPUT and len(err) == 1, err
         assert f"{scenario}: {message}" in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--duration-s", "-1"], "duration_s: expected a time > 0 s, a whole multiple of "
+         "dt_s = 0.0001 s, got -1.0"),
+        (["--duration-s", "0.00005"], "duration_s: expected a time > 0 s, a whole multiple of "
+         "dt_s = 0.0001 s, got 5e-05"),
+        (["--controller-config", "missing.yaml"], "missing.yaml: <top level>: file not found"),
+    ],
+)  # fmt: skip
+def test_lca_hil_run_says_the_range_and_one_word_for_a_missing_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    """A duration out of range names the whole range; a missing file reads `file not found`."""
+    code = hil.main(["run", *args, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_BAD_INPUT and len(err) == 1, err
+    assert err[0] == f"lca-hil run: error: {message}", err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_tracking_error_is_one_metric_over_the_profile_span(tmp_path: Path) -> None:
+    """`lca-hil run`'s tracking figures: the library's metric over [ramp start, ramp end)."""
+    from lca_sim.analysis.metrics import MetricArgs, tracking_error_max, tracking_error_rms
+
+    config = closed_loop_config(*_shipped(), duration_s=13.0)
+    result = ClosedLoop(config).run()
+    tracking = result.velocity_tracking(config.controller, "pivot")
+    assert (tracking.unit, tracking.from_s) == ("rad/s", 1.0)
+    assert tracking.to_s == math.nextafter(11.0, 0.0)  # the state at 11 s meets the step to 0
+    # the step down at 11 s (5 deg/s) is out; the breakaway at 1.1 s (0.064 deg/s) is in
+    assert math.degrees(float(np.max(np.abs(result.tracking_error()[:, PIVOT])))) > 4.99
+    assert 0.05 < math.degrees(tracking.max) < 0.08
+    assert 0.0 < tracking.rms < tracking.max
+    trace = _trace(result)
+    args = MetricArgs(axis="pivot", from_s=tracking.from_s, to_s=tracking.to_s)
+    assert tracking.max == tracking_error_max(trace, args)  # the sweeps' metric, to the bit
+    assert tracking.rms == tracking_error_rms(trace, args)
+    out = tmp_path / "run"
+    assert hil.main(["run", "fig15", "--out", str(out)]) == 0
+    summary = support.strict_loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert isinstance(summary, dict)
+    assert summary["tracking_window_s"] == [tracking.from_s, tracking.to_s]
+    pivot = summary["joints"]["pivot"]
+    assert pivot["tracking_error_max_rad_s"] == tracking.max
+    assert pivot["tracking_error_rms_rad_s"] == tracking.rms
+    assert "tracking_error_max_m_s" in summary["joints"]["lift"]  # the prismatic joint's unit
+
+
+def _trace(result: ClosedLoopResult) -> Trace:
+    """The sweeps' trace of a composed run (reference on the controller's joints)."""
+    reference = np.full(result.velocity.shape, math.nan)
+    for j, joint in enumerate(result.joints):
+        reference[:, result.axes.index(joint)] = result.velocity_reference[:, j]
+    limits = tuple((-math.inf, math.inf) for _ in result.axes)
+    return Trace(
+        result.axes, result.state_names, result.time_s, result.position, result.velocity,
+        result.current_a, result.voltage_v, result.drive_state, reference, "velocity", limits,
+    )  # fmt: skip

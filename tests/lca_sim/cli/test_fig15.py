@@ -20,6 +20,7 @@ import support
 from support import strict_loads
 
 from lca_sim.cli.output import REASONS_KEY, strict_json, write_json
+from lca_sim.cli.run import node_parameters
 
 # --- the strict JSON helper ------------------------------------------------------------------
 
@@ -83,21 +84,69 @@ def test_progress_sees_the_simulators_end() -> None:
     ended = status(SIMULATOR_STATUS, DiagnosticStatus.OK, "ended at 3 s", {ENDED_KEY: True})
     progress.on_diagnostics(DiagnosticArray(status=[ended]))
     assert progress.ended and progress.end_message == "ended at 3 s"
-    assert math.isnan(progress.steps_per_s())  # no /clock seen
+    assert math.isnan(progress.steps_per_s(0.004))  # no /clock seen
 
 
 # --- the run over ROS 2 ----------------------------------------------------------------------
 
 
+def test_fig15_says_the_range_before_it_starts_anything(tmp_path: Path) -> None:
+    """A duration out of range: `lca-hil run`'s one line, exit 2, no process, no file."""
+    out = tmp_path / "run"
+    for duration, got in (("-1", "-1.0"), ("1.00005", "1.00005")):
+        result = support.run_tool("lca-hil", "fig15", "--duration-s", duration, "--out", str(out))
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.strip() == (
+            "lca-hil fig15: error: duration_s: expected a time > 0 s, a whole multiple of "
+            f"dt_s = 0.0001 s, got {got}"
+        )
+        assert not out.exists()
+
+
+def test_fig15_runs_the_scenario_that_lca_hil_run_runs(tmp_path: Path) -> None:
+    """The nodes get config/runs/fig15.yaml's params files unchanged; the recorder the reference.
+
+    No initial pose, command interface or control period of fig15's own.
+    """
+    pytest.importorskip("rclpy")
+    from lca_control import contract as ri
+    from lca_sim.cli import fig15
+
+    run = fig15.fig15_run(13.0)
+    argvs = fig15._argvs(tmp_path / "bag", 13.0, run)
+    simulator = " ".join(argvs["simulator"])
+    assert f"--params-file {run.simulator_yaml}" in simulator
+    assert "initial_position" not in simulator and "command_interface" not in simulator
+    assert "control_period_s" not in simulator
+    assert ri.VELOCITY_COMMANDS in argvs["recorder"]
+    expected = node_parameters(run.simulator_yaml, "simulator")["initial_position"]
+    assert list(run.config.initial_position) == expected  # the one file both tools read
+    velocity = fig15.ramp_profile()  # the controller file's ramp, not a copy of it
+    assert velocity(11.0 - 1e-9) == pytest.approx(
+        node_parameters(run.controller_yaml, "controller")["ramp_end_velocity"]
+    )
+
+
 @pytest.mark.slow
-def test_fig15_names_the_simulator_when_it_dies(tmp_path: Path) -> None:
+def test_fig15_names_the_simulator_when_it_dies(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A simulator that refuses its parameters: a one-line error naming it and its log."""
     pytest.importorskip("rclpy")
+    from lca_sim.cli import fig15
+
+    argvs = fig15._argvs
+
+    def refused(bag: Path, duration_s: float, run: fig15.Fig15Run) -> dict[str, list[str]]:
+        commands = argvs(bag, duration_s, run)
+        # not a whole multiple of the model step: the simulator refuses it and exits
+        commands["simulator"] += ["-p", "lockstep_end_s:=1.00005"]
+        return commands
+
+    monkeypatch.setattr(fig15, "_argvs", refused)
     out = tmp_path / "run"
-    # not a whole multiple of the model step: the simulator refuses lockstep_end_s and exits
-    result = support.run_tool("lca-hil", "fig15", "--duration-s", "1.00005", "--out", str(out))
-    assert result.returncode != 0
-    assert "the simulator exited" in result.stderr
-    assert str(out / "simulator.log") in result.stderr
+    assert fig15.run_fig15(out, 1.0) == 1
+    err = capsys.readouterr().err
+    assert "the simulator exited" in err and str(out / "simulator.log") in err
     assert "lockstep_end_s" in (out / "simulator.log").read_text(encoding="utf-8")
     assert not (out / "summary.json").exists()

@@ -163,3 +163,27 @@ def test_a_radian_metric_is_drawn_in_degrees_when_asked(
     ax = figures[0].axes[0]
     np.testing.assert_allclose(ax.lines[0].get_ydata(), np.degrees(0.01 * np.arange(5)))
     assert ax.get_ylabel() == "travel (deg)"
+
+
+def test_sweep_axes_say_deg_and_what_a_flag_means(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """gear_wear's metrics: travel in deg without `_rad`, end_stop_contact as `0 or 1`."""
+    spec = _grid_spec(
+        {"name": "wear", "path": "base.current_kp_v_per_a", "values": KP}, metric="travel"
+    )
+    spec["metrics"] = [
+        {"name": "travel_after_cut_rad", "metric": "travel", "from_s": 0.5},
+        {"name": "end_stop_contact", "metric": "end_stop_contact"},
+    ]
+    rows = [
+        _row(i, wear=kp, travel_after_cut_rad=0.01 * i, end_stop_contact=float(i > 2))
+        for i, kp in enumerate(KP)
+    ]
+    out, figures = _results(tmp_path, spec, rows)
+    _capture(monkeypatch, figures)
+    sweep_cli.plot_sweep(out)
+    travel, contact = (fig.axes[0] for fig in figures)
+    assert travel.get_ylabel() == "travel_after_cut (deg)"
+    np.testing.assert_allclose(travel.lines[0].get_ydata(), np.degrees(0.01 * np.arange(5)))
+    assert contact.get_ylabel() == "end_stop_contact (0 or 1)"

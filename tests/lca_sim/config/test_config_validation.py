@@ -411,7 +411,7 @@ ROBOT_CASES = [
     pytest.param(
         _set(("robot", "urdf"), "no/such/gantry.urdf"),
         "robot.urdf",
-        "cannot read",
+        "file not found: ",
         id="urdf-not-found",
     ),
 ]
@@ -911,7 +911,7 @@ def test_user_robot_urdf_relative_to_the_user_file(tmp_path: Path) -> None:
     )
     with pytest.raises(ConfigError) as info:
         load_robot(str(wrong))
-    _assert_config_error(info.value, wrong, "robot.urdf", "cannot read")
+    _assert_config_error(info.value, wrong, "robot.urdf", "file not found: ")
     assert str(tmp_path / "gantry" / "none.urdf") in info.value.expected
 
 
@@ -986,3 +986,56 @@ def test_bad_rigid_body_period(value: object, expected: str) -> None:
         validate_simulator_params(values)
     assert info.value.name == "rigid_body_period_s"
     assert expected in str(info.value)
+
+
+# --- error texts: a misspelt key beside the missing one, one wording per missing file -------
+
+
+def test_a_misspelt_required_key_is_named_beside_the_missing_one(tmp_path: Path) -> None:
+    """`resistence_ohm` for `resistance_ohm`: the unknown key and what it probably is."""
+
+    def misspell(document: Any) -> None:
+        motor = document["axes"][0]["motor"]
+        motor["resistence_ohm"] = motor.pop("resistance_ohm")
+
+    path = _write_robot(tmp_path, misspell, "typo.yaml")
+    with pytest.raises(ConfigError) as info:
+        load_robot(str(path))
+    _assert_config_error(
+        info.value,
+        path,
+        "axes[0].motor.resistance_ohm",
+        "missing required key; unknown key resistence_ohm; did you mean resistance_ohm?",
+    )
+
+
+def test_a_misspelt_optional_key_gets_its_suggestion() -> None:
+    """An unknown key next to a known one it resembles: `did you mean`; else the known keys."""
+    from lca_sim.model.schema import MappingReader
+
+    reader = MappingReader({"dt_s": 1e-4, "gain_kp": 2.0}, "x.yaml", "ctl")
+    assert reader.number("dt_s") == 1e-4
+    assert reader.number("gain_kv", default=1.0) == 1.0
+    with pytest.raises(ConfigError) as info:
+        reader.finish()
+    assert str(info.value) == "x.yaml: ctl.gain_kp: unknown key gain_kp; did you mean gain_kv?"
+    reader = MappingReader({"dt_s": 1e-4, "colour": "red"}, "x.yaml")
+    reader.number("dt_s")
+    with pytest.raises(ConfigError) as info:
+        reader.finish()
+    assert str(info.value) == "x.yaml: colour: unknown key colour (valid keys here: dt_s)"
+
+
+def test_a_missing_yaml_reads_file_not_found(tmp_path: Path) -> None:
+    """The YAML and params-file readers say a missing file `file not found`, as `resolve` does.
+
+    On the file that names a missing one, `file not found: PATH` (robot.urdf, above).
+    """
+    from lca_sim.cli.run import node_parameters
+    from lca_sim.config.loader import read_yaml
+
+    missing = tmp_path / "missing.yaml"
+    for read in (read_yaml, lambda path: node_parameters(path, "simulator")):
+        with pytest.raises(ConfigError) as info:
+            read(missing)
+        _assert_config_error(info.value, missing, "", "file not found")
