@@ -7,7 +7,6 @@ by an observer node spun in this process (own Context, same domain id) or the su
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import re
 import shutil
@@ -300,9 +299,6 @@ def test_record_executable_records_and_stops_cleanly(
     exe: str, domain_id: int, tmp_path: Path
 ) -> None:
     """The recorder subscribes to the named topic, writes it and closes the bag on SIGINT."""
-    if importlib.util.find_spec("lca_sim.ros.record") is None:
-        pytest.skip("lca_sim/ros/record.py (the lca-record CLI) does not exist yet")
-    pytest.importorskip("rosbags")
     bag = tmp_path / "bag"
     with observer(domain_id) as obs:
         probe = obs.node.create_publisher(String, "exe_probe", 10)

@@ -6,6 +6,11 @@ same stamp, for the currents) yields one command. The period is the difference o
 stamps, never the node clock, so the loop runs on simulated time exactly in lockstep without
 `use_sim_time` (which then only changes the stamps of the controller's diagnostics).
 
+Its plant peer on /diagnostics: before the first state it is waiting (OK "waiting for the
+first plant state", said once in the log at INFO when the wait exceeds `plant_timeout_s`: a
+simulator compiling its model at first start takes seconds); states that came and stop for
+`plant_timeout_s` are a loss (WARN "no plant state for X s", logged as a warning).
+
     lca-controller --ros-args --params-file config/ros/controller.yaml
 """
 
@@ -65,7 +70,7 @@ class ControllerNode(Node):
         self.bad_states = 0
         # Peer watch on the wall clock: /clock (use_sim_time) stops with a lost simulator.
         self._last_state_wall = time.monotonic()
-        self._plant_lost = False
+        self._plant_lost = False  # silent beyond plant_timeout_s (before the first state too)
         self.plant_losses = 0
         self._restarts_logged = 0
         state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -107,11 +112,13 @@ class ControllerNode(Node):
         self._try_step()
 
     def _on_joint_states(self, msg: JointState) -> None:
-        self._joint = msg
         now = time.monotonic()
         if self._plant_lost:
             self._plant_lost = False
-            self.get_logger().info(f"plant states again after {now - self._last_state_wall:.1f} s")
+            waited_s = now - self._last_state_wall
+            again = "plant states again" if self._joint is not None else "first plant state"
+            self.get_logger().info(f"{again} after {waited_s:.1f} s")
+        self._joint = msg
         self._last_state_wall = now
         self._try_step()
 
@@ -193,18 +200,25 @@ class ControllerNode(Node):
             self.core.reset()  # re-enabling starts the integrators from zero
 
     def _plant_health(self) -> tuple[bytes, str]:
-        """The plant peer for /diagnostics: WARN while no state came for plant_timeout_s.
+        """The plant peer for /diagnostics: WARN while states that came stop for plant_timeout_s.
 
-        The loss is logged once when it begins; its end is logged when states return.
+        Before the first state the controller is waiting, which is no fault: OK, said once in
+        the log at INFO once the wait exceeds plant_timeout_s. A loss is logged once when it
+        begins; its end (or the first state after a long wait) when states come.
         """
         silent_s = time.monotonic() - self._last_state_wall
-        if silent_s > self.core.params.plant_timeout_s:
+        late = silent_s > self.core.params.plant_timeout_s
+        first = late and not self._plant_lost
+        self._plant_lost = self._plant_lost or late
+        if self._joint is None:
+            what = f"waiting for the first plant state ({silent_s:.1f} s since start)"
+            if first:
+                self.get_logger().info(f"{what}: is the simulator or CAN bridge running?")
+            return DiagnosticStatus.OK, what
+        if late:
             what = f"no plant state for {silent_s:.1f} s"
-            if self._joint is None:
-                what += " (none since start)"
-            if not self._plant_lost:
-                self._plant_lost = True
-                self.plant_losses += self._joint is not None  # a start-up wait is no loss
+            if first:
+                self.plant_losses += 1
                 self.get_logger().warning(
                     f"{what}: no commands are sent; is the simulator or CAN bridge running?"
                 )

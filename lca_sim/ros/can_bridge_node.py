@@ -89,6 +89,8 @@ if TYPE_CHECKING:
 # More than this share of the cycles sending the previous command again is a WARN.
 LATE_COMMAND_SHARE = 0.05
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
+# How long the master's notifier waits in one receive on the linked virtual bus, s.
+NOTIFIER_POLL_S = 0.05
 # Lockstep: how often the node looks whether to start the loop, re-send a state or give up on
 # an incomplete cycle, s (wall time).
 LOCKSTEP_TICK_S = 0.05
@@ -490,6 +492,11 @@ class CanBridgeNode(LifecycleNode):
         if virtual:
             self._start_rack(p)
         self.network = canopen.Network(bus)
+        if virtual:
+            # Over the link no frame of the rack comes through the queue, so the notifier's
+            # receive would wait its whole poll (canopen's 1 s) before a disconnect ends it,
+            # long enough for the rack's RPDO deadline to fire at shutdown.
+            self.network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
         self.network.connect()
         if isinstance(bus, LinkedVirtualBus) and self.network.notifier is not None:
             # The rack's frames reach the master in the rack's thread, and the master's the
@@ -991,8 +998,10 @@ class CanBridgeNode(LifecycleNode):
         """The controller peer: WARN while the drives are halted for want of commands.
 
         ERROR once the silence has lasted into the quick stop, which holds until ~/enable.
-        Nothing while the drives are not enabled. The loss is logged once when it begins (by
-        the master, with its reaction) and once here when commands return.
+        Nothing while the drives are not enabled. Before the first command ever the bridge
+        waits for its controller, which is no fault: OK with the master's text. The loss is
+        logged once when it begins (by the master, with its reaction) and once here when
+        commands return.
         """
         silence = bridge.command_silence(now)
         if silence is None:
@@ -1001,6 +1010,8 @@ class CanBridgeNode(LifecycleNode):
                 self.get_logger().info("commands again")
             return None
         latched, why = silence
+        if not latched and not bridge.counters.commands_accepted:
+            return DiagnosticStatus.OK, why  # waiting for the controller's first command
         if not self._commands_lost and bridge.counters.commands_accepted:
             self._commands_lost = True
             self._command_losses += 1
@@ -1064,7 +1075,11 @@ class CanBridgeNode(LifecycleNode):
         )
 
     def _lockstep_findings(self, wall_s: float) -> list[tuple[bytes, str]]:
-        """Lockstep: WARN while the loop waits for its start or for the controller."""
+        """Lockstep: OK while its start waits for subscribers, WARN while time stands.
+
+        As the simulator's lockstep: a start waiting for its subscribers is no fault; simulated
+        time standing for want of the controller's answer is.
+        """
         loop = self._loop
         if loop is None or not self._active:
             return []
@@ -1072,7 +1087,7 @@ class CanBridgeNode(LifecycleNode):
             matched = self._plant.joint_pub.get_subscription_count()
             return [
                 (
-                    DiagnosticStatus.WARN,
+                    DiagnosticStatus.OK,
                     f"lockstep: waiting for {self.params.lockstep_subscribers} joint_states "
                     f"subscribers ({matched} so far): simulated time has not started",
                 )
@@ -1129,9 +1144,8 @@ class CanBridgeNode(LifecycleNode):
         ):
             found.append((DiagnosticStatus.WARN, "rejected commands or failed sends"))
         peer = self._command_health(bridge, bridge.now())
-        if peer is not None:
-            found.append(peer)
-        found.extend(self._lockstep_findings(now))
+        _merge_findings(found, [] if peer is None else [peer])
+        _merge_findings(found, self._lockstep_findings(now))
         stall = bridge.cycle_stall()  # no complete cycle: a TPDO lost (latched while enabled)
         if stall and not latched:
             found.append((DiagnosticStatus.WARN, stall))
@@ -1162,6 +1176,19 @@ class CanBridgeNode(LifecycleNode):
             found.append(graph)
         level, message = worst_first(found)
         return status("lca_hil/can_bridge", level, message, values)
+
+
+def _merge_findings(found: list[tuple[bytes, str]], more: list[tuple[bytes, str]]) -> None:
+    """Add findings to a status's list: WARN and above appended, OK ones as its text.
+
+    An OK finding (a wait that is no fault: for the first command, for subscribers) becomes
+    the status's text while nothing worse stands first.
+    """
+    for level, text in more:
+        if level != DiagnosticStatus.OK:
+            found.append((level, text))
+        elif found[0][0] == DiagnosticStatus.OK:
+            found[0] = (level, text)
 
 
 def _latency_values(latencies_s: list[float]) -> dict[str, object]:

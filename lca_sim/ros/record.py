@@ -522,7 +522,10 @@ class BagRecorder:
         transient-local subscription would get the publisher's history again), or a best-effort
         publisher joined a topic subscribed reliable (which would receive nothing from it). The
         new subscription is created before the old one is destroyed, so the switch loses
-        nothing (a message in flight may be recorded twice).
+        nothing (a message in flight may be recorded twice). Settling the guess is the normal
+        start (a note: `/clock` is guessed best-effort before its publisher is known); a
+        best-effort publisher joining later is a warning, since its messages before the
+        switch were not received.
         """
         if rec.subscription is None:
             return
@@ -539,7 +542,8 @@ class BagRecorder:
                 return
         elif not (reliability_changed and wanted.reliability == ReliabilityPolicy.BEST_EFFORT):
             return
-        self._log(
+        say = self._note if first_publishers else self._log
+        say(
             f"{rec.topic}: resubscribing {wanted.reliability.name.lower()}/"
             f"{wanted.durability.name.lower()} to match its publishers"
         )

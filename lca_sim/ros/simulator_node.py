@@ -27,9 +27,15 @@ Faults of the plant itself, on /diagnostics every period:
 
 * per axis, WARN "back-driving: <joint> moving at X rad/s with no command" while an axis moves
   (its motor faster than the state machine's V_eps) with a zero, timed-out or disabled command:
-  a reversible chain (`irreversible_stop: false`) under load; and WARN "end stop hit at X rad/s"
-  while an axis rests at an end stop, X the joint speed of the last published state before the
-  contact (m/s for the lift).
+  a reversible chain (`irreversible_stop: false`) under load; WARN "end stop hit at X rad/s"
+  while an axis rests at an end stop it arrived at with speed, X the joint speed of the last
+  published state before the contact (m/s for the lift); and WARN "<joint> pushing into its
+  lower (upper) end stop" while its motor pushes into one (the drive state `stop_end_stop`).
+  An axis that rests on a stop it never moved into (the lift parked at 0 m, its lower stop, at
+  start or after ~/reset) is OK: "resting on its lower end stop".
+* the controller peer: WARN while commands that came have stopped (below); before the first
+  command (and in lockstep before the subscribers match) the simulator is waiting, not
+  faulty: OK "waiting for the first command: ...".
 * ERROR "another node publishes joint_states: /other_node" while another node (or a second node
   of the same name) publishes one of the plant's state topics: two simulators, or a simulator
   and a bridge, on one ROS domain. Checked in the ROS graph every diagnostics period.
@@ -151,6 +157,7 @@ class SimulatorNode(Node):
         self._time_base_s = 0.0 if self._lockstep else time.time()
         self._started = not self._lockstep
         self._last_command_wall = time.monotonic()
+        self._commanded = False  # a command came since start (before it: waiting, no loss)
         self._last_publish_wall = time.monotonic()
         self._wall_start = time.monotonic()  # moved on by the time skipped after a stall
         self._wall_origin = self._wall_start
@@ -356,6 +363,7 @@ class SimulatorNode(Node):
                 return
             # In lockstep the loop must go on: the last good command stays in force.
         self._last_command_wall = time.monotonic()
+        self._commanded = True
         if self._lockstep and self._started:
             if self._paused:
                 self._paused_command()
@@ -581,16 +589,18 @@ class SimulatorNode(Node):
         )
 
     def _command_health(self, command_age_s: float) -> tuple[bytes, str] | None:
-        """The controller peer: a WARN while commands are missing, else None.
+        """The controller peer: a WARN while commands that came are missing, else OK or None.
 
         Realtime: silence beyond command_timeout_s (the plant is at 0 V then). Lockstep: no
-        command for lockstep_resend_s (simulated time stands still), or the start still
-        waiting for its subscribers. A loss is logged once when it begins and once when it ends.
+        command for lockstep_resend_s (simulated time stands still). Before the first command,
+        and in lockstep while the start waits for its subscribers, nothing is lost yet: OK,
+        saying what the simulator waits for. A loss is logged once when it begins and once
+        when it ends.
         """
         p = self.params
         if self._lockstep and not self._started:
             matched = self._plant.joint_pub.get_subscription_count()
-            return DiagnosticStatus.WARN, (
+            return DiagnosticStatus.OK, (
                 f"waiting for {p.lockstep_subscribers} joint_states subscribers "
                 f"({matched} so far): simulated time has not started"
             )
@@ -604,6 +614,8 @@ class SimulatorNode(Node):
             what = "simulated time paused, the last state is re-sent"
         else:
             what = "holding (0 V)" if self._irreversible else "0 V, reversible gear (not held)"
+        if not self._commanded:
+            return DiagnosticStatus.OK, f"waiting for the first command: {what}"
         message = f"no command for {command_age_s:.1f} s: {what}"
         if not self._commands_lost:
             self._commands_lost = True
@@ -655,7 +667,7 @@ class SimulatorNode(Node):
         ended = self.ended  # no commands are wanted any more: not a peer problem
         # Paused, no command is due: silence then is no peer problem either.
         peer = None if ended or self._paused else self._command_health(command_age_s)
-        if peer is not None:
+        if peer is not None and (peer[0] != DiagnosticStatus.OK or level == DiagnosticStatus.OK):
             level, message = peer
         if self._paused:
             message = f"paused at {self.sim_time_s:g} s"
@@ -711,7 +723,11 @@ class SimulatorNode(Node):
         self._plant.publish_diagnostics(array)
 
     def _axis_status(self, a: int, name: str) -> DiagnosticStatus:
-        """One axis: its drive state, or WARN at an end stop or back-driven without command."""
+        """One axis: its drive state, or WARN at an end stop or back-driven without command.
+
+        At an end stop: WARN while the motor pushes into it or after an arrival with speed (a
+        hit); OK while it rests there having never moved into it (a pose at start or reset).
+        """
         signals = self.sim.signal_array
         drive_state = self.sim.state_names[int(self.sim.mode_array[1, a])]
         velocity = float(self.sim.state_array[1, a])
@@ -726,8 +742,18 @@ class SimulatorNode(Node):
             fault = f"injected: {self.faults.describe(name)}"
             message = fault + (" (I2t trip: torque off, latched)" if tripped else "")
         elif self._at_limit()[a]:
-            level, fault = DiagnosticStatus.WARN, "at end stop"
-            message = f"end stop hit at {self._contact_speed[a]:.3g} {unit}"
+            side = "upper" if self._q[a] >= self._position_max[a] else "lower"
+            hit = f"end stop hit at {self._contact_speed[a]:.3g} {unit}"
+            if self._drive[a] == self._end_stop_code:
+                level, fault = DiagnosticStatus.WARN, "pushing into end stop"
+                message = f"{name} pushing into its {side} end stop"
+                if self._contact_speed[a] > 0.0:
+                    message += f" ({hit})"
+            elif self._contact_speed[a] > 0.0:
+                level, fault = DiagnosticStatus.WARN, "at end stop"
+                message = hit
+            else:  # parked there, never driven into it: no fault
+                message = f"{drive_state}: resting on its {side} end stop"
         elif moving and uncommanded:
             level, fault = DiagnosticStatus.WARN, "back-driving"
             message = f"back-driving: {name} moving at {abs(velocity):.3g} {unit} with no command"
@@ -776,14 +802,15 @@ class SimulatorNode(Node):
         (the stamps follow the wall clock). Returns the reply's success and message.
         """
         pose = list(self.params.initial_position)
+        # A pose at a stop after the reset is parked there, not a hit.
+        self._moving_speed[:] = 0.0
+        self._contact_speed[:] = 0.0
+        self._at_end_stop[:] = False
         if not self._lockstep:
             self._reset_pose()
             return True, f"reset to {pose} at {self.sim_time_s:.4f} s (time goes on)"
         rewind = self._steps_done > 0
         self._reset_pose(keep_command=not rewind)
-        self._moving_speed[:] = 0.0
-        self._contact_speed[:] = 0.0
-        self._at_end_stop[:] = False
         if rewind:
             self._steps_done = 0
             self._pending = False

@@ -38,7 +38,7 @@ from lca_control.contract import (
     MOTOR_STATES,
     VELOCITY_COMMANDS,
 )
-from lca_sim.cli import bagplot
+from lca_sim.cli import bagplot, plotting
 from lca_sim.ros.record import BagRecorder
 
 if TYPE_CHECKING:  # imported by pytest as a plugin (below), so its asserts are rewritten
@@ -161,14 +161,10 @@ def test_unmoved_axes_are_left_out_unless_asked(
     assert "left out" not in capsys.readouterr().err
 
 
-def test_end_stop_warn_of_the_run_is_a_band_on_its_joint(ramp_bag: Path) -> None:
-    """The lift rests on its lower end stop: the simulator's WARN is a band on the lift."""
-    bands = bagplot.fault_bands(bagplot.read_bag(ramp_bag))
-    lift = [b for b in bands if b.joint == "lift"]
-    assert lift, bands
-    assert lift[0].status == "lca_hil/simulator/lift"
-    assert lift[0].level_name == "WARN"
-    assert lift[0].message.startswith("end stop hit")
+def test_a_healthy_run_has_no_fault_band(ramp_bag: Path) -> None:
+    """The lift parked on its lower end stop is no fault: the healthy ramp shows no band."""
+    data = bagplot.read_bag(ramp_bag)
+    assert bagplot.fault_bands(data) == []
 
 
 def write_warn_bag(path: Path, n: int = 100) -> None:
@@ -676,3 +672,80 @@ def test_layout_checks_catch_a_joint_or_topic_the_bag_lacks(bag_sample: BagSampl
         assert wrong in json_text, wrong
         problems = foxglove_problems(json.loads(json_text.replace(wrong, changed, 1)), bag_sample)
         assert any(said in p for p in problems), (changed, problems)
+
+
+# --- the figures of the ramp, read back from matplotlib's artists ------------------------------
+
+
+def _rendered(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    """Keep every figure lca-plot saves (drawn, by file name), its renderer as `_test_renderer`."""
+    figures: dict[str, Any] = {}
+
+    def keep(fig: Any, path: Path) -> None:
+        fig.tight_layout()  # as save_png lays it out
+        fig.canvas.draw()
+        fig._test_renderer = fig.canvas.get_renderer()  # pyplot's close drops the Agg canvas
+        figures[path.name] = fig
+
+    monkeypatch.setattr(bagplot, "save_png", keep)
+    return figures
+
+
+def test_ramp_figures_draw_the_reference_and_labels_that_do_not_overlap(
+    ramp_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The main job's figures: the reference beside the velocity, one label per readable gap."""
+    figures = _rendered(monkeypatch)
+    data = bagplot.read_bag(ramp_bag)
+    bagplot.write_plots(data, tmp_path, "ramp")
+    assert set(figures) == {
+        "positions.png", "velocities.png", "currents.png", "drive_states.png", "efficiencies.png"
+    }  # fmt: skip
+    (velocity,) = figures["velocities.png"].axes
+    reference = next(
+        line for line in velocity.lines if line.get_label() == f"{VELOCITY_COMMANDS} (reference)"
+    )
+    ramp = np.asarray(reference.get_ydata(), dtype=float)
+    assert max(ramp) == pytest.approx(5.0, abs=RAMP_DEG_S2 * PERIOD_S + 1e-9)  # deg/s
+    assert velocity.get_ylabel() == "pivot velocity (deg/s)"
+    changes = bagplot.drive_state_changes(data)["pivot"]
+    fast = [c for c in changes if RAMP_END_S <= c.time_s < RAMP_END_S + 0.1]
+    assert len(fast) >= 3  # the stop at 11 s: several changes within 0.1 s
+    for name, fig in figures.items():
+        renderer = fig._test_renderer
+        for panel in fig.axes:
+            labels = [t for t in panel.texts if t.get_gid() == bagplot.STATE_LABEL_GID]
+            boxes = [t.get_window_extent(renderer) for t in labels]
+            assert 2 <= len(boxes) < len(changes), name
+            for i, a in enumerate(boxes):
+                for b in boxes[i + 1 :]:
+                    assert not a.overlaps(b), (name, a, b)
+            legend = panel.get_legend()
+            assert legend is not None, name
+            assert not any(box.overlaps(legend.get_window_extent(renderer)) for box in boxes)
+            assert panel.get_xlim() == figures["positions.png"].axes[0].get_xlim(), name
+    texts = [t.get_text() for t in figures["drive_states.png"].axes[0].texts]
+    assert any("changes in" in t and "ms ->" in t for t in texts), texts
+
+
+def test_the_braking_spike_is_clipped_and_marked(
+    ramp_bag: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """currents.png: the y range holds the ramp's 0-2.5 A; the stop's -20 A peak is marked."""
+    figures = _rendered(monkeypatch)
+    data = bagplot.read_bag(ramp_bag)
+    plots = bagplot.write_plots(data, tmp_path, "ramp")
+    current = np.asarray(data.motors["pivot"].values["effort"])
+    assert current.min() < -15.0  # the velocity loop brakes at its limit at 11 s
+    (panel,) = figures["currents.png"].axes
+    low, high = panel.get_ylim()
+    ramp = current[(np.asarray(data.motors["pivot"].time_s) > 2.0) & (current > 0.0)]
+    assert low > -5.0 and high < 5.0 and high > ramp.max()
+    (marker,) = [line for line in panel.lines if line.get_gid() == plotting.CLIPPED_GID]
+    assert set(np.asarray(marker.get_ydata(), dtype=float)) == {low}
+    assert f"min {current.min():.3g} A" in str(marker.get_label())
+    (side,) = plots.clipped["currents.png:pivot"]
+    assert side.extreme == pytest.approx(current.min())
+    assert RAMP_END_S <= side.time < RAMP_END_S + 0.1
+    assert any(f"{current.min():.3g} A at" in t.get_text() for t in panel.texts)
+    assert "currents.png:pivot" in plots.clipped and "velocities.png:pivot" not in plots.clipped

@@ -62,14 +62,16 @@ def _enabled(bridge: CanBridgeNode) -> bool:
 
 
 def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> None:
-    """WARN "halted" after command_timeout_s, OK again on commands, ERROR at the quick stop."""
+    """OK waiting, WARN "halted" after command_timeout_s, OK on commands, ERROR at quick stop."""
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
         probe = Diagnostics(ctx, executor)
         commands = probe.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
         try:
             spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
-            probe.wait_for(BRIDGE, WARN, "enabled, waiting for the first command")
+            # waiting for its controller is no fault: OK, saying what it waits for
+            probe.wait_for(BRIDGE, OK, "enabled, waiting for the first command")
+            assert probe.value(BRIDGE, "command_losses") == "0"
 
             def commanding(until: str, level: bytes) -> None:
                 def step() -> None:

@@ -110,8 +110,7 @@ def tool_env(domain_id: int) -> dict[str, str]:
 def tool(name: str) -> str:
     """Path of an installed console script of lca_hil (next to the venv's python)."""
     path = BIN / name
-    if not path.exists():
-        pytest.skip(f"{name} is not installed (pip install -e .)")
+    assert path.exists(), f"{name} is not installed next to {sys.executable} (pip install -e .)"
     return str(path)
 
 
