@@ -37,6 +37,7 @@ class ConfigError(LcaHilError):
 # One wording per kind of failure, in every tool: a file that is not there, one that cannot be
 # read, a key that is not one, a number out of its range.
 FILE_NOT_FOUND = "file not found"
+FOLDER_NOT_FOUND = "folder not found"
 
 
 def file_problem(exc: OSError, path: object = None) -> str:

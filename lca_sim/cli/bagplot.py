@@ -80,7 +80,7 @@ from lca_control.contract import (
 )
 from lca_sim.cli.output import save_png
 from lca_sim.cli.plotting import Clipped, clip_spikes, joint_unit, label_gap, merge_events
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, FOLDER_NOT_FOUND
 from lca_sim.model.state_machine import StopState
 
 if TYPE_CHECKING:
@@ -330,7 +330,7 @@ def read_bag(path: Path, namespace: str = "/", time_base: str = "auto") -> BagDa
     for name in REFERENCE_TOPICS:
         wanted[_topic_name(namespace, name)] = name
     if not path.is_dir():
-        raise BagReadError(f"bag {path}: no such folder")
+        raise BagReadError(f"bag {path}: {FOLDER_NOT_FOUND}")
     if not (path / "metadata.yaml").is_file():
         if any(path.glob("*.mcap")):  # what a recorder killed before it closed leaves behind
             raise BagReadError(

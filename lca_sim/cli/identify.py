@@ -48,7 +48,14 @@ from lca_sim.analysis.identify import (
 )
 from lca_sim.cli.output import atomic_path
 from lca_sim.config.loader import load_robot
-from lca_sim.errors import EXIT_OK, LcaHilError, OutputError, UnknownNameError, run_guarded
+from lca_sim.errors import (
+    EXIT_OK,
+    FILE_NOT_FOUND,
+    LcaHilError,
+    OutputError,
+    UnknownNameError,
+    run_guarded,
+)
 from lca_sim.model.params import AxisParams, RobotParams
 from lca_sim.model.state_machine import Efficiency, MotionState
 
@@ -139,7 +146,7 @@ def _run(args: argparse.Namespace) -> int:
     elif source.is_file():
         record = read_csv_record(source, robot, args.axis)
     else:
-        raise InputFileError(f"{source}: no such file or folder")
+        raise InputFileError(f"{source}: {FILE_NOT_FOUND} (nor a folder)")
     try:
         result = identify(robot, args.axis, record, options)
     except IdentificationError as exc:

@@ -35,7 +35,7 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, LcaHilError
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, FOLDER_NOT_FOUND, LcaHilError
 from lca_sim.ros.tool_args import record_parser
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -227,7 +227,7 @@ def find_mcap(bag: Path) -> Path:
         BagRecoveryError: No folder, or not exactly one `.mcap` file in it.
     """
     if not bag.is_dir():
-        raise BagRecoveryError(f"bag {bag}: no such folder")
+        raise BagRecoveryError(f"bag {bag}: {FOLDER_NOT_FOUND}")
     files = sorted(p for p in bag.glob("*.mcap") if p.is_file())
     if len(files) != 1:
         found = ", ".join(p.name for p in files) or "none"

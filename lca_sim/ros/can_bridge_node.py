@@ -67,7 +67,7 @@ from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CST, PowerState
 from lca_sim.cia402.master import bus_load_pct
 from lca_sim.config.loader import config_dir, load_robot
-from lca_sim.errors import USER_ERRORS, ConfigError
+from lca_sim.errors import FILE_NOT_FOUND, USER_ERRORS, ConfigError
 from lca_sim.ros.can_bridge_params import (
     CAN_BRIDGE_PARAMETERS,
     CanBridgeNodeParams,
@@ -243,7 +243,7 @@ class CanBridgeNode(LifecycleNode):
         self._robot = load_robot(p.robot)
         self._eds = Path(p.eds) if p.eds else config_dir() / "can" / "lca_drive.eds"
         if not self._eds.is_file():
-            raise ConfigError("parameters", "eds", f"no such file: {self._eds}")
+            raise ConfigError("parameters", "eds", f"{FILE_NOT_FOUND}: {self._eds}")
         axes = {a.name: a for a in self._robot.axes}
         self._torque_constants = np.array(
             [axes[j].motor.torque_constant_nm_per_a for j in p.joints], dtype=np.float64

@@ -552,7 +552,7 @@ def _bad_inputs(tmp: Path) -> dict[str, tuple[Path, str]]:
         "too short": (_write_rows(tmp / "c.csv", [header, good]), "expected at least 3 samples"),
         "blank line": (_write_rows(tmp / "d.csv", []), "missing column"),
         "empty": (_write_empty(tmp / "e.csv"), "empty file, expected a result.csv header"),
-        "no such file": (tmp / "nope.csv", "no such file or folder"),
+        "no such file": (tmp / "nope.csv", "file not found (nor a folder)"),
         "not a bag": (tmp / "folder", "not a rosbag2 bag (no metadata.yaml)"),
         "binary": (tmp / "binary.csv", "expected UTF-8 text"),
     }

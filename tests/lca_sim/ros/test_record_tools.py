@@ -662,6 +662,6 @@ def test_plot_script_bad_path(tmp_path: Path) -> None:
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
-        f"lca-plot: error: bag {tmp_path / 'no_bag'}: no such folder"
+        f"lca-plot: error: bag {tmp_path / 'no_bag'}: folder not found"
     ]
     assert proc.stdout == ""
