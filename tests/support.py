@@ -10,11 +10,13 @@ import itertools
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -293,3 +295,43 @@ class Diagnostics:
         """A value of the latest status of `name`."""
         values: dict[str, str] = {kv.key: kv.value for kv in self.latest[name].values}
         return values[key]
+
+
+@dataclass
+class NodeProcess:
+    """A node's console script with its shipped params file, its output in `log`."""
+
+    name: str
+    proc: subprocess.Popen[bytes]
+    log: Path
+
+    def check_alive(self) -> None:
+        """Fail with its log's tail if it exited."""
+        if self.proc.poll() is not None:
+            tail = self.log.read_text(encoding="utf-8", errors="replace")[-2000:]
+            raise AssertionError(f"{self.name} exited {self.proc.returncode}: {tail}")
+
+    def stop(self) -> int:
+        """SIGINT as Ctrl-C would, then its exit code (killed after a bounded wait)."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+        try:
+            return self.proc.wait(20.0)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            return self.proc.wait(20.0)
+
+
+def start_shipped(script: str, params: str, domain_id: int, out: Path) -> NodeProcess:
+    """`script --ros-args --params-file config/ros/<params>` in its own session."""
+    log = out / f"{script}.log"
+    argv = [str(BIN / script), "--ros-args", "--params-file", str(CONFIG / "ros" / params)]
+    proc = subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        env={**ros_env(domain_id), "PYTHONUNBUFFERED": "1"},
+        stdout=log.open("wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    return NodeProcess(script, proc, log)

@@ -14,9 +14,6 @@
 from __future__ import annotations
 
 import math
-import os
-import signal
-import subprocess
 from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +27,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from support import BIN, CONFIG, ROOT, ros_env, wait_until
+from support import CONFIG, start_shipped, wait_until
 
 from lca_control import contract as ri
 from lca_control.profiles import RampProfile
@@ -124,28 +121,6 @@ class SwapRun:
         return next(t for t in self.transitions if t[0] > from_s and t[1].startswith(load_drives))
 
 
-def _start(argv: list[str], log: Path) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        env={**ros_env(DOMAIN_ID), "PYTHONUNBUFFERED": "1"},
-        stdout=log.open("wb"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> int:
-    """SIGINT as Ctrl-C would, then its exit code (killed after a bounded wait)."""
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)
-    try:
-        return proc.wait(20.0)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        return proc.wait(20.0)
-
-
 def test_the_readme_swap_tracks_the_ramp_and_switches_near_55_deg(tmp_path: Path) -> None:
     """The README's two commands, shipped files unchanged: physics with no watchdog fired."""
     ramp = _ramp()
@@ -156,11 +131,7 @@ def test_the_readme_swap_tracks_the_ramp_and_switches_near_55_deg(tmp_path: Path
     probe = Node("swap_probe", context=ctx)
     run.listen(probe)
     executor.add_node(probe)
-    params = ["--ros-args", "--params-file"]
-    bridge = _start(
-        [str(BIN / "lca-can-bridge"), *params, str(CONFIG / "ros" / "can_bridge.yaml")],
-        tmp_path / "bridge.log",
-    )
+    bridge = start_shipped("lca-can-bridge", "can_bridge.yaml", DOMAIN_ID, tmp_path)
     controller = None
     try:
         wait_until(
@@ -168,19 +139,16 @@ def test_the_readme_swap_tracks_the_ramp_and_switches_near_55_deg(tmp_path: Path
             "the bridge active (its /diagnostics)",
             timeout_s=120.0,
             step=lambda: executor.spin_once(timeout_sec=0.05),
-            check=lambda: _alive(bridge, tmp_path / "bridge.log"),
+            check=bridge.check_alive,
         )
-        controller = _start(
-            [str(BIN / "lca-controller"), *params, str(CONFIG / "ros" / "controller.yaml")],
-            tmp_path / "controller.log",
-        )
+        controller = start_shipped("lca-controller", "controller.yaml", DOMAIN_ID, tmp_path)
         end_s = ramp.start_s + ramp.ramp_s + 0.5
         wait_until(
             lambda: len(run.stamp_s) > 1 and run.stamp_s[-1] - run.first_answered_s > end_s,
             f"{end_s} s of the ramp over CAN",
             timeout_s=120.0,
             step=lambda: executor.spin_once(timeout_sec=0.05),
-            check=lambda: _alive(bridge, tmp_path / "bridge.log"),
+            check=bridge.check_alive,
         )
         wait_until(  # one more report, with the counters of the whole run
             lambda: (
@@ -193,7 +161,7 @@ def test_the_readme_swap_tracks_the_ramp_and_switches_near_55_deg(tmp_path: Path
             step=lambda: executor.spin_once(timeout_sec=0.05),
         )
     finally:
-        codes = [_stop(p) for p in (controller, bridge) if p is not None]
+        codes = [p.stop() for p in (controller, bridge) if p is not None]
         executor.shutdown()
         probe.destroy_node()
         rclpy.shutdown(context=ctx)
@@ -216,11 +184,6 @@ def test_the_readme_swap_tracks_the_ramp_and_switches_near_55_deg(tmp_path: Path
     assert len(errors) > 0.8 * (TRACKING_TO_S - TRACKING_FROM_S) * float(c["cycle_hz"]), figures
     assert math.degrees(max(errors)) < 0.5, figures  # deg/s
     assert math.degrees(switch[2]) == pytest.approx(55.0, abs=1.0), figures
-
-
-def _alive(proc: subprocess.Popen[bytes], log: Path) -> None:
-    if proc.poll() is not None:
-        pytest.fail(f"exited {proc.returncode}: {log.read_text()[-2000:]}")
 
 
 def test_the_same_controller_drives_a_csv_axis_through_its_velocity_commands(

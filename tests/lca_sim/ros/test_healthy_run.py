@@ -13,10 +13,7 @@ end-stop report itself: a lift parked on its lower stop is OK, one driven into i
 from __future__ import annotations
 
 import math
-import os
 import re
-import signal
-import subprocess
 import time
 from collections import defaultdict
 from collections.abc import Iterator
@@ -32,14 +29,11 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from support import (
-    BIN,
-    CONFIG,
     LOCKSTEP_SIMULATOR,
-    ROOT,
     Diagnostics,
     ros_context_on,
-    ros_env,
     spin_until,
+    start_shipped,
     start_simulator,
     wait_until,
 )
@@ -123,46 +117,6 @@ def probe_on(domain_id: int) -> Iterator[tuple[HealthProbe, SingleThreadedExecut
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=ctx)
-
-
-@dataclass
-class NodeProcess:
-    """A node's console script with its shipped params file, its output in `log`."""
-
-    name: str
-    proc: subprocess.Popen[bytes]
-    log: Path
-
-    def check_alive(self) -> None:
-        """Fail with its log's tail if it exited."""
-        if self.proc.poll() is not None:
-            tail = self.log.read_text(encoding="utf-8", errors="replace")[-2000:]
-            raise AssertionError(f"{self.name} exited {self.proc.returncode}: {tail}")
-
-    def stop(self) -> int:
-        """SIGINT as Ctrl-C would, then its exit code (killed after a bounded wait)."""
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGINT)
-        try:
-            return self.proc.wait(20.0)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            return self.proc.wait(20.0)
-
-
-def start_shipped(script: str, params: str, domain_id: int, out: Path) -> NodeProcess:
-    """`script --ros-args --params-file config/ros/<params>` in its own session."""
-    log = out / f"{script}.log"
-    argv = [str(BIN / script), "--ros-args", "--params-file", str(CONFIG / "ros" / params)]
-    proc = subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        env={**ros_env(domain_id), "PYTHONUNBUFFERED": "1"},
-        stdout=log.open("wb"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    return NodeProcess(script, proc, log)
 
 
 def run_healthy(
