@@ -160,6 +160,7 @@ class SimulatorNode(Node):
         self._commanded = False  # a command came since start (before it: waiting, no loss)
         self._last_publish_wall = time.monotonic()
         self._wall_start = time.monotonic()  # moved on by the time skipped after a stall
+        self._wall_clock_started = self._lockstep  # realtime: at the first tick
         self._wall_origin = self._wall_start
         self._window_wall = self._wall_start  # the last diagnostics period: wall, steps, skipped
         self._window_steps = 0
@@ -416,7 +417,23 @@ class SimulatorNode(Node):
 
     # --- stepping ------------------------------------------------------------------------
 
+    def _start_wall_clock(self) -> None:
+        """Realtime: simulated time starts now, at the first tick of the running node.
+
+        Not at construction: between it and the first tick the process settles its heap (a
+        full collection, 0.1-0.6 s on a 2-core host still starting its peers) and the executor
+        comes up, and that time counted as a stall of the first diagnostics period (a WARN
+        on every healthy start).
+        """
+        now = time.monotonic()
+        self._time_base_s = time.time() - self._steps_done * self.params.dt_s
+        self._wall_start = self._wall_origin = self._window_wall = now
+        self._last_command_wall = self._last_publish_wall = now
+        self._wall_clock_started = True
+
     def _realtime_tick(self) -> None:
+        if not self._wall_clock_started:
+            self._start_wall_clock()
         if self._paused:
             return  # simulated time stands; the plant holds its state exactly
         p = self.params
@@ -442,6 +459,8 @@ class SimulatorNode(Node):
         they report, so a stall shows in the period it happened, even when the diagnostics
         timer runs before the next tick after it.
         """
+        if not self._wall_clock_started:
+            return 0  # simulated time starts at the first tick
         p = self.params
         factor = p.realtime_factor
         due = round((time.monotonic() - self._wall_start) * factor / p.dt_s) - self._steps_done

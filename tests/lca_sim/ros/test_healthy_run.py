@@ -31,6 +31,7 @@ from std_msgs.msg import Float64MultiArray
 from support import (
     LOCKSTEP_SIMULATOR,
     Diagnostics,
+    parameters,
     ros_context_on,
     spin_until,
     start_shipped,
@@ -259,3 +260,32 @@ def test_a_lift_parked_on_its_stop_is_ok_and_one_driven_into_it_is_not() -> None
         assert sim.reset()[0]
         diagnostics.clear()
         diagnostics.wait_for(LIFT_STATUS, DiagnosticStatus.OK, "resting on its lower", 30.0)
+
+
+SLOW_START_DOMAIN_ID = 229
+
+
+def test_simulated_time_starts_at_the_first_tick_not_at_construction() -> None:
+    """A realtime simulator that comes up slowly has no stall to report.
+
+    Between construction and the first tick a node settles its heap and its executor comes
+    up: 0.1-0.6 s on a 2-core host starting its peers. That gap counted as skipped time, a
+    "stalled" WARN on the first diagnostics of a healthy start (seen in a fresh-clone run).
+    Here the node waits 0.3 s before it first spins.
+    """
+    from lca_sim.ros.simulator_node import SimulatorNode
+
+    with ros_context_on(SLOW_START_DOMAIN_ID) as (ctx, executor):
+        sim = SimulatorNode(context=ctx, parameter_overrides=parameters(timing_mode="realtime"))
+        gap_end_s = time.monotonic() + 0.3
+        wait_until(lambda: time.monotonic() > gap_end_s, "the start-up gap")
+        first_tick_wall_s = time.time()
+        executor.add_node(sim)
+        try:
+            spin_until(executor, lambda: sim.steps >= 250, "25 ms of simulated time")
+            assert sim._overrun_steps == 0  # nothing skipped: the gap was before the clock
+            # The first state is stamped at the first tick, not 0.3 s before it.
+            assert sim.sim_time_s - sim.steps * 1e-4 >= first_tick_wall_s - 0.01
+        finally:
+            executor.remove_node(sim)
+            sim.destroy_node()
