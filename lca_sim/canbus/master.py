@@ -39,6 +39,7 @@ from canopen.sdo.base import SdoArray, SdoRecord
 from canopen.sdo.client import SdoClient
 
 from lca_sim.canbus import emcy
+from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import codec
 from lca_sim.cia402 import master as cm
 from lca_sim.cia402 import objects as od
@@ -972,12 +973,16 @@ class Cia402Master:
             self.counters.cycles += 1
             self._sync_wall_s = self._stamp_clock()
             self._sync_mono_s = time.monotonic()
-        for cob_id, data in frames:
-            self._send(cob_id, data)
-        self._send(SYNC_COB_ID, b"")
-        if now >= self._next_heartbeat_t:
-            self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
-            self._send(HEARTBEAT_BASE + p.master_node_id, bytes([NMT_OPERATIONAL_CODE]))
+        try:
+            with batched_sends(self.network.bus):  # over lca_remote: one write for the cycle
+                for cob_id, data in frames:
+                    self._send(cob_id, data)
+                self._send(SYNC_COB_ID, b"")
+                if now >= self._next_heartbeat_t:
+                    self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
+                    self._send(HEARTBEAT_BASE + p.master_node_id, bytes([NMT_OPERATIONAL_CODE]))
+        except can.CanError as exc:  # the batch's one write failed
+            self._send_failed(exc)
 
     def _discount_freeze(self, frozen_s: float, now: float) -> None:
         """Move the silence deadlines on by `frozen_s`: this process stood still, not the others.
@@ -1131,18 +1136,22 @@ class Cia402Master:
         try:
             self.network.send_message(cob_id, data)
         except can.CanError as exc:
-            self.counters.send_failures += 1
-            self._send_failures_in_row += 1
-            in_row = self._send_failures_in_row
-            if in_row >= self.params.max_send_failures:
-                if not self._failure_halt:
-                    log.error("%d failed sends in a row: halt (%s)", in_row, exc)
-                self._failure_halt = True
+            self._send_failed(exc)
             return
         self._send_failures_in_row = 0
         self.counters.frames_sent += 1
         self.counters.bits_sent += cm.frame_bits(len(data))
         self.counters.nominal_bits += cm.frame_bits_nominal(len(data))
+
+    def _send_failed(self, exc: can.CanError) -> None:
+        """Count a failed send; `max_send_failures` of them in a row halt the axes."""
+        self.counters.send_failures += 1
+        self._send_failures_in_row += 1
+        in_row = self._send_failures_in_row
+        if in_row >= self.params.max_send_failures:
+            if not self._failure_halt:
+                log.error("%d failed sends in a row: halt (%s)", in_row, exc)
+            self._failure_halt = True
 
     # --- inspection ----------------------------------------------------------------------
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import hashlib
 import json
 import logging
@@ -53,7 +54,7 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from types import FrameType
 from typing import Any
@@ -240,6 +241,7 @@ class RemoteTransportBus(can.BusABC):
         self._buf = bytearray()
         self._pending: list[tuple[int, bytes]] = []
         self._send_lock = threading.Lock()
+        self._batch: bytearray | None = None  # frames held for one write (`batch`)
         self._closed = False
         self.errors_from_server = 0
         self.channel_info = f"{protocol.channel_info}"
@@ -259,9 +261,36 @@ class RemoteTransportBus(can.BusABC):
             with self._send_lock:
                 if self._closed:
                     raise can.CanOperationError(f"{self.url}: bus is shut down")
+                if self._batch is not None:
+                    self._batch += data
+                    return
                 self._sock.sendall(data)
         except OSError as exc:
             raise can.CanOperationError(f"{self.url}: send failed: {exc}") from exc
+
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[None]:
+        """Hold the frames sent meanwhile (by any thread) and write them at the end, in order.
+
+        A cycle's frames (a drive's TPDOs after a SYNC, a master's RPDOs and SYNC) then cross
+        the socket and the relay in one write and one wake-up instead of one each. Nested
+        batches write at the outermost end.
+        """
+        with self._send_lock:
+            outer = self._batch is None
+            if outer:
+                self._batch = bytearray()
+        try:
+            yield
+        finally:
+            if outer:
+                with self._send_lock:
+                    data, self._batch = self._batch, None
+                    if data and not self._closed:
+                        try:
+                            self._sock.sendall(data)
+                        except OSError as exc:
+                            raise can.CanOperationError(f"{self.url}: send failed: {exc}") from exc
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -621,3 +650,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def batched_sends(bus: can.BusABC | None) -> contextlib.AbstractContextManager[None]:
+    """`RemoteTransportBus.batch()` for a remote bus, nothing for any other.
+
+    On a real interface each frame is its own write, as a CAN controller sends it.
+    """
+    if isinstance(bus, RemoteTransportBus):
+        return bus.batch()
+    return contextlib.nullcontext()

@@ -103,6 +103,7 @@ from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVari
 from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
 from lca_control.pi import PIController, PIParams
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
+from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import codec, sync_rate
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
@@ -1867,8 +1868,7 @@ class VirtualDriveRack:
         for axis in self._axes:
             self._set_drive(axis, axis.drive, now)
             axis.sync_loss_reported = False
-        for axis in operational:
-            self._send_sync_tpdos(axis, now)
+        self._send_tpdos_of_sync(operational, now)
         # A real drive's TPDOs leave in hardware while its CPU goes on; a master in this
         # process on python-can's virtual bus reads them on another thread, so let it before
         # the plant's period is computed. A linked master has read them already, inside the
@@ -1886,6 +1886,16 @@ class VirtualDriveRack:
             self._network.send_due(done)
         self._service_event_tpdos(done)
         self._last_sync_done_s = done
+
+    def _send_tpdos_of_sync(self, operational: list[_Axis], now: float) -> None:
+        """Every operational node's synchronous TPDOs; over lca_remote, in one write."""
+        try:
+            with batched_sends(self._network.bus):
+                for axis in operational:
+                    self._send_sync_tpdos(axis, now)
+        except (can.CanError, OSError) as exc:  # the batch's one write failed
+            self._counters.send_errors += 1
+            self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
 
     def _sync_length_ok(self, data: bytes) -> bool:
         """CiA 301: a SYNC carries no data, or the 1-byte counter.
