@@ -359,6 +359,28 @@ def test_special_frames_cross_the_relay(in_process_relay: remote.RelayServer) ->
         assert a.recv(0.05) is None  # a did not: nothing else queued
 
 
+def test_a_batch_is_one_write_and_arrives_whole_in_order(
+    in_process_relay: remote.RelayServer,
+) -> None:
+    """Frames sent in `batch()` reach nobody until it ends, then all of them, in order."""
+    url = in_process_relay.url
+    with (
+        can.Bus(interface="lca_remote", channel=url) as a,
+        can.Bus(interface="lca_remote", channel=url) as b,
+    ):
+        frames = [can.Message(arbitration_id=0x181 + k, data=bytes([k] * 8)) for k in range(5)]
+        frames.append(can.Message(arbitration_id=0x80, data=b""))
+        with remote.batched_sends(a):
+            for msg in frames:
+                a.send(msg)
+            assert b.recv(0.2) is None  # held in a: nothing crossed the relay yet
+            assert in_process_relay.stats.frames_in == 0
+        for msg in frames:
+            got = b.recv(10.0)
+            assert got is not None and _same(got, msg), (msg, got)
+        assert in_process_relay.stats.frames_in == len(frames)
+
+
 def test_filters_and_periodic_send(in_process_relay: remote.RelayServer) -> None:
     """python-can's own filters and software periodic send, with a data change mid-way."""
     url = in_process_relay.url
