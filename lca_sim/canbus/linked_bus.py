@@ -10,9 +10,12 @@ whose listeners are attached (`attach`) is handed to them at once, in the sender
 rack handles the master's SYNC, and the master its TPDOs, inside the `send` that sent it, as if
 the bus and the other node's controller took no time.
 
-Listeners that are called this way must not send on the bus they were called for while their
-caller holds a lock they need; the master never sends from its receive callbacks, and the
-rack's sends go to the master's callbacks, which do not send: no lock is taken twice.
+The message handed over is the sender's own object (no copy: the senders here, canopen's
+`Network.send_message`, build one per frame), stamped and marked received for the receiver; a
+listener that keeps messages must copy them. Listeners that are called this way must not send
+on the bus they were called for while their caller holds a lock they need; the master never
+sends from its receive callbacks, and the rack's sends go to the master's callbacks, which do
+not send: no lock is taken twice.
 """
 
 from __future__ import annotations
