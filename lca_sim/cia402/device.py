@@ -345,23 +345,33 @@ def statusword(state: Cia402AxisState, *, target_reached: bool, internal_limit: 
     return word
 
 
-def power_state_of(word: int) -> PowerState | None:
-    """The power state a statusword reports (the master's view), or None if it is malformed."""
+def _decode_power_state(word: int) -> PowerState | None:
+    """CiA 402 Table 30 read literally: the first state whose masked bits match, or None."""
     for power, bits in _STATE_BITS.items():
-        mask = (
-            SW_MASK_WITH_QUICK_STOP
-            if power
-            in (
-                PowerState.READY_TO_SWITCH_ON,
-                PowerState.SWITCHED_ON,
-                PowerState.OPERATION_ENABLED,
-                PowerState.QUICK_STOP_ACTIVE,
-            )
-            else SW_MASK
-        )
+        mask = SW_MASK_WITH_QUICK_STOP if power in _QUICK_STOP_BIT_STATES else SW_MASK
         if word & mask == bits & mask:
             return power
     return None
+
+
+# The power state depends on bits 0-6 only: decoded once per pattern, looked up per statusword
+# (the master reads four per cycle; the loop above was a tenth of its cycle).
+_QUICK_STOP_BIT_STATES = frozenset(
+    (
+        PowerState.READY_TO_SWITCH_ON,
+        PowerState.SWITCHED_ON,
+        PowerState.OPERATION_ENABLED,
+        PowerState.QUICK_STOP_ACTIVE,
+    )
+)
+_POWER_BY_LOW_BITS: tuple[PowerState | None, ...] = tuple(
+    _decode_power_state(bits) for bits in range(0x80)
+)
+
+
+def power_state_of(word: int) -> PowerState | None:
+    """The power state a statusword reports (the master's view), or None if it is malformed."""
+    return _POWER_BY_LOW_BITS[word & 0x7F]
 
 
 def is_supported_mode(mode: int) -> bool:

@@ -122,6 +122,33 @@ def test_statusword_per_state_and_back(power: PowerState, word: int) -> None:
     assert cia402.power_state_of(word) is power
 
 
+# CiA 402 (IEC 61800-7-201) Table 30, statusword bits 6..0 as (mask, value): written out here
+# independently of the drive's table.
+_TABLE_30 = (
+    (0b1001111, 0b0000000, S.NOT_READY_TO_SWITCH_ON),
+    (0b1001111, 0b1000000, S.SWITCH_ON_DISABLED),
+    (0b1101111, 0b0100001, S.READY_TO_SWITCH_ON),
+    (0b1101111, 0b0100011, S.SWITCHED_ON),
+    (0b1101111, 0b0100111, S.OPERATION_ENABLED),
+    (0b1101111, 0b0000111, S.QUICK_STOP_ACTIVE),
+    (0b1001111, 0b0001111, S.FAULT_REACTION_ACTIVE),
+    (0b1001111, 0b0001000, S.FAULT),
+)
+
+
+def test_every_statusword_decodes_as_table_30_says() -> None:
+    """All 65,536 words: the state of the one Table 30 pattern that matches, else None."""
+    undefined = 0
+    for word in range(0x10000):
+        matches = [state for mask, value, state in _TABLE_30 if word & mask == value]
+        assert len(matches) <= 1, f"0x{word:04X} matches {matches}"
+        expected = matches[0] if matches else None
+        undefined += expected is None
+        assert cia402.power_state_of(word) is expected, f"0x{word:04X}"
+    # Defined: 4 states x 4 (bits 4, 5 free) + 4 states x 2 (bit 4 free) = 24 of 128 patterns.
+    assert undefined == 0x10000 * 104 // 128
+
+
 def test_statusword_flags() -> None:
     """Bit 10 target reached, bit 11 internal limit, bit 12 only when following the target."""
     enabled = _in(S.OPERATION_ENABLED, 0x0F)
