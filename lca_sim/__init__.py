@@ -12,8 +12,8 @@ tests/test_architecture.py reads the import graph and enforces it):
 * `lca_sim.config`: YAML files -> validated, typed parameters (the one place that reads them).
   `lca_sim.analysis`: linearisation, identification, the paper's figures as data (pure).
 * `lca_sim.canbus`: the virtual drive rack and the bridge's CANopen master (python-can, canopen).
-* `lca_sim.ros`: the node shells, the plant-contract message builder, record and echo; above it
-  `lca_control.ros`, the controller node, which uses its node helpers.
+* `lca_sim.ros`: the node shells (simulator, CAN bridge, controller), the plant-contract message
+  builder, record and echo.
 * `lca_sim.cli`: the console scripts (lca-sim, lca-hil, lca-plot), result files and plots; only
   `lca-hil fig15` needs ROS 2.
 

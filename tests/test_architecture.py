@@ -62,8 +62,6 @@ PROJECT_ROOTS = ("lca_control", "lca_sim")
 #   3 lca_sim.analysis linearisation, identification, the paper's figures as data (on the model)
 #   4 lca_sim.canbus   the virtual drive rack (model + config + cia402) and the CANopen master
 #   5 lca_sim.ros      the node shells of the plant side and the node helpers
-#   6 lca_control.ros  the controller node: a shell on lca_sim.ros's helpers (parameter tables,
-#                      exit codes), so it sits above them
 #   7 lca_sim.cli      the console scripts: every tool, Fig. 15 over ROS 2 included
 LAYER_RANK: dict[str, int] = {
     "lca_control": 0,
@@ -74,7 +72,6 @@ LAYER_RANK: dict[str, int] = {
     "lca_sim.analysis": 3,
     "lca_sim.canbus": 4,
     "lca_sim.ros": 5,
-    "lca_control.ros": 6,
     "lca_sim.cli": 7,
 }
 
@@ -421,7 +418,7 @@ def test_canbus_imports_no_ros() -> None:
 def test_lca_control_core_imports_nothing_from_lca_sim() -> None:
     """The controller states what it needs of a plant (lca_control.contract); lca_sim fills it.
 
-    The core only: the controller node (lca_control.ros) is a ROS shell on lca_sim.ros's helpers.
+    The controller node is a shell among the others in lca_sim.ros: lca_control is a library.
     """
     found = [str(imp) for imp in graph().of("lca_control") if imp.root == "lca_sim"]
     assert not found, "lca_control imports lca_sim:" + _violations(found)
@@ -518,15 +515,20 @@ def test_cheap_imports(modules: list[str], tmp_path: Path) -> None:
     assert not heavy, f"import {', '.join(modules)} loads {sorted(heavy)}"
 
 
+CONTROLLER_NODE = "lca_sim.ros.controller_node"
+
+
 def test_controller_node_needs_no_model(tmp_path: Path) -> None:
     """What the controller node imports from the project loads rclpy, but no model or CAN."""
     node_imports = {
         imp.target
-        for imp in graph().of("lca_control.ros")
-        if imp.is_project and imp.kind != TYPING and imp.target != "lca_control.ros"
+        for imp in graph().imports
+        if imp.source.name == "lca_sim.ros.controller_node"
+        and imp.is_project
+        and imp.kind != TYPING
     }
     named = {"lca_control.controller", "lca_control.cascade", "lca_control.contract"}
-    modules = sorted(named | node_imports | {"lca_sim.ros.node_util"})
+    modules = sorted(named | node_imports)
     heavy = _loaded_after(modules, tmp_path) - {"rclpy"}
     assert not heavy, f"import {', '.join(modules)} loads {sorted(heavy)}"
 

@@ -194,7 +194,7 @@ def controller(args: Sequence[str] | None = None) -> int:
     """Entry point of `lca-controller` / `ros2 run lca_hil controller`."""
     if answered_help(CONTROLLER, args):
         return EXIT_OK
-    from lca_control.ros.controller_node import main  # noqa: PLC0415
+    from lca_sim.ros.controller_node import main  # noqa: PLC0415
 
     return main(args)
 

@@ -102,7 +102,7 @@ class HilLoop:
         )
         args = [f"{name}:={_ros_arg(value)}" for name, value in controller_parameters.items()]
         self.controller = subprocess.Popen(  # ended by close()
-            [sys.executable, "-m", "lca_control.ros.controller_node", "--ros-args"]
+            [sys.executable, "-m", "lca_sim.ros.controller_node", "--ros-args"]
             + [item for arg in args for item in ("-p", arg)],
             env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
         )

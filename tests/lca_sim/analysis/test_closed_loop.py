@@ -29,13 +29,13 @@ from support import CONFIG, spin_until, start_simulator
 
 from lca_control import contract as ri
 from lca_control.parameters import ParameterError
-from lca_control.ros.controller_node import ControllerNode
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopResult, stamp_time_s
 from lca_sim.analysis.metrics import Trace
 from lca_sim.cli import hil
 from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import load_robot
 from lca_sim.errors import EXIT_BAD_INPUT
+from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import from_stamp, to_stamp
 
 ros_context = support.domain_contexts(95, 5)

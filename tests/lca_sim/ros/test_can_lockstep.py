@@ -30,8 +30,8 @@ from std_msgs.msg import Float64MultiArray
 from support import CONFIG, wait_until
 
 from lca_control import contract as pc
-from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import make_executor
 from lca_sim.ros.simulator_node import SimulatorNode
 

@@ -31,8 +31,8 @@ from support import CONFIG, start_shipped, wait_until
 
 from lca_control import contract as ri
 from lca_control.profiles import RampProfile
-from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import from_stamp, make_executor
 
 DOMAIN_ID = 131

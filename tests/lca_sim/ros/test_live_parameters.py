@@ -25,8 +25,8 @@ from std_msgs.msg import Float64MultiArray
 
 from lca_control.controller import JointController
 from lca_control.parameters import ParamKind, ParamSpec
-from lca_control.ros.controller_node import ControllerNode
 from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.simulator_node import SimulatorNode
 
 Probe = tuple[Any, Callable[[Any], bool]]  # the new value, and how its effect shows

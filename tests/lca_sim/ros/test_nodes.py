@@ -24,7 +24,7 @@ from std_srvs.srv import SetBool, Trigger
 from support import spin_until
 
 from lca_control.cascade import CONTROL_PERIOD_S
-from lca_control.ros.controller_node import ControllerNode
+from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.simulator_node import SimulatorNode
 
 PIVOT_START_RAD = math.radians(35.0)

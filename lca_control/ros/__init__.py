@@ -1,1 +1,0 @@
-"""lca_control.ros."""
