@@ -1,53 +1,16 @@
 """The plant contract: what every plant backend publishes and accepts over ROS 2.
 
 A controller needs the same things of any plant, so this is the one definition the simulator
-node and the CAN bridge (and any later backend) are held to; `lca_sim.ros.plant_contract` is the
-one builder that turns a `PlantSnapshot` into the messages, and
+node and the CAN bridge (and any later backend) are held to: topic names and types
+(`PLANT_PUBLISHES`, `PLANT_SUBSCRIBES`), QoS as plain values (`QosSpec`), units, the
+drive-chain keys with their ranges (`DRIVE_STATE_KEYS`, `DRIVE_KEYS`), the vocabularies
+(`MOTION_STATE_NAMES`, `UNKNOWN`) and the `PlantSnapshot` every backend fills.
+`lca_sim.ros.plant_contract` is the one builder of the messages, and
 `tests/lca_sim/ros/test_plant_contract.py` runs every backend against it. docs/contract.md is
-the prose and the table of keys.
+the prose: each topic's content, the joint order, what is NaN and when.
 
-Topics (`PLANT_PUBLISHES`, `PLANT_SUBSCRIBES`; QoS as plain values in `QosSpec`):
-
-* `joint_states` (sensor_msgs/JointState, plant): joint side, SI (rad, rad/s; m, m/s for a
-  prismatic joint such as the lift); effort = N * tau_m, the joint torque (force) the motor
-  applies through the gear before losses (N m, N).
-* `motor_states` (sensor_msgs/JointState, plant): motor side, position (rad), velocity (rad/s),
-  effort = armature current (A).
-* `drive_chain_states` (diagnostic_msgs/DiagnosticArray, plant): one status per joint, named
-  `drive_chain/<joint>`, message = drive state, key/values exactly `DRIVE_STATE_KEYS` in that
-  order (`DRIVE_KEYS` gives each key's unit and valid range).
-* `/diagnostics` (diagnostic_msgs/DiagnosticArray, every node): health, counters, faults.
-* `/clock` (rosgraph_msgs/Clock): simulated time; only a plant that runs in lockstep
-  publishes it.
-* `current_commands` (std_msgs/Float64MultiArray, controller): A per joint; the current loop
-  runs in the drive.
-* `voltage_commands` (std_msgs/Float64MultiArray, controller): V per joint. A plant that cannot
-  take voltages (a CiA 402 drive takes torque) still subscribes, to count and refuse them.
-* `velocity_commands` (std_msgs/Float64MultiArray, controller): the velocity setpoint its
-  velocity loop follows at this state, rad/s (m/s) per joint, published only while something
-  subscribes. A plant whose drives close the velocity loop themselves (the CAN bridge with an
-  axis in CiA 402 cyclic synchronous velocity) takes it instead of the current.
-* `velocity_reference` (std_msgs/Float64MultiArray, user -> controller): rad/s (m/s) per joint.
-* `/robot_joint_states`, `/robot_joint_commands` (sensor_msgs/JointState; optional, each
-  plant's `joint_state_topic` / `joint_command_topic` parameter): the topics of ros2_control's
-  topic-based hardware interface, joint_states' content again and joint commands by name
-  (docs/ros2_control.md).
-
-Joint order: every state message of a plant names all its joints in the robot's axis order
-(`RobotParams.axis_names`; l_arm, pivot, c_arc, lift for the shipped robots), the same in every
-message, and `drive_chain_states` has its statuses in that order. Command arrays are in the order
-of the receiving node's `joints` parameter (the ros2_control forward-command convention).
-
-Vocabularies: the motion state is one of `MOTION_STATE_NAMES` (`stop`, `direct`, `reverse`, the
-names of the model's `MotionState` and of result.csv; codes 0, +1, -1, the direction sign d).
-The drive state is one of the robot's state-machine state names
-(`RobotParams.state_machine.state_names`: the stop states first, then the moving states of the
-robot YAML), its code the index into them. `UNKNOWN` stands for either when the backend has no
-report of it (a real CiA 402 drive, or the virtual one before its first drive-chain PDO); a
-number a backend cannot know is NaN, never 0 and never a raw "undefined" marker.
-
-This module imports no ROS package (plain values and numpy only), so the controller, tools and
-tests share it without rclpy.
+It imports no ROS package (plain values and numpy only), so the controller, tools and tests
+share it without rclpy.
 """
 
 from __future__ import annotations

@@ -1,24 +1,9 @@
 """lca_sim: the drive-chain model of the LCA robot, its backends and its tools.
 
-Layers, lowest first (imports go down only, and packages on one rank do not import each other;
-tests/test_architecture.py reads the import graph and enforces it):
-
-* `lca_control` (a package of its own): PI, cascade, profiles, tuning, the plant contract.
-* `lca_sim.errors`, `lca_sim.runtime`: the project's exceptions and exit codes; process set-up.
-* `lca_sim.model`: the pure core: robot parameters, the efficiency state machine, the compiled
-  drive-chain kernel, the Pinocchio gantry, the simulator and the commanded plant.
-  `lca_sim.cia402`: the CANopen object table, the unit codec, the drive's and the master's
-  CiA 402 state logic (pure).
-* `lca_sim.config`: YAML files -> validated, typed parameters (the one place that reads them).
-  `lca_sim.analysis`: linearisation, identification, the paper's figures as data (pure).
-* `lca_sim.canbus`: the virtual drive rack and the bridge's CANopen master (python-can, canopen).
-* `lca_sim.ros`: the node shells (simulator, CAN bridge, controller), the plant-contract message
-  builder, record and echo.
-* `lca_sim.cli`: the console scripts (lca-sim, lca-hil, lca-plot), result files and plots; only
-  `lca-hil fig15` needs ROS 2.
-
-The names below are faces of the model layer, loaded on first use so that `import lca_sim`
-stays cheap (no numba, Pinocchio or SciPy until a model is built)::
+The sub-packages are layers (docs/architecture.md draws them; tests/test_architecture.py holds
+them): the pure model and CiA 402 cores, config, analysis, the CAN bus, the ROS 2 node shells
+and the console tools. The names below are faces of the model layer, loaded on first use so
+that `import lca_sim` stays cheap (no numba, Pinocchio or SciPy until a model is built)::
 
     from lca_sim import load_robot, Simulator
     sim = Simulator(load_robot("default"), dt_s=1e-4)
