@@ -25,13 +25,12 @@ from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.errors import ConfigError
 from lca_sim.model.commanded_plant import CommandedPlant
+from lca_sim.model.fault_schedule import ScheduledFault, parse_fault_schedule
 from lca_sim.model.faults import (
     JOINT_FAULTS,
     LINK,
     FaultInjector,
-    ScheduledFault,
     StateLink,
-    parse_fault_schedule,
 )
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
 
@@ -231,7 +230,7 @@ def test_i2t_derates_then_trips() -> None:
     assert "i2t_trip" in states[-1]
     assert abs(currents[-1]) < 1e-6  # tripped: torque off
     injector.set("l_arm", "i2t_rated_a", 0.0)  # clearing the monitor clears the trip
-    assert not injector.sto[0]
+    assert not injector.drive.sto[0]
 
 
 def test_encoder_faults_on_the_reading() -> None:
