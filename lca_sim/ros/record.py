@@ -3,83 +3,25 @@
     lca-record joint_states motor_states drive_chain_states -o out/run1
     lca-record --all --max-duration-s 60 -o out/run2 --ros-args -p use_sim_time:=true
 
-Each topic's type is read from the ROS graph and the topic is subscribed *raw*: the serialized
-CDR bytes are written to the bag unchanged (no deserialization). Every message is stamped with
-the recorder node's clock at reception, so `use_sim_time:=true` records simulated time. The bag
-is rosbag2 version 9 with MCAP storage, written by `rosbags`, with the message definitions and
-type hashes (RIHS01) of the ROS 2 Jazzy typestore, as `ros2 bag record` writes them.
+Each topic is subscribed raw: its CDR bytes go into the bag unchanged, stamped with the node's
+clock at reception (`use_sim_time:=true` records simulated time). `BagRecorder` composes the
+topics (`lca_sim.ros.record_topics`: which, and with which QoS) and the bag
+(`lca_sim.ros.record_bag`); it prints `recording <topic> (<type>, <n> publishers)` once a
+subscription has matched a publisher, from when on nothing the topic publishes is lost
+(`BagRecorder.matched`; `--verbose` adds the counts every second).
 
-Topics:
+Crash safety: a recorder killed with SIGKILL loses at most `--flush-period-s` (0.25 s) of what
+it received (`lca_sim.ros.record_bag`); `lca-record --recover BAG` (`lca_sim.ros.bag_recover`,
+no ROS needed) rewrites such a bag from its complete chunks.
 
-* Named topics are resolved like any topic of the node (relative names get the namespace; ros
-  args remappings apply) and waited for up to `--wait-s` seconds each; a topic whose type has not
-  appeared by then is dropped with a warning and the others are still recorded.
-* `--all` records every topic that exists or appears later, except hidden ones and the
-  infrastructure topics `/rosout` and `/parameter_events` (name those to record them).
-* A topic with more than one type is recorded with the first and a warning.
-
-QoS: reliable, keep-last `STATE_QOS_DEPTH` (the project's state QoS; `--depth` to change); if
-any publisher on the topic is best-effort (as `/clock` publishers often are), the subscription
-is best-effort so it matches them (a reliable subscription receives nothing from a best-effort
-publisher). `/clock` with no publisher yet is subscribed best-effort, which matches either kind.
-The durability is transient-local when every publisher offers it, so latched messages are kept.
-A topic subscribed before any publisher existed (its type came from a subscription) gets its
-QoS settled when the first publishers appear, and a best-effort publisher joining a topic
-subscribed reliable makes the recorder resubscribe best-effort.
-
-Output: one line `lca-record: recording <topic> (<type>, <n> publishers)` on stderr per topic
-once its subscription has matched a publisher: from then on nothing that topic publishes is
-lost. (A publisher that sees the recorder in `get_subscription_count()` is *not* enough: DDS
-matching is two-sided, and messages sent before the recorder's side has matched are dropped by
-its volatile subscription.) `--verbose` adds the counts every second.
-
-Crash safety: a recorder killed with SIGKILL loses at most `--flush-period-s` (default 0.25 s)
-of what it had received. The writer closes the open MCAP chunk and flushes it to the file every
-`FLUSH_SHARE` (0.4) of that bound, 0.1 s by default: at the first message after that interval,
-and from a steady-clock timer of the same interval when messages stop. What was received just
-after a flush is thus on disk one interval later plus the delay of the callback or timer that
-flushes it, and the rest of the bound (0.15 s by default) is left for that delay on a loaded
-machine. (A flush every full bound would lose the bound plus that delay.) Such a bag has no
-summary, footer or metadata.yaml; `lca-record --recover BAG` (`lca_sim.ros.bag_recover`, no ROS
-needed) rewrites it from its complete chunks as a standard MCAP file with a fresh
-metadata.yaml. Tested on a recovered bag: rosbags' reader and lca-plot's (`read_bag`); lca-echo
-reads live topics, not bags, and the `mcap` package's readers are not installed here, so not
-tried. Without the periodic flush rosbags closes a chunk only at 1 MiB and buffers the file,
-and a killed recording lost everything after the last full chunk.
-
-Stopping: SIGINT (Ctrl-C), SIGTERM or `--max-duration-s`. The recorder then takes the messages
-already received by the middleware, closes the bag (metadata.yaml is written) and prints the
-number of messages per topic. Exit codes (from `lca_sim.errors`): 0 stopped normally (also on a
-signal), 2 bad arguments, an existing output folder, or none of the named topics could be
-recorded (did not appear within `--wait-s`, or an unknown type); errors are one line on stderr.
-
-Embedding (the recorder shares a node and its executor; nothing here spins)::
-
-    from lca_sim.ros.record import BagRecorder
-
-    recorder = BagRecorder(node, "out/run1", topics=["joint_states", "drive_chain_states"])
-    recorder.start()          # opens the bag, subscribes to what the graph has, polls for more
-    ...                       # spin the node's executor as usual
-    counts = recorder.close() # {"/joint_states": 4000, ...}; the bag is complete after this
-
-`BagRecorder.counts` gives the messages written so far per topic, `BagRecorder.matched` the
-topics whose subscription has matched a publisher (wait for these before publishing what must
-be recorded), `BagRecorder.waiting` the named topics still waited for and
-`BagRecorder.dropped` those given up. Writing happens in the subscription callback under a
-lock, so a multi-threaded executor is safe too.
-
-Throughput: a write costs about 5 us per message (rosbags MCAP writer; measured with 172-byte
-JointState messages) and the node-clock stamp another 5 us, small beside the executor's own cost
-per callback, so the callback writes directly instead of handing the bytes to a writer thread.
-The console script spins rclpy's C++ events executor when it is available (`--executor`): about
-110 us of CPU per message in all against 250 us with SingleThreadedExecutor. A recorder starved
-of CPU for longer than `STATE_QOS_DEPTH` messages of a topic still loses the oldest of them
-(keep-last): give it a core at high rates.
-
-Typing note: rclpy ships py.typed but leaves a few functions unannotated (QoSProfile.__init__,
-Node.get_logger, Node.destroy_node), so this module needs `disallow_untyped_calls = false` (the
-ROS-shell override in pyproject.toml); rclpy types subscription callbacks for messages, not the
-bytes of a raw subscription, hence one cast.
+Stopping: SIGINT, SIGTERM or `--max-duration-s`; the recorder takes the messages already
+received, closes the bag (metadata.yaml) and prints the counts per topic. Exit codes
+(`lca_sim.errors`): 0 stopped normally (also on a signal); 2 bad arguments, an existing output
+folder, or none of the named topics recorded. Embedding: `BagRecorder(node, out, topics)`,
+`start()`, spin the node's executor, `close()` returns the counts (docs/plotting.md: recording
+a run). Starved of CPU for longer than `--depth` messages of a topic, it loses the oldest of
+them (keep-last): give it a core at high rates (the console script spins rclpy's events
+executor when it can, `--executor`).
 """
 
 from __future__ import annotations

@@ -1,9 +1,13 @@
-"""The bag `lca-record` writes: a rosbag2 (version 9) MCAP bag whose open chunk is flushed often.
+"""The bag `lca-record` writes: rosbag2 version 9, MCAP, its open chunk flushed often.
 
-`BagFile` is the writer part of `lca_sim.ros.record.BagRecorder`: it owns the rosbags writer,
-the Jazzy typestore and the flush schedule that bounds what a killed recorder loses
-(`lca_sim.ros.record`, "Crash safety"). No rclpy here: a publisher's QoS comes in as rclpy's
-profile object and is read by its attribute names.
+`BagFile`, the writer part of `lca_sim.ros.record.BagRecorder`, writes with `rosbags` and the
+ROS 2 Jazzy typestore (message definitions, RIHS01 type hashes), as `ros2 bag record` does.
+Crash safety: rosbags alone closes a chunk only at 1 MiB, so a killed recorder lost everything
+after the last full one. Here the open chunk is closed and flushed every `FLUSH_SHARE` (0.4) of
+the loss bound `--flush-period-s`: at the first message after that interval, and from a steady
+timer when messages stop; the rest of the bound is left for that callback or timer to come late
+on a loaded machine. `lca_sim.ros.bag_recover` reads such a bag. A write costs about 5 us, so
+the subscription callbacks write directly, under the bag's lock. No rclpy here.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from lca_sim.errors import LcaHilError
 
 NS_PER_S = 1_000_000_000
 # The open chunk is flushed every FLUSH_SHARE of the loss bound; the rest of the bound is left
-# for the callback or timer that does it to come late (lca_sim.ros.record, "Crash safety").
+# for the callback or timer that does it to come late (the module doc).
 FLUSH_SHARE = 0.4
 
 

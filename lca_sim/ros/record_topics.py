@@ -1,9 +1,16 @@
 """Which topics `lca-record` subscribes, with which QoS, and how it follows the ROS graph.
 
-`TopicSubscriber` is the subscription part of `lca_sim.ros.record.BagRecorder`: it waits for
-named topics, finds new ones for `--all`, subscribes each *raw* with a QoS that matches its
-publishers (resubscribing when they need another), and hands every message's bytes to the bag.
-The rules: `lca_sim.ros.record`'s module doc, "Topics" and "QoS".
+`TopicSubscriber`, the subscription part of `lca_sim.ros.record.BagRecorder`:
+
+* named topics are resolved as any topic of the node (namespace, remappings) and waited for up
+  to `--wait-s` each; one whose type has not appeared by then is dropped with a warning;
+* `--all` records every topic that exists or appears later, except hidden ones and `/rosout`
+  and `/parameter_events` (name those to record them); a topic of several types is recorded
+  with the first;
+* QoS: reliable, keep-last `--depth`, best-effort when a publisher is (`/clock` before any is
+  known), transient-local when every publisher offers it (`subscription_qos`); a topic
+  subscribed before its publishers existed, or joined by a best-effort publisher, is
+  resubscribed to match them (`TopicSubscriber._adapt_qos`).
 """
 
 from __future__ import annotations
