@@ -43,7 +43,8 @@ from lca_control.pi import PIParams
 from lca_sim.analysis.metrics import VelocityTracking, tracking_window_s, velocity_tracking
 from lca_sim.errors import UnknownNameError
 from lca_sim.model.commanded_plant import VOLTAGE, CommandedPlant
-from lca_sim.model.faults import LINK, FaultInjector, ScheduledFault
+from lca_sim.model.fault_schedule import ScheduledFault
+from lca_sim.model.faults import LINK, FaultInjector
 from lca_sim.model.params import RobotParams
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
 

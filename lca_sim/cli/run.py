@@ -46,7 +46,8 @@ from lca_sim.config.loader import (
     resolve,
 )
 from lca_sim.errors import EXIT_OK, FILE_NOT_FOUND, ConfigError, run_guarded, unknown_key
-from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter, standing_faults
+from lca_sim.model.fault_schedule import standing_faults
+from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.simulator_params import validate_simulator_params
 

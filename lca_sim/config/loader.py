@@ -19,7 +19,7 @@ import pinocchio as pin
 import yaml
 
 from lca_sim.errors import FILE_NOT_FOUND, ConfigError, UnknownNameError, file_problem
-from lca_sim.model.faults import ScheduledFault, parse_fault_schedule
+from lca_sim.model.fault_schedule import ScheduledFault, parse_fault_schedule
 from lca_sim.model.params import RobotParams, parse_robot
 from lca_sim.model.scenario import Scenario, parse_scenario
 

@@ -266,14 +266,14 @@ class CommandedPlant:
         """
         sim, loops = self.sim, self._loops
         faults.thermal(sim.state_array[kernel.X_CURRENT], self._target, n_steps * sim.dt_s)
-        target = np.clip(self._target, -faults.current_limit, faults.current_limit)
-        target[faults.sto] = 0.0
+        target = np.clip(self._target, -faults.drive.current_limit, faults.drive.current_limit)
+        target[faults.drive.sto] = 0.0
         loops[_L_TARGET_A] = target
         for row in (_L_INTEGRAL, _L_OUTPUT, _L_LAST_ERROR):
-            loops[row, faults.sto] = 0.0
+            loops[row, faults.drive.sto] = 0.0
         loops[_L_LIMIT_V] = sim.model_array[kernel.P_VOLTAGE_LIMIT_V]
-        sense = np.vstack((faults.sense_gain, faults.sense_offset))
-        noise = faults.current_noise(n_steps)
+        sense = np.vstack((faults.sensors.gain, faults.sensors.offset))
+        noise = faults.sensors.current_noise(n_steps)
         sim.advance_with(
             n_steps, _sensed_current_loops_steps, self._volts, loops, self._gains, sense, noise
         )

@@ -1,59 +1,33 @@
-"""Fault injection: what a user can break in the plant, and how it enters the model (pure core).
+"""Fault injection: the kinds a user can break in the plant, and their injector (pure core).
 
-Every fault goes through the model, never around it (docs/faults.md):
-
-* **mechanics and actuator** faults change the constants the compiled step runs on (the packed
-  `model` array of `Simulator`, and Pinocchio's link inertias for a payload), so the state
-  machine, eq. (10) and the end stops treat them as they treat the robot's own values: a jam is
-  a breakaway and Coulomb friction no motor can overcome, safe torque off opens the armature
-  circuit (the power stage's switches off: no current, no torque, no braking), a demagnetised
-  motor has a smaller k_t for its torque and its back-EMF alike;
-* the **current sensor** faults act where a drive's sensor acts: on the current the in-drive
-  current loop regulates (`CommandedPlant`), and on the current the plant reports;
-* the **encoder** faults and **backlash** act on what the plant reports of its joints
-  (`measure`): the controller closes its loops on them, the dynamics keep the true state;
-* the **I2t** monitor integrates i^2 - I_n^2 as drives do, derates the current to the rated
-  current at 100 % and trips (safe torque off, latched) when the demand stays above the derated
-  limit for `i2t_trip_after_s`;
-* the **link** faults (dropped, delayed, stale state messages) act on the simulator node's
-  publishing: `StateLink`.
-
-With no fault set, nothing here runs: `CommandedPlant` and the simulator node take their
-original paths, so results are bit for bit those without fault injection.
-
-Units: a joint's position faults are in rad, or m for a prismatic joint (the lift), as
-joint_states; currents in A; friction at the motor shaft in N m; a payload in kg.
+The kinds (each a parameter `faults.<joint>.<kind>` or `faults.link.<kind>`, off by default)
+and `FaultInjector`, which composes the parts of `lca_sim.model.fault_effects`: the plant's
+constants, the drive's limits and I2t, the sensors; `StateLink` applies the link faults to the
+simulator node's publishing. Schedules: `lca_sim.model.fault_schedule`. With no fault set the
+callers take their fault-free paths, bit for bit. What each kind does: docs/faults.md.
 """
 
 from __future__ import annotations
 
-import itertools
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from lca_control.parameters import ParameterError, ParameterTable, ParamKind, ParamSpec
-from lca_sim.errors import ConfigError
 from lca_sim.model import kernel
+from lca_sim.model.fault_effects import DriveLimits, PlantConstants, SensorFaults
 from lca_sim.model.simulator import Simulator
+
+if TYPE_CHECKING:
+    # fault_schedule reads the kinds from here; the injector only takes its entries.
+    from lca_sim.model.fault_schedule import ScheduledFault
 
 FloatArray = npt.NDArray[np.float64]
 
 B, D, S, INT = ParamKind.BOOL, ParamKind.DOUBLE, ParamKind.STRING, ParamKind.INTEGER
-
-# A joint that cannot move: breakaway and Coulomb friction at the motor shaft, N m (no motor
-# here gives a thousandth of it).
-JAM_FRICTION_NM = 1.0e6
-# Safe torque off: the armature circuit is open (the power stage's transistors off). With the
-# kernel's exact electrical step, a resistance this large makes the current vanish at once
-# and stay at nanoamperes, without a special case in the compiled step.
-OPEN_CIRCUIT_OHM = 1.0e12
-# The I2t monitor derates at this fraction of its capacity (I_peak^2 - I_n^2) t_peak.
-I2T_DERATE_AT = 1.0
 
 LINK = "link"  # the node-level namespace: faults.link.<kind>
 CATEGORIES = ("sensor", "actuator", "mechanics", "thermal", "communication")
@@ -207,26 +181,6 @@ def is_fault_parameter(name: str) -> bool:
     return name.startswith("faults.") or name == FAULT_SCHEDULE
 
 
-def standing_faults(values: Mapping[str, Any], joints: Sequence[str]) -> tuple[ScheduledFault, ...]:
-    """The `faults.<owner>.<kind>` values of a params file as entries on from t = 0 for good.
-
-    Raises:
-        ParameterError: an unknown name or a value outside its range.
-    """
-    table = fault_table(joints)
-    entries = []
-    for name, value in values.items():
-        if not name.startswith("faults."):
-            continue
-        if name not in table:
-            raise ParameterError(name, "faults.<joint>.<kind> of a known joint and kind", value)
-        checked = table[name].check(value)
-        owner, kind = split_name(name)
-        if checked != table[name].default:
-            entries.append(ScheduledFault(owner, kind, checked, 0.0, math.inf))
-    return tuple(entries)
-
-
 def split_name(name: str) -> tuple[str, str]:
     """(owner, kind) of `faults.<owner>.<kind>`.
 
@@ -239,162 +193,44 @@ def split_name(name: str) -> tuple[str, str]:
     return parts[1], parts[2]
 
 
-# --- schedules ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class ScheduledFault:
-    """One entry of a fault schedule: `kind` of `owner` is `value` from start_s until end_s."""
-
-    owner: str  # a joint, or LINK
-    kind: str
-    value: Any
-    start_s: float
-    end_s: float  # inf: to the end of the run
-
-    def active(self, t_s: float) -> bool:
-        """True at simulated time t_s (start inclusive, end exclusive)."""
-        return self.start_s <= t_s < self.end_s
-
-
-def parse_fault_schedule(
-    data: object, source: str, joints: Sequence[str]
-) -> tuple[ScheduledFault, ...]:
-    """A schedule from YAML data: a mapping with `faults:`, a list of entries.
-
-    Each entry: `kind`, `value`, `start_s`, optional `end_s` (default: never ends) and `joint`
-    (required for a joint's fault, absent for a link fault). Entries of one kind and owner may
-    not overlap in time.
-
-    Raises:
-        ConfigError: the first bad key, named by its path.
-    """
-    raw = schedule_entries(data, source)
-    entries = [_parse_entry(item, source, f"faults[{i}]", joints) for i, item in enumerate(raw)]
-    _check_overlaps(entries, source)
-    return tuple(sorted(entries, key=lambda e: (e.start_s, e.owner, e.kind)))
-
-
-def schedule_entries(data: object, source: str) -> list[Any]:
-    """The unparsed entries of a schedule document: a mapping with only a `faults` list.
-
-    Raises:
-        ConfigError: not such a mapping, or another key.
-    """
-    if not isinstance(data, Mapping) or "faults" not in data:
-        raise ConfigError(source, "faults", "expected a mapping with a 'faults' list")
-    extra = sorted(str(k) for k in data if k != "faults")
-    if extra:
-        raise ConfigError(source, extra[0], "unknown key; a fault schedule has only 'faults'")
-    raw = data["faults"]
-    if not isinstance(raw, list):
-        raise ConfigError(source, "faults", "expected a list of fault entries")
-    return raw
-
-
-def _parse_entry(item: object, source: str, path: str, joints: Sequence[str]) -> ScheduledFault:
-    if not isinstance(item, Mapping):
-        raise ConfigError(source, path, "expected a mapping with kind, value, start_s")
-    allowed = {"joint", "kind", "value", "start_s", "end_s"}
-    for key in item:
-        if key not in allowed:
-            raise ConfigError(source, f"{path}.{key}", f"unknown key; expected {sorted(allowed)}")
-    owner, spec = _entry_target(item, source, path, joints)
-    if "value" not in item:
-        raise ConfigError(source, f"{path}.value", "missing")
-    try:
-        value = spec.check(item["value"])
-    except ParameterError as exc:
-        raise ConfigError(source, f"{path}.value", str(exc)) from exc
-    start_s = _time(item.get("start_s"), source, f"{path}.start_s")
-    end_s = math.inf if item.get("end_s") is None else _time(item["end_s"], source, f"{path}.end_s")
-    if not end_s > start_s:
-        raise ConfigError(source, f"{path}.end_s", f"expected a time after start_s {start_s:g}")
-    return ScheduledFault(owner, spec.name, value, start_s, end_s)
-
-
-def _entry_target(
-    item: Mapping[Any, Any], source: str, path: str, joints: Sequence[str]
-) -> tuple[str, ParamSpec]:
-    """The owner (a joint, or LINK) and the kind's spec of a schedule entry."""
-    kind = item.get("kind")
-    if kind not in SCHEDULABLE:
-        raise ConfigError(source, f"{path}.kind", f"expected one of {sorted(SCHEDULABLE)}")
-    if kind in JOINT_KIND:
-        owner = item.get("joint")
-        if owner not in joints:
-            raise ConfigError(source, f"{path}.joint", f"expected one of {list(joints)}")
-        return str(owner), JOINT_KIND[str(kind)].spec
-    if "joint" in item:
-        raise ConfigError(source, f"{path}.joint", f"{kind} is a link fault: no joint")
-    return LINK, LINK_KIND[str(kind)].spec
-
-
-def _time(value: object, source: str, path: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0.0:
-        raise ConfigError(source, path, f"expected a time >= 0 s, got {value!r}")
-    if not math.isfinite(value):
-        raise ConfigError(source, path, f"expected a finite time, got {value!r}")
-    return float(value)
-
-
-def _check_overlaps(entries: Sequence[ScheduledFault], source: str) -> None:
-    by_target: dict[tuple[str, str], list[ScheduledFault]] = {}
-    for entry in entries:
-        by_target.setdefault((entry.owner, entry.kind), []).append(entry)
-    for (owner, kind), group in by_target.items():
-        group.sort(key=lambda e: e.start_s)
-        for before, after in itertools.pairwise(group):
-            if after.start_s < before.end_s:
-                raise ConfigError(
-                    source,
-                    "faults",
-                    f"two entries of {kind} on {owner} overlap at {after.start_s:g} s",
-                )
-
-
 # --- the injector ------------------------------------------------------------------------
 
 
-@dataclass
-class I2tMonitor:
-    """A drive's I2t protection of one motor (the thermal fault).
+class FaultSettings:
+    """The faults set (from parameters) and scheduled, and the value in force of each."""
 
-    level = integral of (i^2 - I_n^2) dt, never below 0. At the capacity
-    (I_peak^2 - I_n^2) t_peak it derates the current limit to I_n; if the current demand then
-    stays above that limit for `trip_after_s`, it trips (latched).
-    """
+    def __init__(self) -> None:
+        self.values: dict[tuple[str, str], Any] = {}
+        self.schedule: tuple[ScheduledFault, ...] = ()
+        self.scheduled: dict[tuple[str, str], Any] = {}
 
-    rated_a: float
-    peak_a: float
-    peak_time_s: float
-    trip_after_s: float
-    level_a2s: float = 0.0
-    above_s: float = 0.0
-    tripped: bool = False
+    def value(self, owner: str, kind: str) -> Any:
+        """The value in force (a scheduled entry wins over the parameter while active)."""
+        key = (owner, kind)
+        if key in self.scheduled:
+            return self.scheduled[key]
+        if key in self.values:
+            return self.values[key]
+        table = LINK_KIND if owner == LINK else JOINT_KIND
+        return table[kind].spec.default
 
-    @property
-    def capacity_a2s(self) -> float:
-        """(I_peak^2 - I_n^2) t_peak, A^2 s."""
-        return max(self.peak_a**2 - self.rated_a**2, 0.0) * self.peak_time_s
-
-    @property
-    def derated(self) -> bool:
-        """True while the current is limited to the rated current."""
-        return self.level_a2s >= I2T_DERATE_AT * self.capacity_a2s
-
-    def update(self, current_a: float, demand_a: float, dt_s: float) -> None:
-        """Integrate one interval at current `current_a` with the setpoint `demand_a`."""
-        self.level_a2s = max(0.0, self.level_a2s + (current_a**2 - self.rated_a**2) * dt_s)
-        if self.derated and abs(demand_a) > self.rated_a:
-            self.above_s += dt_s
-        else:
-            self.above_s = 0.0
-        if self.derated and self.above_s >= self.trip_after_s:
-            self.tripped = True
+    def switch(self, t_s: float) -> list[str] | None:
+        """Switch the scheduled entries for simulated time t_s; the changes as text, or None."""
+        if not self.schedule:
+            return None
+        now = {(e.owner, e.kind): e.value for e in self.schedule if e.active(t_s)}
+        if now == self.scheduled:
+            return None
+        before = self.scheduled
+        changes = [
+            f"{kind} on {owner}: " + (f"{now[(owner, kind)]}" if (owner, kind) in now else "off")
+            for owner, kind in sorted(set(now) | set(before))
+            if now.get((owner, kind)) != before.get((owner, kind))
+        ]
+        self.scheduled = now
+        return changes
 
 
-@dataclass
 class FaultInjector:
     """The faults in force on one simulator, and their effect on it.
 
@@ -407,41 +243,30 @@ class FaultInjector:
         period_s: the publishing period, for the velocity noise of a differentiated encoder.
     """
 
-    sim: Simulator
-    period_s: float
-    values: dict[tuple[str, str], Any] = field(default_factory=dict)
-    i2t: dict[int, I2tMonitor] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        sim = self.sim
+    def __init__(self, sim: Simulator, period_s: float) -> None:
+        self.sim = sim
+        self.period_s = period_s
         self.n = sim.n_axes
         self.joints = sim.axis_names
-        self._nominal_model = sim._model.copy()
-        self._nominal_inertia = [sim.gantry.link_inertia(a) for a in range(self.n)]
-        self._rng = np.random.default_rng(0)
-        self._frozen_q = np.zeros(self.n)
-        self._play_q = np.array(sim.state_array[0], copy=True)
-        self._schedule: tuple[ScheduledFault, ...] = ()
-        self._scheduled: dict[tuple[str, str], Any] = {}
         self.any_active = False
-        # The current sensor, as the in-drive loop reads it: gain, offset per axis.
-        self.sense_gain = np.ones(self.n)
-        self.sense_offset = np.zeros(self.n)
-        self.sense_noise = np.zeros(self.n)
-        self.current_limit = np.full(self.n, math.inf)
-        self.sto = np.zeros(self.n, dtype=bool)
+        self.settings = FaultSettings()
+        self.constants = PlantConstants(sim)
+        self.drive = DriveLimits(self.joints)
+        self.sensors = SensorFaults(sim.state_array[0], period_s)
+        defaults = {k.name: k.spec.default for k in JOINT_FAULTS}
+        for a in range(self.n):
+            self.sensors.configure(a, defaults)
+
+    @property
+    def values(self) -> dict[tuple[str, str], Any]:
+        """The faults set by parameter, by (owner, kind); `apply` after changing them here."""
+        return self.settings.values
 
     # --- setting -------------------------------------------------------------------------
 
     def value(self, owner: str, kind: str) -> Any:
         """The value in force (a scheduled entry wins over the parameter while active)."""
-        key = (owner, kind)
-        if key in self._scheduled:
-            return self._scheduled[key]
-        if key in self.values:
-            return self.values[key]
-        table = LINK_KIND if owner == LINK else JOINT_KIND
-        return table[kind].spec.default
+        return self.settings.value(owner, kind)
 
     def set(self, owner: str, kind: str, value: Any) -> None:
         """Set one fault (a parameter's value) and apply the faults in force.
@@ -462,10 +287,10 @@ class FaultInjector:
                 parameter_name(owner, kind), f"'' or one of {self._moving_states()}", checked
             )
         if kind == "seed":
-            self._rng = np.random.default_rng(int(checked))
-        self.values[(owner, kind)] = checked
+            self.sensors.rng = np.random.default_rng(int(checked))
+        self.settings.values[(owner, kind)] = checked
         if kind == "i2t_rated_a" and not checked:
-            self.i2t.pop(self.joints.index(owner), None)  # clears a trip, too
+            self.drive.i2t.pop(self.joints.index(owner), None)  # clears a trip, too
         self.apply()
 
     def restart(self) -> None:
@@ -474,34 +299,22 @@ class FaultInjector:
         The random numbers start from their seed again, the I2t monitors are cold, and the
         encoder's held readings and the scheduled faults are cleared.
         """
-        self._rng = np.random.default_rng(int(self.value(LINK, "seed")))
-        for monitor in self.i2t.values():
-            monitor.level_a2s, monitor.above_s, monitor.tripped = 0.0, 0.0, False
-        self._play_q[:] = self.sim.state_array[0]
-        self._frozen_q[:] = self.sim.state_array[0]
-        self._scheduled = {}
+        self.sensors.restart(int(self.value(LINK, "seed")), self.sim.state_array[0])
+        self.drive.cool()
+        self.settings.scheduled = {}
         self.apply()
 
     def set_schedule(self, schedule: Sequence[ScheduledFault]) -> None:
         """The scheduled faults; `at(t_s)` switches them."""
         for entry in schedule:
             self._spec(entry.owner, entry.kind)
-        self._schedule = tuple(schedule)
+        self.settings.schedule = tuple(schedule)
 
     def at(self, t_s: float) -> list[str]:
         """Switch the scheduled faults for simulated time t_s; the changes, as text."""
-        if not self._schedule:
+        changes = self.settings.switch(t_s)
+        if changes is None:
             return []
-        now = {(e.owner, e.kind): e.value for e in self._schedule if e.active(t_s)}
-        if now == self._scheduled:
-            return []
-        before = self._scheduled
-        changes = [
-            f"{kind} on {owner}: " + (f"{now[(owner, kind)]}" if (owner, kind) in now else "off")
-            for owner, kind in sorted(set(now) | set(before))
-            if now.get((owner, kind)) != before.get((owner, kind))
-        ]
-        self._scheduled = now
         self.apply()
         return changes
 
@@ -532,7 +345,7 @@ class FaultInjector:
             and k.is_on(self.value(owner, k.name))
         ]
         if owner != LINK:
-            monitor = self.i2t.get(self.joints.index(owner))
+            monitor = self.drive.i2t.get(self.joints.index(owner))
             if monitor is not None:
                 on.append(
                     "i2t_trip" if monitor.tripped else "i2t_derate" if monitor.derated else "i2t"
@@ -550,113 +363,35 @@ class FaultInjector:
     # --- applying to the model -----------------------------------------------------------
 
     def apply(self) -> None:
-        """Rewrite the model's constants, the sensor and the drive limits from the faults."""
-        model = self.sim._model
-        model[:] = self._nominal_model
+        """Rewrite the model's constants, the sensors and the drive limits from the faults."""
+        per_axis = [
+            {k.name: self.value(joint, k.name) for k in JOINT_FAULTS} for joint in self.joints
+        ]
+        for a, v in enumerate(per_axis):
+            self.sensors.configure(a, v)
+        self.constants.restore()
         self.any_active = False
-        n_rules = int(model[kernel.P_N_RULES, 0])
-        for a, joint in enumerate(self.joints):
-            v = {k.name: self.value(joint, k.name) for k in JOINT_FAULTS}
+        for a, (joint, v) in enumerate(zip(self.joints, per_axis, strict=True)):
             on = any(k.is_on(v[k.name]) for k in JOINT_FAULTS if k.category != "thermal")
-            self._apply_constants(model, a, v, n_rules)
-            self._apply_payload(a, float(v["payload_kg"]))
-            self.sense_gain[a] = 1.0 + float(v["current_gain_error"])
-            self.sense_offset[a] = float(v["current_offset_a"])
-            self.sense_noise[a] = float(v["current_noise_a"])
-            limit = float(v["current_limit_a"])
-            self.current_limit[a] = limit if limit > 0.0 else math.inf
-            self._apply_i2t(a, v)
-            monitor = self.i2t.get(a)
-            if monitor is not None and monitor.derated:
-                self.current_limit[a] = min(self.current_limit[a], monitor.rated_a)
-            self.sto[a] = bool(v["sto"]) or (monitor is not None and monitor.tripped)
-            if self.sto[a]:
-                model[kernel.P_RESISTANCE_OHM, a] = OPEN_CIRCUIT_OHM
+            self.constants.apply(a, v)
+            self.constants.apply_payload(
+                a, float(v["payload_kg"]), parameter_name(joint, "payload_kg")
+            )
+            monitor = self.drive.apply(a, v)
+            if self.drive.sto[a]:
+                self.constants.open_circuit(a)
             self.any_active = self.any_active or on or monitor is not None
         link_on = any(k.is_on(self.value(LINK, k.name)) for k in LINK_FAULTS if k.name != "seed")
         self.any_active = self.any_active or link_on
-
-    def _apply_constants(
-        self, model: FloatArray, a: int, v: Mapping[str, Any], n_rules: int
-    ) -> None:
-        sag = float(v["supply_sag"])
-        model[kernel.P_VOLTAGE_LIMIT_V, a] *= 1.0 - sag
-        model[kernel.P_TORQUE_CONSTANT, a] *= 1.0 - float(v["torque_constant_loss"])
-        extra = float(v["extra_friction_nm"])
-        if v["jam"]:
-            extra += JAM_FRICTION_NM
-        for row in (
-            kernel.P_STATIC_DIRECT,
-            kernel.P_STATIC_REVERSE,
-            kernel.P_COULOMB_DIRECT,
-            kernel.P_COULOMB_REVERSE,
-        ):
-            model[row, a] += extra
-        drift_m, drift_l = float(v["eta_m_drift"]), float(v["eta_l_drift"])
-        if drift_m or drift_l:
-            names = self.sim.state_names[kernel.FIRST_MOVING :]
-            for rule in range(n_rules):
-                if v["drift_state"] and names[rule] != v["drift_state"]:
-                    continue
-                for direction in (1, -1):
-                    for which, drift in ((0, drift_m), (1, drift_l)):
-                        row = kernel.eta_row(n_rules, direction, rule, which)
-                        model[row, a] = max(0.0, model[row, a] + drift)
-
-    def _apply_payload(self, a: int, extra_kg: float) -> None:
-        nominal = self._nominal_inertia[a]
-        if extra_kg == 0.0:
-            self.sim.gantry.set_link_inertia(a, nominal)
-            return
-        mass = float(nominal.mass)
-        if mass + extra_kg <= 0.0:
-            raise ParameterError(
-                parameter_name(self.joints[a], "payload_kg"),
-                f"more than -{mass:g} (the link's own mass)",
-                extra_kg,
-            )
-        scale = (mass + extra_kg) / mass
-        inertia = nominal.copy()
-        inertia.mass = mass + extra_kg
-        inertia.inertia = nominal.inertia * scale
-        self.sim.gantry.set_link_inertia(a, inertia)
-
-    def _apply_i2t(self, a: int, v: Mapping[str, Any]) -> None:
-        rated = float(v["i2t_rated_a"])
-        if rated <= 0.0:
-            self.i2t.pop(a, None)
-            return
-        monitor = self.i2t.get(a)
-        if monitor is None:
-            monitor = self.i2t[a] = I2tMonitor(rated, 0.0, 0.0, 0.0)
-        monitor.rated_a = rated
-        monitor.peak_a = float(v["i2t_peak_a"])
-        monitor.peak_time_s = float(v["i2t_peak_time_s"])
-        monitor.trip_after_s = float(v["i2t_trip_after_s"])
 
     # --- per control period ----------------------------------------------------------------
 
     def thermal(self, current_a: FloatArray, demand_a: FloatArray, dt_s: float) -> list[str]:
         """Advance the I2t monitors one interval; what changed (derate, trip), as text."""
-        events: list[str] = []
-        for a, monitor in self.i2t.items():
-            was = (monitor.derated, monitor.tripped)
-            monitor.update(float(current_a[a]), float(demand_a[a]), dt_s)
-            if (monitor.derated, monitor.tripped) != was:
-                joint = self.joints[a]
-                events.append(
-                    f"{joint}: I2t trip, torque off (latched)"
-                    if monitor.tripped
-                    else f"{joint}: I2t derates the current to {monitor.rated_a:g} A"
-                )
+        events = self.drive.thermal(current_a, demand_a, dt_s)
         if events:
             self.apply()
         return events
-
-    def current_noise(self, n_steps: int) -> FloatArray:
-        """[n_steps, n] samples of the current sensors' noise (zeros where there is none)."""
-        noise: FloatArray = self._rng.standard_normal((n_steps, self.n)) * self.sense_noise
-        return noise
 
     def measure(
         self,
@@ -669,42 +404,7 @@ class FaultInjector:
 
         Writes into `out` (position, velocity, current); the true arrays are not touched.
         """
-        q_out, v_out, i_out = out
-        q_out[:] = position
-        v_out[:] = velocity
-        np.multiply(current_a, self.sense_gain, out=i_out)
-        i_out += self.sense_offset
-        if np.any(self.sense_noise):
-            i_out += self._rng.standard_normal(self.n) * self.sense_noise
-        for a, joint in enumerate(self.joints):
-            self._measure_joint(a, joint, q_out, v_out)
-
-    def _measure_joint(self, a: int, joint: str, q_out: FloatArray, v_out: FloatArray) -> None:
-        play = float(self.value(joint, "backlash"))
-        if play > 0.0:
-            # The play operator: the reading moves only once the joint has taken up the play.
-            half = 0.5 * play
-            self._play_q[a] = min(max(self._play_q[a], q_out[a] - half), q_out[a] + half)
-            q_out[a] = self._play_q[a]
-        else:
-            self._play_q[a] = q_out[a]
-        q_out[a] += float(self.value(joint, "encoder_bias"))
-        sigma = float(self.value(joint, "encoder_noise"))
-        if sigma > 0.0:
-            q_out[a] += sigma * self._rng.standard_normal()
-            v_out[a] += math.sqrt(2.0) * sigma / self.period_s * self._rng.standard_normal()
-        step = float(self.value(joint, "encoder_quantisation"))
-        if step > 0.0:
-            q_out[a] = step * round(q_out[a] / step)
-        if self.value(joint, "encoder_freeze"):
-            q_out[a] = self._frozen_q[a]
-            v_out[a] = 0.0
-        else:
-            self._frozen_q[a] = q_out[a]
-        dropout = float(self.value(joint, "encoder_dropout"))
-        if dropout > 0.0 and self._rng.random() < dropout:
-            q_out[a] = math.nan
-            v_out[a] = math.nan
+        self.sensors.measure(position, velocity, current_a, out)
 
 
 @dataclass
@@ -729,7 +429,7 @@ class StateLink:
             self.stale_sent += 1
             return [self._last]
         drop = float(inj.value(LINK, "state_drop"))
-        if drop > 0.0 and inj._rng.random() < drop:
+        if drop > 0.0 and inj.sensors.rng.random() < drop:
             self.dropped += 1
             return []
         delay_s = float(inj.value(LINK, "state_delay_s"))

@@ -1,25 +1,12 @@
 """The compiled drive-chain step: electrics, state machine, eq. (10) solve, stick/slip integration.
 
-This is the hot path of the simulator, compiled with numba so that one 4-axis step (with eq. 2's
-rigid-body terms that feed it, `rigid_body.terms`) costs less than a MuJoCo step of the same
-gantry. The code is
-plain Python over floats and small arrays: `NUMBA_DISABLE_JIT=1` runs it uncompiled, unchanged.
-
-numba's call overhead grows with every argument (about 0.1 us each) and every allocation inside
-costs too, so the kernel takes two packed float arrays, both built once per simulator:
-
-* `model[row, axis]` (read only), built by `pack_model`:
-  rows `P_*`: per-axis constants, motor side, SI; `P_IRREVERSIBLE` (1.0 or 0.0); `P_N_RULES`;
-  then the moving-state rule table (`rule_code`) and the eq. (10) coefficients (`eta_row`).
-* `work[row, axis]` (read and written), `WORK_ROWS(n)` rows:
-  `X_*` the state (joint position in rad or m, joint velocity, armature current in A, motion
-  state 0/+1/-1 and drive-state index, both stored as exact floats), `S_*` what the step exposes,
-  and scratch rows the kernel reuses instead of allocating (including an n x n inertia and its
-  Cholesky factor).
-
-Sign conventions (docs/model.md): tau_m is the motor torque, tau_l = N^-1 (C qdot + Q) the torque
-the load demands at the motor shaft (eq. 8), both positive in the direct direction. The state
-machine reads tau_l through a per-axis sign band, `P_LOAD_TORQUE_BAND` (docs/model.md, section 4).
+The simulator's hot path, compiled with numba; plain Python over floats and small arrays, so
+`NUMBA_DISABLE_JIT=1` runs it unchanged. Every argument and allocation costs in numba, so the
+step takes two packed arrays built once per simulator: `model[row, axis]` (read only, from
+`pack_model`: rows `P_*`, the rule table `rule_code`, the eq. (10) coefficients `eta_row`) and
+`work[row, axis]` (`X_*` the state, `S_*` what a step exposes, then scratch rows).
+Sign conventions, the load-sign band `P_LOAD_TORQUE_BAND` and the call path: docs/model.md,
+sections 1, 4 and 5.
 """
 
 from __future__ import annotations

@@ -1,30 +1,11 @@
 """Eq. (2)'s rigid-body terms, A(q) and C(q, qdot) qdot + Q(q), in compiled code.
 
-Why this exists beside Pinocchio: the model step (bench/model_step.py) is held to the cost of a
-MuJoCo `mj_step` on the same gantry, and at four joints the two Pinocchio calls per step cost
-more through their Python bindings (argument conversion, a new array returned by value) than
-their arithmetic. numba cannot call Pinocchio's C++ templates, so the step evaluates the same
-two algorithms here, on the numbers of Pinocchio's own model:
-
-* the kinematic tree, the joint placements, axes, link inertias (with fixed links merged) and
-  the rotor armature are read from the `pinocchio.Model` that Pinocchio's URDF parser built
-  (`lca_sim.model.gantry.Gantry.pack_tree`): nothing of the robot is written here;
-* A(q) is the Composite Rigid Body Algorithm and C qdot + Q the Recursive Newton-Euler
-  Algorithm with zero joint acceleration and the base accelerated against gravity, the
-  algorithms of Pinocchio's `crba` and `nonLinearEffects` (Featherstone, *Rigid Body Dynamics
-  Algorithms*, 2008, ch. 5-6);
-* tests hold both to Pinocchio's results over random states of both robots and under a
-  payload fault (tests/lca_sim/model/test_rigid_body.py), to 1e-12 of the largest term.
-
-Everything is expressed in the world frame at its origin, in Pinocchio's spatial ordering
-(linear part first, then angular): a joint's motion subspace S, a body's spatial velocity and
-bias acceleration, and the forces are all 6-vectors there, so the backward passes add them
-without transforms. A rigid body is kept as mass m, first moment h = m c and the rotational
-inertia about the world origin J_O = I_c + m (|c|^2 1 - c c^T), which add when bodies are
-composed (CRBA's composite inertia).
-
-Only 1-DoF joints whose motion is a rotation about, or a translation along, a fixed axis of the
-joint frame are supported (revolute, prismatic, aligned or not), as `Gantry` enforces.
+Pinocchio's two calls per step cost more through their bindings than their arithmetic, and
+numba cannot call its C++, so the step evaluates the same algorithms here (CRBA for A(q), RNEA
+at zero acceleration for C qdot + Q; Featherstone 2008, ch. 5-6) on the numbers of Pinocchio's
+own model (`Gantry.pack_tree`). All in the world frame at its origin, Pinocchio's spatial
+ordering; 1-DoF revolute and prismatic joints only, as `Gantry` enforces. Held to Pinocchio
+to 1e-12 by tests/lca_sim/model/test_rigid_body.py; why and how: docs/model.md, section 2.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from lca_sim.model import kernel
 from lca_sim.model.gantry import Gantry
 from lca_sim.model.params import RobotParams
 from lca_sim.model.state_machine import FIRST_MOVING_STATE, MotionState, load_torque_band_nm
+from lca_sim.model.step_path import StepPath
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -113,8 +114,8 @@ class Simulator:
             order in the hold (the velocity in C(q, qdot) qdot is the hold's first); the motor,
             gear, state machine and current loops still run at every step. The simulator node
             holds them for 1 ms (10 steps): the results move by microradians
-            (tests/test_model_physics.py) and a control period's model CPU drops by three
-            quarters.
+            (tests/lca_sim/model/test_model_physics.py) and a control period's model CPU
+            drops by three quarters.
 
     The simulator starts at rest at q = 0 with zero current; use `reset` for other states.
 
@@ -153,24 +154,14 @@ class Simulator:
             robot.state_machine.irreversible_stop,
         )
         self._work = np.zeros((kernel.work_rows(self.n_axes), self.n_axes))
-        # Views into the work array, made once: the hot path only indexes them.
-        self._position = self._work[kernel.X_POSITION]
-        self._velocity = self._work[kernel.X_VELOCITY]
         self._signals = self._work[kernel.FIRST_SIGNAL : kernel.FIRST_SIGNAL + kernel.N_SIGNALS]
         self._command = np.zeros(self.n_axes)
         self._command_shape = (self.n_axes,)
-        self._dynamics = self._gantry.terms_in_place
-        # The held rigid-body terms: the gantry's buffers themselves when evaluated at every
-        # step, copies when held (another evaluation would overwrite its buffers).
-        self._hold_steps = rigid_body_update_steps
-        self._hold_lead_s = 0.5 * (rigid_body_update_steps - 1) * self.dt_s
-        self._hold_position = np.zeros(self.n_axes)
-        self._held_mass = np.zeros((self.n_axes, self.n_axes))
-        self._held_nle = np.zeros(self.n_axes)
-        self._terms: tuple[FloatArray, FloatArray] = (self._held_mass, self._held_nle)
-        self._hold_age = 0  # steps taken on the held terms; 0: evaluate before the next step
-        # One step's Pinocchio calls and kernel, behind one call made once (`_bind_kernel_step`).
-        self._kernel_step = self._bind_kernel_step()
+        self._path = StepPath(
+            self._gantry, self._work, self._model, self.dt_s, rigid_body_update_steps
+        )
+        # Bound once: `step` is the hot path of every run (bench/model_step.py).
+        self._kernel_step = self._path.step
         self._time_s = 0.0
         self.reset()
 
@@ -180,7 +171,7 @@ class Simulator:
         """Refused: a copy would step the original's memory (see below); build a new one.
 
         The exact scheme's step reaches its arrays through a frame of raw addresses
-        (`_bind_kernel_step`), so a copy made by `copy` or `pickle` would keep pointing at
+        (`lca_sim.model.step_path`), so a copy made by `copy` or `pickle` would keep pointing at
         this simulator's arrays and Pinocchio buffers, and its steps would change them.
         """
         raise TypeError(
@@ -213,7 +204,7 @@ class Simulator:
         self._work[kernel.X_VELOCITY] = v
         self._work[kernel.X_MOTION] = np.sign(v)
         self._time_s = 0.0
-        self._hold_age = 0
+        self._path.restart()
         self._evaluate(np.zeros(self.n_axes) if voltage_v is None else voltage_v)
 
     def set_state(self, state: PlantState) -> None:
@@ -227,7 +218,7 @@ class Simulator:
         self._work[kernel.X_MOTION] = [int(m) for m in state.motion]
         self._work[kernel.X_DRIVE] = state.drive
         self._time_s = state.time_s
-        self._hold_age = 0
+        self._path.restart()
         self._evaluate(self._command.copy())
 
     @property
@@ -314,64 +305,6 @@ class Simulator:
         self._command = command
         self._time_s += self.dt_s
 
-    def _bind_kernel_step(self) -> Callable[[FloatArray], int]:
-        """The rigid-body terms and `kernel.step` of one step, as one call on a voltage array.
-
-        `step` is the hot path of every run (bench/model_step.py holds it against a MuJoCo
-        step), and at 4 axes its cost is mostly the calls around the arithmetic. So the exact
-        scheme (terms at every step) is one compiled call, `kernel.step_in_frame`, on a frame
-        of the addresses of everything fixed for the simulator's life: `work`, `model` and the
-        gantry's compiled terms' tree, scratch and output buffers. It computes what the general
-        path computes (`Gantry.terms_in_place`, then `kernel.step`), so the same bits.
-        """
-        if self._hold_steps > 1:
-            return self._held_kernel_step
-        work, model, dt_s = self._work, self._model, self.dt_s
-        terms_in_place = self._gantry.terms_in_place
-        position, velocity = self._position, self._velocity
-        frame = self._kernel_frame()
-        if frame is None:
-            kernel_step = kernel.step
-
-            def exact_kernel_step(command: FloatArray) -> int:
-                mass, nle = terms_in_place(position, velocity)
-                code: int = kernel_step(mass, nle, command, work, model, dt_s)
-                return code
-
-            return exact_kernel_step
-        frame_address = int(frame.ctypes.data)  # `frame` is kept in `_frame_arrays`
-        # A dry run on the zero state (reset follows): the compiled step may come from numba's
-        # cache of an older rigid_body (kernel.STALE_CODE), then it is compiled again.
-        zero_volts = np.zeros(self.n_axes)
-        if kernel.step_in_frame_entry()(zero_volts, frame_address, 0.0) == kernel.STALE_CODE:
-            kernel.recompile_step_in_frame()
-            if kernel.step_in_frame_entry()(zero_volts, frame_address, 0.0) != kernel.OK:
-                raise RuntimeError("kernel.step_in_frame does not run the loaded rigid_body")
-        step_in_frame = kernel.step_in_frame_entry()  # `step` checked the voltages' type
-
-        def exact_frame_step(command: FloatArray) -> int:
-            code: int = step_in_frame(command, frame_address, dt_s)
-            return code
-
-        return exact_frame_step
-
-    def _kernel_frame(self) -> npt.NDArray[np.int64] | None:
-        """`kernel.step_in_frame`'s frame, or None when numba's JIT is off (no raw addresses)."""
-        if not kernel.FRAME_AVAILABLE:
-            return None
-        mass, nle, tree, body = self._gantry.term_buffers()
-        frame = kernel.make_frame(mass, nle, self._work, self._model, tree, body)
-        self._frame_arrays = (frame, mass, nle, tree, body)  # keeps the frame's memory alive
-        return frame
-
-    def _held_kernel_step(self, command: FloatArray) -> int:
-        """One kernel step on the held rigid-body terms (evaluated when a new hold starts)."""
-        mass, nle = self._rigid_body_terms()
-        code: int = kernel.step(mass, nle, command, self._work, self._model, self.dt_s)
-        if code == kernel.OK:
-            self._hold_age = (self._hold_age + 1) % self._hold_steps
-        return code
-
     def advance(self, n_steps: int, voltage_v: FloatArray) -> None:
         """`n_steps` of `step` under one voltage command, in compiled code per hold.
 
@@ -403,41 +336,18 @@ class Simulator:
                 after them.
 
         """
-        work, model, dt_s = self._work, self._model, self.dt_s
-        hold = self._hold_steps
-        left = n_steps
-        while left > 0:
-            mass, nle = self._rigid_body_terms()
-            chunk = min(hold - self._hold_age, left)
-            done = stepper(chunk, volts, *args, mass, nle, work, model, dt_s)
-            for _ in range(done):
-                self._time_s += dt_s
-            self._hold_age = (self._hold_age + done) % hold
-            left -= done
-            if done < chunk:
-                # The last command stays the last good one (set_state re-evaluates with it).
-                raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
+        done, complete = self._path.advance_with(n_steps, stepper, volts, *args)
+        for _ in range(done):  # added step by step: the same time as `step` gives
+            self._time_s += self.dt_s
+        if not complete:
+            # The last command stays the last good one (set_state re-evaluates with it).
+            raise InputError(f"voltage commands must be finite, got {volts.tolist()}")
         self._command = volts.copy()
 
     @property
     def rigid_body_update_steps(self) -> int:
         """Steps per evaluation of Pinocchio's terms (fixed at construction)."""
-        return self._hold_steps
-
-    def _rigid_body_terms(self) -> tuple[FloatArray, FloatArray]:
-        """A(q) and C(q, qdot) qdot + Q(q) for the next step: evaluated, or still held."""
-        if self._hold_age == 0:
-            if self._hold_steps == 1:
-                self._terms = self._dynamics(self._position, self._velocity)
-            else:
-                q = self._hold_position
-                np.multiply(self._velocity, self._hold_lead_s, out=q)
-                q += self._position
-                mass, nle = self._dynamics(q, self._velocity)
-                self._held_mass[:] = mass
-                self._held_nle[:] = nle
-                self._terms = (self._held_mass, self._held_nle)
-        return self._terms
+        return self._path.hold_steps
 
     def derivative(
         self, state: PlantState, voltage_v: Sequence[float] | FloatArray
@@ -482,8 +392,7 @@ class Simulator:
         command = np.asarray(voltage_v, dtype=np.float64)
         if command.shape != (self.n_axes,) or not np.all(np.isfinite(command)):
             raise InputError(f"expected {self.n_axes} finite voltages, got {command.tolist()}")
-        mass, nle = self._dynamics(self._position, self._velocity)
-        kernel.step(mass, nle, command, self._work, self._model, 0.0)
+        self._path.evaluate(command)
         self._command = command
 
     # --- helpers ---------------------------------------------------------------------------

@@ -1,42 +1,13 @@
 """The two-level efficiency state machine of the paper (section 4.1, Figs 6-8, Table 1).
 
-Upper level (Fig. 6): the motion state, from the sign of the motor velocity with the stop
-threshold V_eps: STOP, DIRECT, REVERSE.
-
-Lower level: the drive state.
-
-* In STOP (Fig. 7) the gear is irreversible: the load alone cannot start motion. The sub-states
-  only say what the motor is doing while the axis is held (`stop_hold` when |tau_m| <= T_m_eps,
-  `stop_motor_direct` / `stop_motor_reverse` while the motor pushes below breakaway, and
-  `stop_end_stop` against a joint end stop). They carry no efficiency: the axis is locked.
-* In DIRECT and REVERSE motion (Fig. 8 and its mirror) the drive state is chosen by a table of
-  rules read from the robot YAML. Each rule names a state and the conditions under which it holds,
-  written *along the motion direction*, so one table serves both directions (the paper's "replace
-  tau_m and tau_l by -tau_m and -tau_l"):
-
-  ======================================  ======  =========  =========
-  state (default table)                   motor   load       dominant
-  ======================================  ======  =========  =========
-  motor_driving                           drives  resists    any
-  motor_and_load_driving_load_dominant    drives  drives     load
-  motor_and_load_driving_motor_dominant   drives  drives     motor
-  load_driving                            brakes  drives     any
-  coasting                                brakes  resists    any
-  ======================================  ======  =========  =========
-
-  "motor drives" means d * tau_m > 0, "load drives" means -d * tau_l > 0, with d = +1 in DIRECT
-  and -1 in REVERSE and tau_l the torque the load *demands* (eq. 8, tau_l = N^-1 (C qdot + Q)).
-  "load dominant" means |tau_m| < |tau_l|. Table 1 writes these conditions with the load torque
-  the load *applies* (-tau_l), which is why its "motor driving" row reads tau_m * tau_l < 0.
-
-  The load's sign is read through a band (`load_torque_band_nm`): a |tau_l| within a few thousand
-  rounding units of the axis's torque scale is taken as exactly zero, so an axis without a
-  gravity load (the L-arm) is not thrown between Fig. 8's states by Pinocchio's rounding noise.
-  A zero load neither drives nor dominates: the motor alone drives (`motor_driving`) or, braking,
-  the axis coasts.
-
-Each state carries eta_m and eta_l per direction (eq. 10). See docs/model.md for why each
-coefficient applies to the torque of the element that emits power (eq. 11).
+Upper level (Fig. 6): the motion state STOP, DIRECT or REVERSE, from the sign of the motor
+velocity with the stop threshold V_eps. Lower level: the drive state. In STOP (Fig. 7) the gear
+is irreversible and the sub-states only say what the motor does while the axis is held
+(`stop_hold`, `stop_motor_direct` / `stop_motor_reverse`, `stop_end_stop`). In motion (Fig. 8
+and its mirror) a table of rules from the robot YAML, written along the motion direction,
+picks the state from the signs of tau_m and tau_l (the load's read through
+`load_torque_band_nm`); each state carries eta_m and eta_l per direction (eq. 10).
+The table, the sign conventions and the power-flow rule (eq. 11): docs/model.md, section 4.
 """
 
 from __future__ import annotations
@@ -97,30 +68,17 @@ LOAD_SIGN_BAND_EPS = 4096.0
 def load_torque_band_nm(torque_scale_nm: float) -> float:
     """The band |tau_l| <= this, N m at the motor, inside which a load torque counts as zero.
 
-    Fig. 8 (and its mirror) decides on the sign of tau_l, and its states do not meet at
-    tau_l = 0: with the motor driving, `motor_driving` (Table 1 row 1, eta_m = 0.9) and the
-    motor-dominant motor-and-load state (row 3, eta_m = 1, eta_l = 0.45) differ in eq. (10) by
-    0.1 tau_m however small tau_l is. An axis without a gravity load (the L-arm turns about the
-    vertical) gets tau_l = N^-1 (C qdot + Q) from Pinocchio as a rounding residue of its sums,
-    1e-20 to 1e-15 N m of random sign, and its state flipped between the two every few steps
-    (24,886 changes in 12 s at 12 V) at a biased speed. Inside the band the load is taken as exactly
-    zero, so the state is the one the table gives a zero load, deterministically.
-
-    The residue is a few ulps of the largest torques Pinocchio sums for the joint (the weight and
-    inertia of everything it carries), and a drive is sized so that those torques, at the motor
-    shaft, are of the order of its torque scale: the stall torque k_t V_max / R. On the default
-    robot the L-arm's residue is at most 0.98 eps times it (20,000 random poses). 2**12 eps
-    leaves room for structures thousands of times heavier than their motors, and stays 1e5 times
-    below the paper's own torque threshold (T_m_eps = 1e-5 N m, Fig. 7) and below the pivot's
-    load change in one step as it crosses 55 deg (3e-6 N m in Fig. 9), so physical crossings
-    switch on the same step as without a band. docs/model.md, section 4, gives the figures.
+    Fig. 8's states do not meet at tau_l = 0, and an axis without a gravity load (the L-arm)
+    gets a rounding residue of random sign from Pinocchio, which flipped its state every few
+    steps. The residue is a few ulps of the torques the joint carries, of the order of the
+    drive's stall torque; 2**12 eps of it stays far below the paper's T_m_eps and any physical
+    crossing. The figures: docs/model.md, section 4, "A zero load: the sign band".
 
     Args:
         torque_scale_nm: the axis's torque scale, N m at the motor (`MotorParams.stall_torque_nm`).
 
     Returns:
         LOAD_SIGN_BAND_EPS * eps * torque_scale_nm, N m.
-
     """
     return LOAD_SIGN_BAND_EPS * sys.float_info.epsilon * torque_scale_nm
 

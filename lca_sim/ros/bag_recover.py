@@ -4,7 +4,7 @@
 
 A recorder killed with SIGKILL (or by a power cut) never writes the MCAP summary, the footer or
 `metadata.yaml`, so no reader opens the bag. `lca-record` closes and flushes a small chunk every
-0.4 of `--flush-period-s` (see `lca_sim.ros.record`), so the file holds every message received
+0.4 of `--flush-period-s` (see `lca_sim.ros.record_bag`), so the file holds every message received
 up to at most `--flush-period-s` before the kill, followed by at most one partly written chunk.
 
 Recovery reads the MCAP record by record (magic, then records of an opcode byte and a uint64

@@ -43,7 +43,9 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
-from lca_sim.ros.record import RecorderError, first_line, import_message_class, subscription_qos
+from lca_sim.ros.record import first_line
+from lca_sim.ros.record_bag import RecorderError
+from lca_sim.ros.record_topics import import_message_class, subscription_qos
 from lca_sim.ros.tool_args import echo_parser
 
 NODE_NAME = "lca_echo"

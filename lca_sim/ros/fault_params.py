@@ -19,11 +19,11 @@ from rclpy.parameter import Parameter
 from lca_control.parameters import ParameterError, ParameterTable, ParamKind, ParamSpec
 from lca_sim.config.loader import load_fault_schedule
 from lca_sim.errors import USER_ERRORS
+from lca_sim.model.fault_schedule import ScheduledFault
 from lca_sim.model.faults import (
     FAULT_SCHEDULE,
     LINK,
     FaultInjector,
-    ScheduledFault,
     fault_table,
     is_fault_parameter,
     parameter_name,

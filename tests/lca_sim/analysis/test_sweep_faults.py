@@ -23,7 +23,7 @@ from lca_sim.analysis.sweep import run_point
 from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.cli.sweep import build_tasks, load_spec
 from lca_sim.errors import ConfigError
-from lca_sim.model.faults import ScheduledFault
+from lca_sim.model.fault_schedule import ScheduledFault
 
 DURATION_S = 3.0
 PIVOT = 1

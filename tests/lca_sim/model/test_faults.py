@@ -23,15 +23,13 @@ from lca_control.pi import PIParams
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
 from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import config_dir, load_robot
-from lca_sim.errors import ConfigError
 from lca_sim.model.commanded_plant import CommandedPlant
+from lca_sim.model.fault_schedule import ScheduledFault
 from lca_sim.model.faults import (
     JOINT_FAULTS,
     LINK,
     FaultInjector,
-    ScheduledFault,
     StateLink,
-    parse_fault_schedule,
 )
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
 
@@ -231,7 +229,7 @@ def test_i2t_derates_then_trips() -> None:
     assert "i2t_trip" in states[-1]
     assert abs(currents[-1]) < 1e-6  # tripped: torque off
     injector.set("l_arm", "i2t_rated_a", 0.0)  # clearing the monitor clears the trip
-    assert not injector.sto[0]
+    assert not injector.drive.sto[0]
 
 
 def test_encoder_faults_on_the_reading() -> None:
@@ -302,31 +300,8 @@ def test_every_kind_is_a_typed_parameter_off_by_default() -> None:
         injector.set("pivot", "drift_state", "no_such_state")
 
 
-def test_schedule_errors_name_the_bad_key(tmp_path: Path) -> None:
-    """One clear error per bad schedule, naming the key; overlaps and link faults refused."""
-    joints = ("l_arm", "pivot", "c_arc", "lift")
-    good = {"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 1.0}]}
-    assert parse_fault_schedule(good, "f", joints)[0].end_s == math.inf
-    cases = [
-        ({"faults": [{"joint": "wrist", "kind": "jam", "value": True, "start_s": 0}]}, "joint"),
-        ({"faults": [{"joint": "pivot", "kind": "melt", "value": 1, "start_s": 0}]}, "kind"),
-        ({"faults": [{"joint": "pivot", "kind": "supply_sag", "value": 2, "start_s": 0}]}, "value"),
-        ({"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": -1}]}, "start_s"),
-        ({"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 2, "end_s": 1}]},
-         "end_s"),
-        ({"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 0, "x": 1}]},
-         "faults[0].x"),
-        ({"faults": [{"joint": "pivot", "kind": "jam", "value": True, "start_s": 0, "end_s": 2},
-                     {"joint": "pivot", "kind": "jam", "value": True, "start_s": 1}]}, "overlap"),
-        ({"faults": [{"joint": "pivot", "kind": "state_drop", "value": 0.5, "start_s": 0}]},
-         "link fault"),
-    ]  # fmt: skip
-    for data, word in cases:
-        with pytest.raises(ConfigError, match=word.replace("[", r"\[").replace("]", r"\]")):
-            parse_fault_schedule(data, "f", joints)
-    shipped = CONFIG / "faults"
-    for path in shipped.glob("*.yaml"):
-        assert parse_fault_schedule(yaml.safe_load(path.read_text()), str(path), joints)
+def test_a_composed_run_refuses_link_faults() -> None:
+    """The link faults need the simulator node: a composed run's schedule naming one is refused."""
     with pytest.raises(ValueError, match="link"):
         _config(1.0, ScheduledFault(LINK, "state_drop", 0.5, 0.0, 1.0))
 

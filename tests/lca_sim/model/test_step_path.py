@@ -1,4 +1,4 @@
-"""The exact step's fast path (`Simulator._bind_kernel_step`) against the plain kernel call.
+"""The exact step's fast path (`lca_sim.model.step_path.StepPath`) against the kernel call.
 
 The fast path reaches `work`, `model` and the gantry's compiled terms' tree, scratch and output
 buffers through a frame of raw addresses (docs/model.md, "The exact step's call path"). These

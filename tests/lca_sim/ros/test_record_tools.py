@@ -56,7 +56,8 @@ from lca_control.contract import (
 from lca_sim.cli import bagplot
 from lca_sim.ros import record
 from lca_sim.ros.echo import message_to_plain
-from lca_sim.ros.record import BagRecorder, subscription_qos
+from lca_sim.ros.record import BagRecorder
+from lca_sim.ros.record_topics import subscription_qos
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
