@@ -39,14 +39,14 @@ import numpy.typing as npt
 
 from lca_control.controller import ControllerParams, JointController
 from lca_control.parameters import ParameterError
-from lca_control.pi import PIParams
 from lca_sim.analysis.metrics import VelocityTracking, tracking_window_s, velocity_tracking
 from lca_sim.errors import UnknownNameError
-from lca_sim.model.commanded_plant import VOLTAGE, CommandedPlant
+from lca_sim.model.commanded_plant import VOLTAGE
 from lca_sim.model.fault_schedule import ScheduledFault
-from lca_sim.model.faults import LINK, FaultInjector
+from lca_sim.model.faults import LINK
 from lca_sim.model.params import RobotParams
-from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
+from lca_sim.model.plant import PlantConfig, build_plant
+from lca_sim.model.simulator import SIGNAL_NAMES
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -289,26 +289,27 @@ class ClosedLoop:
     def __init__(self, config: ClosedLoopConfig) -> None:
         self.config = config
         c = config
-        self.sim = Simulator(
-            c.robot, dt_s=c.dt_s, rigid_body_update_steps=c.rigid_body_update_steps
+        plant = build_plant(
+            PlantConfig(
+                robot=c.robot,
+                dt_s=c.dt_s,
+                rigid_body_update_steps=c.rigid_body_update_steps,
+                joints=c.joints,
+                interface=c.command_interface,
+                current_kp_v_per_a=c.current_kp_v_per_a,
+                current_ti_s=c.current_ti_s,
+                max_abs_command=c.max_abs_command,
+                enabled=c.plant_enabled,
+                fault_period_s=c.control_period_s if c.faults else None,
+            )
         )
+        self.sim, self.plant, self.faults = plant.sim, plant.commanded, plant.faults
+        if self.faults is not None:
+            self.faults.set_schedule(c.faults)
         axes = self.sim.axis_names
         for joint in (*c.joints, *c.controller.joints):
             if joint not in axes:
                 raise UnknownNameError("joint", joint, axes)
-        self.plant = CommandedPlant(
-            sim=self.sim,
-            joints=c.joints,
-            interface=c.command_interface,
-            current_pi=PIParams(c.current_kp_v_per_a, c.current_ti_s, -1.0, 1.0),
-            max_abs_command=c.max_abs_command,
-            enabled=c.plant_enabled,
-        )
-        self.faults: FaultInjector | None = None
-        if c.faults:
-            self.faults = FaultInjector(self.sim, period_s=c.control_period_s)
-            self.faults.set_schedule(c.faults)
-            self.plant.faults = self.faults
         self._index = [axes.index(j) for j in c.controller.joints]
 
     def run(self) -> ClosedLoopResult:

@@ -4,7 +4,8 @@ The simulator node, the composed closed loop (`lca-hil run`, sweeps) and the vir
 each run the same plant: a `Simulator` of the robot, a `CommandedPlant` in front of it with the
 current PI "in the drive" (lca_control's PI law, docs/control.md), and, where the backend takes
 them, the model-level faults of docs/faults.md. `PlantConfig` says what differs between them;
-`build_plant` is the one place that puts the parts together.
+`build_plant` is the one place that puts the parts together. It sits in the model layer, below
+config/ and analysis/, so that every backend can use it.
 """
 
 from __future__ import annotations

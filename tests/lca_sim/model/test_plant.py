@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from lca_sim.config.loader import load_robot
-from lca_sim.config.plant import PlantConfig, build_plant
 from lca_sim.errors import ConfigError
+from lca_sim.model.plant import PlantConfig, build_plant
 
 PIVOT = 1
 
