@@ -51,7 +51,6 @@ from typing import Any
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
 from lca_sim.analysis.metrics import parse_metric
 from lca_sim.analysis.sweep import PointTask, run_point
-from lca_sim.cli.output import strict_json
 from lca_sim.cli.run import load_config
 from lca_sim.cli.sweep import (
     PointStore,
@@ -61,6 +60,7 @@ from lca_sim.cli.sweep import (
     run_tasks,
     warm_up,
 )
+from lca_sim.output import strict_json
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 ROS_CONFIG = REPO_ROOT / "config" / "ros"

@@ -78,8 +78,7 @@ from lca_control.contract import (
     VELOCITY_REFERENCE,
     VOLTAGE_COMMANDS,
 )
-from lca_sim.cli.output import save_png
-from lca_sim.cli.plotting import Clipped, clip_spikes, joint_unit, label_gap, merge_events
+from lca_sim.cli.plotting import Clipped, clip_spikes, joint_unit, label_gap, merge_events, save_png
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, FOLDER_NOT_FOUND
 from lca_sim.model.state_machine import StopState
 

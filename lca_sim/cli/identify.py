@@ -46,7 +46,6 @@ from lca_sim.analysis.identify import (
     StateEstimate,
     identify,
 )
-from lca_sim.cli.output import atomic_path
 from lca_sim.config.loader import load_robot
 from lca_sim.errors import (
     EXIT_OK,
@@ -58,6 +57,7 @@ from lca_sim.errors import (
 )
 from lca_sim.model.params import AxisParams, RobotParams
 from lca_sim.model.state_machine import Efficiency, MotionState
+from lca_sim.output import atomic_path
 
 PROG = "lca-hil identify"
 YAML_NAME = "identified.yaml"

@@ -43,8 +43,7 @@ from lca_sim.analysis.paper import (
     current_step,
     open_loop_phases,
 )
-from lca_sim.cli.output import save_png, write_json, write_table
-from lca_sim.cli.plotting import clip_spikes
+from lca_sim.cli.plotting import clip_spikes, save_png
 from lca_sim.cli.ros_guard import ros_required
 from lca_sim.cli.tune import tune_axis
 from lca_sim.config.loader import load_robot, load_scenario
@@ -52,6 +51,7 @@ from lca_sim.errors import EXIT_FAILED, USER_ERRORS, LcaHilError, OutputError, r
 from lca_sim.model.params import RobotParams
 from lca_sim.model.scenario import ScenarioResult, run_scenario
 from lca_sim.model.simulator import Simulator
+from lca_sim.output import write_json, write_table
 
 PHASE_COLOURS = {
     "starting": "#dddddd",

@@ -37,7 +37,6 @@ from lca_sim.analysis.closed_loop import (
     ClosedLoopResult,
     tracking_window,
 )
-from lca_sim.cli.output import number_cell, write_json, write_table
 from lca_sim.config.loader import (
     config_dir,
     load_fault_schedule,
@@ -48,6 +47,7 @@ from lca_sim.config.loader import (
 from lca_sim.errors import EXIT_OK, FILE_NOT_FOUND, ConfigError, run_guarded, unknown_key
 from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter, standing_faults
 from lca_sim.model.params import RobotParams
+from lca_sim.output import number_cell, write_json, write_table
 from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil run"

@@ -44,8 +44,7 @@ from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
 from lca_sim.analysis.metrics import METRICS
 from lca_sim.analysis.sweep import PointOutcome, PointTask, build_task, run_point
 from lca_sim.analysis.sweep_spec import Documents, SweepSpec, expand_points, parse_spec
-from lca_sim.cli.output import atomic_path, save_png, write_json
-from lca_sim.cli.plotting import metric_label, metric_unit
+from lca_sim.cli.plotting import metric_label, metric_unit, save_png
 from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
 from lca_sim.config.loader import config_dir, read_robot_document, read_yaml, resolve
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
@@ -57,6 +56,7 @@ from lca_sim.model.faults import (
     standing_faults,
 )
 from lca_sim.model.params import RobotParams
+from lca_sim.output import atomic_path, write_json
 from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil sweep"

@@ -33,10 +33,10 @@ from lca_sim.analysis.linear import (
     cascade_loops,
     linearise_points,
 )
-from lca_sim.cli.output import atomic_path
 from lca_sim.config.loader import config_dir, load_robot, read_yaml
 from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, run_guarded
 from lca_sim.model.simulator import Simulator
+from lca_sim.output import atomic_path
 
 PAPER_CURRENT_RESPONSE_TIME_S = 3e-3
 HOLD_DELAY_PERIODS = 0.5  # the controller's zero-order hold: the simulator's lockstep

@@ -17,8 +17,8 @@ import pytest
 
 from lca_sim.analysis.sweep_spec import parse_spec
 from lca_sim.cli import sweep as sweep_cli
-from lca_sim.cli.output import write_json
 from lca_sim.errors import OutputError
+from lca_sim.output import write_json
 
 
 def _results(
