@@ -61,6 +61,8 @@ PROJECT_ROOTS = ("lca_control", "lca_sim")
 #   3 lca_sim.config   YAML files -> the model's typed params (just above the model it fills)
 #   3 lca_sim.analysis linearisation, identification, the paper's figures as data (on the model)
 #   4 lca_sim.canbus   the virtual drive rack (model + config + cia402) and the CANopen master
+#   4 lca_sim.batch    sweeps: spec, points, tasks, Parquet store, Dask runner (model + analysis
+#                      + config); dask and pyarrow stay out of the pure core
 #   5 lca_sim.ros      the node shells of the plant side and the node helpers
 #   6 lca_control.ros  the controller node: a shell on lca_sim.ros's helpers (parameter tables,
 #                      exit codes), so it sits above them
@@ -73,6 +75,7 @@ LAYER_RANK: dict[str, int] = {
     "lca_sim.config": 3,
     "lca_sim.analysis": 3,
     "lca_sim.canbus": 4,
+    "lca_sim.batch": 4,
     "lca_sim.ros": 5,
     "lca_control.ros": 6,
     "lca_sim.cli": 7,
