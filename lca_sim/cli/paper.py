@@ -43,9 +43,9 @@ from lca_sim.analysis.paper import (
     current_step,
     open_loop_phases,
 )
+from lca_sim.analysis.tuning import tune_axis
 from lca_sim.cli.plotting import clip_spikes, save_png
 from lca_sim.cli.ros_guard import ros_required
-from lca_sim.cli.tune import tune_axis
 from lca_sim.config.loader import load_robot, load_scenario
 from lca_sim.errors import EXIT_FAILED, USER_ERRORS, LcaHilError, OutputError, run_guarded
 from lca_sim.model.params import RobotParams
