@@ -235,7 +235,7 @@ def read_bag_record(path: Path, robot: RobotParams, axis: str, namespace: str) -
         raise InputFileError(f"{path}: a folder but not a rosbag2 bag (no metadata.yaml)")
     try:
         # rosbags comes with the ROS extra; only the bag path needs it.
-        from lca_sim.cli.bagplot import BagReadError, read_bag  # noqa: PLC0415
+        from lca_sim.ros.bag_read import BagReadError, read_bag  # noqa: PLC0415
     except ImportError as exc:
         raise InputFileError(f"{path}: reading a bag needs the rosbags package ({exc})") from None
     try:

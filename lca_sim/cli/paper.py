@@ -371,7 +371,7 @@ def _plot_fig13(step: StepResponse, path: Path) -> None:
 def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
     """The closed-loop velocity ramp over ROS 2 (lca-hil fig15), replotted the paper's way."""
     from lca_sim.cli import fig15  # noqa: PLC0415  (imports rclpy: only when Fig. 15 is wanted)
-    from lca_sim.cli.bagplot import read_bag  # noqa: PLC0415
+    from lca_sim.ros.bag_read import read_bag  # noqa: PLC0415
 
     run_dir = out / "fig15_run"
     if (run_dir / "bag").exists():
