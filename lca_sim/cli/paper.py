@@ -457,9 +457,8 @@ class PaperError(LcaHilError):
     """A part of the reproduction could not be made."""
 
 
-def add_parser(sub: Any) -> None:
-    """Register `paper` on the lca-hil subcommands."""
-    paper = sub.add_parser("paper", help="regenerate the paper's figures (PNG + CSV)")
+def add_arguments(paper: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil paper`."""
     paper.add_argument("--out", type=Path, default=Path("out/paper"), help="output folder")
     paper.add_argument("--robot", default="default", help="robot YAML path or shipped name")
     paper.add_argument(

@@ -299,13 +299,8 @@ def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -
     }
 
 
-def add_parser(sub: Any) -> None:
-    """Register `run` on the lca-hil subcommands (an argparse subparsers object)."""
-    parser = sub.add_parser(
-        "run",
-        help="the controller and simulator closed loop in one process, without ROS 2",
-        description=__doc__.split("\n\n")[0],
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil run`."""
     parser.add_argument(
         "scenario",
         nargs="?",
@@ -352,10 +347,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`lca-hil run ...` on its own (the lca-hil entry point registers `add_parser`)."""
+    """`lca-hil run ...` on its own (lca-hil's registry, `lca_sim.cli.hil`, holds it too)."""
     parser = argparse.ArgumentParser(prog="lca-hil")
     sub = parser.add_subparsers(dest="command", required=True)
-    add_parser(sub)
+    add_arguments(sub.add_parser("run"))
     return run(parser.parse_args(argv))
 
 

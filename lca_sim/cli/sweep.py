@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from lca_sim.batch.store import RESULTS
 from lca_sim.cli.sweep_config import run_sweep
@@ -33,13 +31,8 @@ from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, run_guarded
 PROG = "lca-hil sweep"
 
 
-def add_parser(sub: Any) -> None:
-    """Register `sweep` on the lca-hil subcommands (an argparse subparsers object)."""
-    parser = sub.add_parser(
-        "sweep",
-        help="run a sweep spec's points on Dask (resumable); --plot DIR draws its results",
-        description=__doc__.split("\n\n")[0],
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil sweep`."""
     parser.add_argument("spec", type=Path, nargs="?", help="the sweep spec (YAML)")
     parser.add_argument("--out", type=Path, help="output folder (its finished points are reused)")
     parser.add_argument(
@@ -55,14 +48,6 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run `lca-hil sweep` on parsed arguments; returns the exit code."""
     return run_guarded(PROG, lambda: _run(args))
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """`lca-hil sweep ...` on its own (the lca-hil entry point registers `add_parser`)."""
-    parser = argparse.ArgumentParser(prog="lca-hil")
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_parser(sub)
-    return run(parser.parse_args(argv))
 
 
 def _run(args: argparse.Namespace) -> int:

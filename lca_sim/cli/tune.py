@@ -101,9 +101,8 @@ def _margins(m: LoopMargins) -> str:
     )
 
 
-def add_parser(sub: Any) -> None:
-    """Register `tune` on the lca-hil subcommands."""
-    tune = sub.add_parser("tune", help="section 6 PI gains from linearised models")
+def add_arguments(tune: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil tune`."""
     tune.add_argument("--robot", default="default", help="robot YAML path or shipped name")
     tune.add_argument("--axis", default="pivot", help="the axis to tune (default: pivot)")
     tune.add_argument(
