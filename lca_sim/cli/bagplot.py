@@ -71,8 +71,9 @@ from lca_sim.cli.bag_events import (
     plot_spec,
     state_order,
 )
+from lca_sim.cli.console import fail
 from lca_sim.cli.plotting import Clipped, clip_spikes, joint_unit, label_gap, merge_events, save_png
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
+from lca_sim.errors import EXIT_OK
 from lca_sim.ros.bag_read import (
     ETA_KEYS,
     TIME_BASES,
@@ -93,6 +94,7 @@ LABEL_FONT_SIZE = 6  # drive-state change and fault band labels
 STATE_LABEL_GID = "drive_state_label"  # gids of the labels (the tests find them by it)
 BAND_LABEL_GID = "fault_band_label"
 BAND_LABEL_GAPS = 12.0  # a band label's length, in the gap two rotated labels need
+PROG = "lca-plot"
 SIMULATED = "simulated"  # the time base of a composed run (lca-hil run --plot)
 
 
@@ -445,7 +447,7 @@ def plot_run(result: ClosedLoopResult, out_dir: Path, title: str) -> Plots:
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of lca-plot."""
     parser = argparse.ArgumentParser(
-        prog="lca-plot",
+        prog=PROG,
         description="Plot joint, motor and drive-chain states of a bag as PNG, beside the "
         "references, with drive-state changes and faults marked.",
     )
@@ -473,18 +475,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         data = read_bag(bag, args.namespace, args.time)
     except BagReadError as exc:
-        print(f"lca-plot: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(PROG, str(exc))
     out_dir: Path = args.out if args.out is not None else bag
     try:
         plots = write_plots(data, out_dir, bag.resolve().name, all_axes=args.all_axes)
     except OSError as exc:
-        print(f"lca-plot: error: cannot write to {out_dir}: {exc.strerror or exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(PROG, f"cannot write to {out_dir}: {exc.strerror or exc}")
     for note in plots.notes:
-        print(f"lca-plot: note: {note}", file=sys.stderr)
+        print(f"{PROG}: note: {note}", file=sys.stderr)
     for path in plots.written:
         print(f"wrote {path}")
     if not plots.written:
-        print(f"lca-plot: note: nothing to plot; topics in the bag: {data.topics}", file=sys.stderr)
+        print(f"{PROG}: note: nothing to plot; topics in the bag: {data.topics}", file=sys.stderr)
     return EXIT_OK
