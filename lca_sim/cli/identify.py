@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lca_sim.analysis.identify import (
+from lca_sim.analysis.identify import identify
+from lca_sim.analysis.identify_types import (
     DIRECTIONS,
     EstimateStatus,
     FloatArray,
@@ -43,7 +44,6 @@ from lca_sim.analysis.identify import (
     IdentifyOptions,
     MotionRecord,
     StateEstimate,
-    identify,
 )
 from lca_sim.config.loader import load_robot
 from lca_sim.errors import (
