@@ -49,7 +49,7 @@ from pathlib import Path
 from typing import Any
 
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
-from lca_sim.analysis.metrics import parse_metric
+from lca_sim.analysis.metric_spec import parse_metric
 from lca_sim.batch.compute import run_point
 from lca_sim.batch.runner import Progress, dask_client, run_tasks
 from lca_sim.batch.store import PointStore

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from lca_sim.analysis.metrics import MetricSpec, parse_metric
+from lca_sim.analysis.metric_spec import MetricSpec, parse_metric
 from lca_sim.batch.checks import check_keys, finite_number, is_number, mapping_of
 from lca_sim.errors import ConfigError
 

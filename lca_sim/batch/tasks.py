@@ -20,7 +20,8 @@ from typing import Any
 
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoopConfig
-from lca_sim.analysis.metrics import TRACKING_METRICS, MetricSpec, check_metric_names
+from lca_sim.analysis.metric_spec import MetricSpec, check_metric_names
+from lca_sim.analysis.metrics import TRACKING_METRICS
 from lca_sim.batch.payload import add_payload, payload_of
 from lca_sim.batch.point import Documents, Point, apply_point, expand_points, point_key
 from lca_sim.batch.spec import Scalar, SweepSpec, Trajectories

@@ -16,7 +16,8 @@ import pytest
 import yaml
 from support import CONFIG
 
-from lca_sim.analysis.metrics import MetricArgs, Trace, parse_metric
+from lca_sim.analysis.metric_spec import parse_metric
+from lca_sim.analysis.metrics import MetricArgs, Trace
 from lca_sim.analysis.paper import current_step
 from lca_sim.batch.compute import run_point
 from lca_sim.batch.payload import add_payload
