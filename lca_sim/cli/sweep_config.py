@@ -8,20 +8,18 @@ runs what `lca-hil run` would run with the same files.
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoopConfig
 from lca_sim.batch.point import Documents
 from lca_sim.batch.runner import SweepPlan, run_plan
 from lca_sim.batch.spec import SweepSpec, parse_spec
-from lca_sim.batch.tasks import PointOutcome, PointTask, build_tasks
+from lca_sim.batch.tasks import build_tasks
 from lca_sim.batch.version import package_version
-from lca_sim.batch.worker import timed_point
 from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
 from lca_sim.config.loader import config_dir, read_robot_document, read_yaml, resolve
 from lca_sim.errors import ConfigError
@@ -169,18 +167,13 @@ def plan_sweep(spec_path: Path) -> SweepPlan:
     return SweepPlan(spec_path, spec, tuple(tasks), version, time.perf_counter() - start)
 
 
-def run_sweep(
-    spec_path: Path,
-    out: Path,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    stream: IO[str] | None = sys.stderr,
-    function: Callable[[PointTask], tuple[PointOutcome, float]] = timed_point,
-    client: Any = None,
-) -> dict[str, Any]:
-    """Run the sweep of a spec file into `out`; returns the run log (`lca_sim.batch.runner`).
+def run_sweep(spec_path: Path, out: Path, **options: Any) -> dict[str, Any]:
+    """Run the sweep of a spec file into `out`; returns the run log.
+
+    `options` are `lca_sim.batch.runner.run_plan`'s (scheduler, workers, stream, function,
+    client).
 
     Raises:
         ConfigError: a bad spec, before anything runs.
     """
-    return run_plan(plan_sweep(spec_path), out, scheduler, workers, stream, function, client)
+    return run_plan(plan_sweep(spec_path), out, **options)
