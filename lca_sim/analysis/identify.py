@@ -20,23 +20,6 @@ collinear inside a state whose torque varies little (a constant-speed plateau gi
 so eta tau_m and f_c cannot be told apart); eq. (4) is identified beforehand by the usual
 constant-speed tests and static friction does not enter eq. (10) for a moving axis.
 
-Each moving sample gets its (direction, state) from the motion direction and the robot's state
-table (the same conditions as `kernel.classify`, evaluated on the smoothed current and on tau_l),
-never from recorded eta values. Samples are left out when the axis is stopped (locked: eq. (10)
-does not hold), within a guard of a state change, a stop, a gap or the record's ends (where the
-differentiator smears a kink), and where the noise could flip a condition of the state table.
-
-End stops. A sample whose position of the identified axis is within `end_stop_margin_rad`
-(default 3 deg) of a joint limit of the URDF (the limits `Simulator.position_limits` reports), and
-every sample within the guard of one, is left out and counted (`n_end_stop`). Eq. (10) has no term
-for the stop's reaction: the impact is a velocity step the differentiator smears over half its
-window, and the state labels near it are computed from those smeared signals, so the guard
-around a label change does not reliably cover it (a run into the lower stop of the pivot gave
-eta_l = 0.29 for a true 0.06 from 186 samples just before the impact). The margin is wider than
-the smear at any speed the pivot reaches (0.4 rad/s covers 3 deg in 130 ms, the smear is 15 ms)
-and covers a real stop's bumper engaging a little before the nominal limit and the homing
-offset. Only the identified axis's limits are checked.
-
 What is estimated in each state follows the power-flow rule of eq. (11) (docs/model.md): the
 coefficient belongs to the torque of the element that emits power, the other is 1.
 
@@ -45,27 +28,9 @@ coefficient belongs to the torque of the element that emits power, the other is 
 * neither (coasting): nothing is free, both are 1; the mean eq. (10) residual is reported as a
   consistency check instead.
 
-One coefficient per state is a one-regressor least-squares problem through the origin,
-eta = sum(x z) / sum(x^2), with x the emitter's torque: it is well conditioned whenever that
-torque is not negligible, which is checked against the current noise.
-
-The 95 % confidence interval comes from a moving-block bootstrap of the (x, z) pairs in time
-order, with blocks three times the residuals' integrated autocorrelation time (and never shorter
-than the differentiator's window), so the serial correlation the smoothing and any slow model
-error introduce widens the interval instead of being mistaken for independent samples: the
-estimate +- t(blocks - 1) times the bootstrap standard deviation. It covers noise, not a wrong
-friction, inertia or torque-constant value (those bias every estimate alike).
-
-Identifiability. An estimate is only written over the prior when its interval is narrow enough
-to say something: width (high - low) at most `ci_width_relative` (0.2, i.e. +-10 %) of the
-estimate clipped to [0, 1] -- the relative criterion -- or at most `ci_width_absolute` (0.1, i.e.
-+-0.05) -- the absolute criterion -- whichever is larger. The switch is at an estimate of 0.5, where
-both give 0.1, so the bound is continuous. Below it the absolute criterion judges: for the worm's
-reverse states (Table 1: 0.06, 0.16) +-10 % would be +-0.006, far below what the friction and
-inertia model can vouch for, while +-0.05 bounds the error of the torque passed through the gear
-to 5 % of the load torque, the same torque error +-10 % gives at 0.5. A wider interval is
-NOT_IDENTIFIABLE: the estimate and interval are reported, the prior is kept. The tests' noisy
-record gives widths up to 0.025, a record with 0.5 A current noise 0.1-0.5 in the short states.
+Which samples enter (`lca_sim.analysis.identify_samples`: state labels, guards, end stops)
+and how an estimate, its interval and its verdict come about
+(`lca_sim.analysis.identify_estimate`) are said where they are done.
 """
 
 from __future__ import annotations

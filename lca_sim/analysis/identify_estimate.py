@@ -1,8 +1,26 @@
 """One drive state's coefficient from its samples: least squares, a block bootstrap, the verdict.
 
-eta = sum(x z) / sum(x^2) with x the emitting element's torque (eq. 11); the 95 % interval from
-a moving-block bootstrap in time order; `judge_interval` says whether it is narrow enough to
-replace the prior (`lca_sim.analysis.identify` has the criteria).
+One coefficient per state is a one-regressor least-squares problem through the origin,
+eta = sum(x z) / sum(x^2), with x the emitter's torque: it is well conditioned whenever that
+torque is not negligible, which is checked against the current noise.
+
+The 95 % confidence interval comes from a moving-block bootstrap of the (x, z) pairs in time
+order, with blocks three times the residuals' integrated autocorrelation time (and never shorter
+than the differentiator's window), so the serial correlation the smoothing and any slow model
+error introduce widens the interval instead of being mistaken for independent samples: the
+estimate +- t(blocks - 1) times the bootstrap standard deviation. It covers noise, not a wrong
+friction, inertia or torque-constant value (those bias every estimate alike).
+
+Identifiability. An estimate is only written over the prior when its interval is narrow enough
+to say something: width (high - low) at most `ci_width_relative` (0.2, i.e. +-10 %) of the
+estimate clipped to [0, 1] -- the relative criterion -- or at most `ci_width_absolute` (0.1, i.e.
++-0.05) -- the absolute criterion -- whichever is larger. The switch is at an estimate of 0.5, where
+both give 0.1, so the bound is continuous. Below it the absolute criterion judges: for the worm's
+reverse states (Table 1: 0.06, 0.16) +-10 % would be +-0.006, far below what the friction and
+inertia model can vouch for, while +-0.05 bounds the error of the torque passed through the gear
+to 5 % of the load torque, the same torque error +-10 % gives at 0.5. A wider interval is
+NOT_IDENTIFIABLE: the estimate and interval are reported, the prior is kept. The tests' noisy
+record gives widths up to 0.025, a record with 0.5 A current noise 0.1-0.5 in the short states.
 """
 
 from __future__ import annotations

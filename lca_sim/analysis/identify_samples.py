@@ -1,9 +1,21 @@
 """The samples eq. (10) is fitted on: a uniform record, its derivatives, each sample's state.
 
-The record is resampled on a uniform grid when its stamps jitter, differentiated by a zero-phase
-Savitzky-Golay filter, and each moving sample gets its (direction, state) from the robot's state
-table on the smoothed current and the load torque; samples near a state change, a stop, a gap,
-an end stop or the record's ends are left out (`lca_sim.analysis.identify` says why).
+Each moving sample gets its (direction, state) from the motion direction and the robot's state
+table (the same conditions as `kernel.classify`, evaluated on the smoothed current and on tau_l),
+never from recorded eta values. Samples are left out when the axis is stopped (locked: eq. (10)
+does not hold), within a guard of a state change, a stop, a gap or the record's ends (where the
+differentiator smears a kink), and where the noise could flip a condition of the state table.
+
+End stops. A sample whose position of the identified axis is within `end_stop_margin_rad`
+(default 3 deg) of a joint limit of the URDF (the limits `Simulator.position_limits` reports), and
+every sample within the guard of one, is left out and counted (`n_end_stop`). Eq. (10) has no term
+for the stop's reaction: the impact is a velocity step the differentiator smears over half its
+window, and the state labels near it are computed from those smeared signals, so the guard
+around a label change does not reliably cover it (a run into the lower stop of the pivot gave
+eta_l = 0.29 for a true 0.06 from 186 samples just before the impact). The margin is wider than
+the smear at any speed the pivot reaches (0.4 rad/s covers 3 deg in 130 ms, the smear is 15 ms)
+and covers a real stop's bumper engaging a little before the nominal limit and the homing
+offset. Only the identified axis's limits are checked.
 """
 
 from __future__ import annotations
