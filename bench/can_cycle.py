@@ -57,8 +57,8 @@ from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
 from lca_sim.cia402.device import PowerState
 from lca_sim.cia402.master import bus_load_pct
-from lca_sim.cli.output import strict_json
 from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.output import strict_json
 from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 
 RATES_HZ = (250, 500, 1000)

@@ -1014,7 +1014,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ["ROS_DOMAIN_ID"] = str(DOMAINS[args.scenarios[0]])
     signal.signal(signal.SIGTERM, _raise_on_sigterm)
-    from lca_sim.cli.output import strict_json
+    from lca_sim.output import strict_json
 
     load_before = os.getloadavg()
     results: dict[str, JsonDict] = {}

@@ -56,7 +56,7 @@ import numpy.typing as npt
 import pinocchio as pin
 
 from lca_sim import MotionState, Simulator, load_robot
-from lca_sim.cli.output import strict_json
+from lca_sim.output import strict_json
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -1137,7 +1137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "rmw": ros_env(0)["RMW_IMPLEMENTATION"],
         "errors": errors or None,
     }
-    from lca_sim.cli.output import strict_json  # here: the roles do not load numpy
+    from lca_sim.output import strict_json  # here: the roles do not load numpy
 
     print(strict_json(record, indent=None))  # strict: NaN/inf as null, with why
     return 1 if errors else 0

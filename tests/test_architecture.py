@@ -61,6 +61,8 @@ PROJECT_ROOTS = ("lca_control", "lca_sim")
 #   3 lca_sim.config   YAML files -> the model's typed params (just above the model it fills)
 #   3 lca_sim.analysis linearisation, identification, the paper's figures as data (on the model)
 #   4 lca_sim.canbus   the virtual drive rack (model + config + cia402) and the CANopen master
+#   4 lca_sim.batch    sweeps: spec, points, tasks, Parquet store, Dask runner (model + analysis
+#                      + config); dask and pyarrow stay out of the pure core
 #   5 lca_sim.ros      the node shells of the plant side and the node helpers
 #   7 lca_sim.cli      the console scripts: every tool, Fig. 15 over ROS 2 included
 LAYER_RANK: dict[str, int] = {
@@ -71,6 +73,7 @@ LAYER_RANK: dict[str, int] = {
     "lca_sim.config": 3,
     "lca_sim.analysis": 3,
     "lca_sim.canbus": 4,
+    "lca_sim.batch": 4,
     "lca_sim.ros": 5,
     "lca_sim.cli": 7,
 }
@@ -523,7 +526,7 @@ def test_controller_node_needs_no_model(tmp_path: Path) -> None:
     node_imports = {
         imp.target
         for imp in graph().imports
-        if imp.source.name == "lca_sim.ros.controller_node"
+        if imp.source.name == CONTROLLER_NODE
         and imp.is_project
         and imp.kind != TYPING
     }

@@ -57,10 +57,10 @@ from lca_control.cascade import CONTROL_PERIOD_S
 from lca_control.contract import JOINT_STATES, STATE_QOS_DEPTH, VOLTAGE_COMMANDS
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
-from lca_sim.cli.output import REASONS_KEY
 from lca_sim.cli.ros_guard import ROS_MODULES
 from lca_sim.config.loader import load_robot
 from lca_sim.model.state_machine import MotionState
+from lca_sim.output import REASONS_KEY
 from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import from_stamp
@@ -610,7 +610,7 @@ def test_item_07_fig15_ends_exactly_at_the_duration_under_load(tmp_path: Path) -
     The same run is the main job's (scripts/main.sh runs this command): its logs hold no WARN
     (issue 23: a healthy run raises no false alarm).
     """
-    from lca_sim.cli.bagplot import read_bag
+    from lca_sim.ros.bag_read import read_bag
 
     out = tmp_path / "run"
     with cpu_hog():
@@ -792,7 +792,7 @@ def test_item_08_a_sigkilled_recording_is_recovered_losing_at_most_the_bound(
     tmp_path: Path,
 ) -> None:
     """Item 8: "`kill -9` of `lca-record` left a bag that no tool of ours could open"."""
-    from lca_sim.cli.bagplot import BagReadError, read_bag
+    from lca_sim.ros.bag_read import BagReadError, read_bag
 
     bag = tmp_path / "killed"
     growth = FileGrowth(bag)

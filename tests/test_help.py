@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from lca_sim.cli.nodes import own_arguments, wants_help
+from lca_sim.cli.console import own_arguments, wants_help
 
 
 @pytest.mark.parametrize(

@@ -15,47 +15,78 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from pathlib import Path
+from dataclasses import dataclass
+from typing import Protocol
 
-from lca_sim.cli import identify as identify_cli
-from lca_sim.cli import paper as paper_cli
-from lca_sim.cli import run as run_cli
-from lca_sim.cli import sweep as sweep_cli
-from lca_sim.cli import tune
-from lca_sim.cli.ros_guard import ros_required
-from lca_sim.errors import run_guarded
+from lca_sim.cli import fig15_command, identify, paper, sweep, tune
+from lca_sim.cli import run as run_command
+
+
+class CommandModule(Protocol):
+    """What a sub-command's module provides: its options and its run (an exit code)."""
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        """Add the command's options to its sub-parser."""
+
+    def run(self, args: argparse.Namespace) -> int:
+        """Run the command on parsed arguments; returns the exit code."""
+
+
+@dataclass(frozen=True, slots=True)
+class Subcommand:
+    """One sub-command of lca-hil.
+
+    Attributes:
+        module: adds the options and runs the command.
+        help: its line in `lca-hil --help`.
+        described: its own --help opens with the module docstring's first paragraph.
+    """
+
+    module: CommandModule
+    help: str
+    described: bool = False
+
+
+# The one registry: `lca-hil --help` lists the sub-commands in this order.
+SUBCOMMANDS: dict[str, Subcommand] = {
+    "fig15": Subcommand(fig15_command, "closed-loop Fig. 15 velocity ramp over ROS 2"),
+    "tune": Subcommand(tune, "section 6 PI gains from linearised models"),
+    "paper": Subcommand(paper, "regenerate the paper's figures (PNG + CSV)"),
+    "identify": Subcommand(
+        identify,
+        "identify the drive-state efficiencies from a result.csv or a bag",
+        described=True,
+    ),
+    "run": Subcommand(
+        run_command,
+        "the controller and simulator closed loop in one process, without ROS 2",
+        described=True,
+    ),
+    "sweep": Subcommand(
+        sweep,
+        "run a sweep spec's points on Dask (resumable); --plot DIR draws its results",
+        described=True,
+    ),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of lca-hil, a sub-parser per entry of `SUBCOMMANDS`."""
+    parser = argparse.ArgumentParser(prog="lca-hil", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, command in SUBCOMMANDS.items():
+        doc = command.module.__doc__ or ""
+        description = doc.split("\n\n")[0] if command.described else None
+        command.module.add_arguments(
+            sub.add_parser(name, help=command.help, description=description)
+        )
+    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of lca-hil."""
-    parser = argparse.ArgumentParser(prog="lca-hil", description=__doc__.split("\n\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    fig15 = sub.add_parser("fig15", help="closed-loop Fig. 15 velocity ramp over ROS 2")
-    fig15.add_argument("--out", type=Path, default=Path("out/fig15"), help="output folder")
-    fig15.add_argument("--duration-s", type=float, default=13.0, help="simulated seconds")
-    tune.add_parser(sub)
-    paper_cli.add_parser(sub)
-    identify_cli.add_parser(sub)
-    run_cli.add_parser(sub)
-    sweep_cli.add_parser(sub)
-    args = parser.parse_args(argv)
-    if args.command == "identify":
-        return identify_cli.run(args)
-    if args.command == "tune":
-        return tune.run(args)
-    if args.command == "run":
-        return run_cli.run(args)
-    if args.command == "sweep":
-        return sweep_cli.run(args)
-    if args.command == "paper":
-        return paper_cli.run(args)
-    return run_guarded("lca-hil fig15", lambda: _fig15(args))
-
-
-def _fig15(args: argparse.Namespace) -> int:
-    with ros_required("this command"):
-        from lca_sim.cli.fig15 import run_fig15  # noqa: PLC0415  (rclpy: only for this command)
-    return run_fig15(args.out, args.duration_s)
+    args = build_parser().parse_args(argv)
+    return SUBCOMMANDS[args.command].module.run(args)
 
 
 if __name__ == "__main__":

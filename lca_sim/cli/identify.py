@@ -31,11 +31,11 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from lca_sim.analysis.identify import (
+from lca_sim.analysis.identify import identify
+from lca_sim.analysis.identify_types import (
     DIRECTIONS,
     EstimateStatus,
     FloatArray,
@@ -44,9 +44,7 @@ from lca_sim.analysis.identify import (
     IdentifyOptions,
     MotionRecord,
     StateEstimate,
-    identify,
 )
-from lca_sim.cli.output import atomic_path
 from lca_sim.config.loader import load_robot
 from lca_sim.errors import (
     EXIT_OK,
@@ -58,6 +56,7 @@ from lca_sim.errors import (
 )
 from lca_sim.model.params import AxisParams, RobotParams
 from lca_sim.model.state_machine import Efficiency, MotionState
+from lca_sim.output import atomic_path
 
 PROG = "lca-hil identify"
 YAML_NAME = "identified.yaml"
@@ -70,13 +69,8 @@ class InputFileError(LcaHilError):
     """The INPUT file or folder cannot be used (missing columns, not a number, no topic...)."""
 
 
-def add_parser(sub: Any) -> None:
-    """Register `identify` on the lca-hil subcommands (an argparse subparsers object)."""
-    parser = sub.add_parser(
-        "identify",
-        help="identify the drive-state efficiencies from a result.csv or a bag",
-        description=__doc__.split("\n\n")[0],
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil identify`."""
     parser.add_argument("input", type=Path, help="result.csv of lca-sim or a bag folder")
     parser.add_argument("--robot", default="default", help="robot YAML path or shipped name")
     parser.add_argument("--axis", default="pivot", help="the axis to identify")
@@ -106,10 +100,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`lca-hil identify ...` on its own (the lca-hil entry point registers `add_parser`)."""
+    """`lca-hil identify ...` on its own (lca-hil's registry, `lca_sim.cli.hil`, holds it too)."""
     parser = argparse.ArgumentParser(prog="lca-hil")
     sub = parser.add_subparsers(dest="command", required=True)
-    add_parser(sub)
+    add_arguments(sub.add_parser("identify"))
     return run(parser.parse_args(argv))
 
 
@@ -235,7 +229,7 @@ def read_bag_record(path: Path, robot: RobotParams, axis: str, namespace: str) -
         raise InputFileError(f"{path}: a folder but not a rosbag2 bag (no metadata.yaml)")
     try:
         # rosbags comes with the ROS extra; only the bag path needs it.
-        from lca_sim.cli.bagplot import BagReadError, read_bag  # noqa: PLC0415
+        from lca_sim.ros.bag_read import BagReadError, read_bag  # noqa: PLC0415
     except ImportError as exc:
         raise InputFileError(f"{path}: reading a bag needs the rosbags package ({exc})") from None
     try:

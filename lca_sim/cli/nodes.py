@@ -21,13 +21,11 @@ from dataclasses import dataclass
 from lca_control import contract as ri
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
+from lca_sim.cli.console import own_arguments, script_arguments, wants_help
 from lca_sim.errors import EXIT_OK
 from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
 from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.ros.tool_args import echo_parser, record_parser
-
-HELP_FLAGS = frozenset({"-h", "--help"})
-ROS_ARGS = "--ros-args"
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,28 +149,9 @@ CAN_BRIDGE = NodeScript(
 )
 
 
-def own_arguments(argv: Sequence[str]) -> list[str]:
-    """The arguments that are not ROS arguments: outside `--ros-args ... [--]` (rcl's rule)."""
-    own: list[str] = []
-    in_ros = False
-    for token in argv:
-        if token == ROS_ARGS:
-            in_ros = True
-        elif in_ros and token == "--":
-            in_ros = False
-        elif not in_ros:
-            own.append(token)
-    return own
-
-
-def wants_help(argv: Sequence[str]) -> bool:
-    """True when `-h` or `--help` is one of the script's own arguments (not a ROS argument)."""
-    return not HELP_FLAGS.isdisjoint(own_arguments(argv))
-
-
 def answered_help(script: NodeScript, args: Sequence[str] | None) -> bool:
     """Print the script's help and return True if its arguments ask for it (None: sys.argv)."""
-    if not wants_help(sys.argv[1:] if args is None else args):
+    if not wants_help(script_arguments(args)):
         return False
     sys.stdout.write(script.help_text())
     return True
@@ -209,7 +188,7 @@ def can_bridge(args: Sequence[str] | None = None) -> int:
 
 
 def _tool_help(parser: argparse.ArgumentParser, args: Sequence[str] | None) -> bool:
-    if not wants_help(sys.argv[1:] if args is None else args):
+    if not wants_help(script_arguments(args)):
         return False
     sys.stdout.write(parser.format_help())
     return True
@@ -219,7 +198,7 @@ def record(args: Sequence[str] | None = None) -> int:
     """Entry point of `lca-record` / `ros2 run lca_hil record`."""
     if _tool_help(record_parser(), args):
         return EXIT_OK
-    own = own_arguments(sys.argv[1:] if args is None else args)
+    own = own_arguments(script_arguments(args))
     if any(arg == "--recover" or arg.startswith("--recover=") for arg in own):
         # Recovery reads and writes files only: no rclpy, so it works where ROS 2 is absent.
         from lca_sim.ros.bag_recover import recover_main  # noqa: PLC0415

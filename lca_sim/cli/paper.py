@@ -43,15 +43,15 @@ from lca_sim.analysis.paper import (
     current_step,
     open_loop_phases,
 )
-from lca_sim.cli.output import save_png, write_json, write_table
-from lca_sim.cli.plotting import clip_spikes
+from lca_sim.analysis.tuning import tune_axis
+from lca_sim.cli.plotting import clip_spikes, save_png
 from lca_sim.cli.ros_guard import ros_required
-from lca_sim.cli.tune import tune_axis
 from lca_sim.config.loader import load_robot, load_scenario
 from lca_sim.errors import EXIT_FAILED, USER_ERRORS, LcaHilError, OutputError, run_guarded
 from lca_sim.model.params import RobotParams
 from lca_sim.model.scenario import ScenarioResult, run_scenario
 from lca_sim.model.simulator import Simulator
+from lca_sim.output import write_json, write_table
 
 PHASE_COLOURS = {
     "starting": "#dddddd",
@@ -371,7 +371,7 @@ def _plot_fig13(step: StepResponse, path: Path) -> None:
 def write_fig15(out: Path, duration_s: float) -> dict[str, Any]:
     """The closed-loop velocity ramp over ROS 2 (lca-hil fig15), replotted the paper's way."""
     from lca_sim.cli import fig15  # noqa: PLC0415  (imports rclpy: only when Fig. 15 is wanted)
-    from lca_sim.cli.bagplot import read_bag  # noqa: PLC0415
+    from lca_sim.ros.bag_read import read_bag  # noqa: PLC0415
 
     run_dir = out / "fig15_run"
     if (run_dir / "bag").exists():
@@ -457,9 +457,8 @@ class PaperError(LcaHilError):
     """A part of the reproduction could not be made."""
 
 
-def add_parser(sub: Any) -> None:
-    """Register `paper` on the lca-hil subcommands."""
-    paper = sub.add_parser("paper", help="regenerate the paper's figures (PNG + CSV)")
+def add_arguments(paper: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil paper`."""
     paper.add_argument("--out", type=Path, default=Path("out/paper"), help="output folder")
     paper.add_argument("--robot", default="default", help="robot YAML path or shipped name")
     paper.add_argument(

@@ -7,6 +7,7 @@
   with its extreme value, in the legend and beside the marker.
 * `merge_events`: event times grouped so that labels drawn at each group's first time stay a
   readable gap apart (eight drive-state changes in 48 ms make one label).
+* `save_png`: a figure written as PNG, atomically (`lca_sim.output`).
 
 matplotlib is imported by the callers (it costs about a second); nothing here needs the model.
 docs/plotting.md shows the figures.
@@ -17,14 +18,19 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lca_sim.output import atomic_path
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
     from numpy.typing import ArrayLike
 
+PNG_DPI = 110  # every PNG the tools write
 # Joints whose position is a length (m); the others are angles (rad, plotted in degrees).
 LINEAR_JOINTS = frozenset({"lift"})
 # The bulk of a panel's samples: between these quantiles. A sample beyond the bulk by more than
@@ -226,3 +232,10 @@ def merge_events(times: Sequence[float], gap: float) -> list[list[int]]:
             groups.append([k])
             start = t
     return groups
+
+
+def save_png(fig: Figure, path: Path) -> None:
+    """Lay out and write a matplotlib figure as PNG, atomically."""
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=PNG_DPI)

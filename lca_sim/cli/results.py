@@ -1,6 +1,6 @@
 """Writing scenario results: the result.csv table and a Fig. 9/10-style PNG (the I/O edge).
 
-Both are written atomically (`lca_sim.cli.output`), so an interrupted run never leaves a
+Both are written atomically (`lca_sim.output`), so an interrupted run never leaves a
 half-written result behind.
 """
 
@@ -14,8 +14,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lca_control.contract import MOTION_STATE_NAMES
-from lca_sim.cli.output import number_cell, save_png, write_table
+from lca_sim.cli.plotting import save_png
 from lca_sim.model.simulator import SIGNAL_NAMES
+from lca_sim.output import number_cell, write_table
 
 if TYPE_CHECKING:
     from matplotlib.patches import Patch

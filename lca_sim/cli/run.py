@@ -37,7 +37,6 @@ from lca_sim.analysis.closed_loop import (
     ClosedLoopResult,
     tracking_window,
 )
-from lca_sim.cli.output import number_cell, write_json, write_table
 from lca_sim.config.loader import (
     config_dir,
     load_fault_schedule,
@@ -49,6 +48,7 @@ from lca_sim.errors import EXIT_OK, FILE_NOT_FOUND, ConfigError, run_guarded, un
 from lca_sim.model.fault_schedule import standing_faults
 from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter
 from lca_sim.model.params import RobotParams
+from lca_sim.output import number_cell, write_json, write_table
 from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil run"
@@ -300,13 +300,8 @@ def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -
     }
 
 
-def add_parser(sub: Any) -> None:
-    """Register `run` on the lca-hil subcommands (an argparse subparsers object)."""
-    parser = sub.add_parser(
-        "run",
-        help="the controller and simulator closed loop in one process, without ROS 2",
-        description=__doc__.split("\n\n")[0],
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `lca-hil run`."""
     parser.add_argument(
         "scenario",
         nargs="?",
@@ -353,10 +348,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`lca-hil run ...` on its own (the lca-hil entry point registers `add_parser`)."""
+    """`lca-hil run ...` on its own (lca-hil's registry, `lca_sim.cli.hil`, holds it too)."""
     parser = argparse.ArgumentParser(prog="lca-hil")
     sub = parser.add_subparsers(dest="command", required=True)
-    add_parser(sub)
+    add_arguments(sub.add_parser("run"))
     return run(parser.parse_args(argv))
 
 

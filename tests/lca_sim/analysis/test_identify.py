@@ -20,15 +20,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lca_control.contract import JOINT_STATE_TYPE, JOINT_STATES, MOTOR_STATES
-from lca_sim.analysis.identify import (
+from lca_sim.analysis.identify import identify
+from lca_sim.analysis.identify_samples import classify_samples
+from lca_sim.analysis.identify_types import (
     EstimateStatus,
     FloatArray,
     IdentificationError,
     IdentificationResult,
     IdentifyOptions,
     MotionRecord,
-    classify_samples,
-    identify,
 )
 from lca_sim.cli.identify import main, write_outputs
 from lca_sim.cli.results import csv_header, write_csv

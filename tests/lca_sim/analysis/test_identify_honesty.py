@@ -19,14 +19,14 @@ import pytest
 import yaml
 from support import INTO_END_STOP
 
-from lca_sim.analysis.identify import (
+from lca_sim.analysis.identify import identify
+from lca_sim.analysis.identify_estimate import judge_interval
+from lca_sim.analysis.identify_types import (
     Criterion,
     EstimateStatus,
     IdentificationResult,
     IdentifyOptions,
     MotionRecord,
-    identify,
-    judge_interval,
 )
 from lca_sim.cli.identify import main, write_outputs
 from lca_sim.cli.results import write_csv

@@ -34,7 +34,7 @@ from lca_sim.analysis.paper import (
     constant_velocity_torques,
     open_loop_phases,
 )
-from lca_sim.cli.tune import tune_axis
+from lca_sim.analysis.tuning import tune_axis
 from lca_sim.config.loader import load_scenario
 from lca_sim.model.scenario import run_scenario
 from lca_sim.model.simulator import Simulator

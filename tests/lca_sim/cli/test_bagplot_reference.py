@@ -38,7 +38,8 @@ from lca_control.contract import (
     MOTOR_STATES,
     VELOCITY_COMMANDS,
 )
-from lca_sim.cli import bagplot, plotting
+from lca_sim.cli import bag_events, bagplot, plotting
+from lca_sim.ros import bag_read
 from lca_sim.ros.record import BagRecorder
 
 if TYPE_CHECKING:  # imported by pytest as a plugin (below), so its asserts are rewritten
@@ -104,7 +105,7 @@ def ramp_bag(
 
 def test_reference_is_read_aligned_with_the_velocity(ramp_bag: Path) -> None:
     """velocity_commands, on the states' time axis, is the ramp; the pivot follows it."""
-    data = bagplot.read_bag(ramp_bag)
+    data = bag_read.read_bag(ramp_bag)
     assert data.time_base == "header"
     pivot = data.joints["pivot"]
     reference = data.references[VELOCITY_COMMANDS]
@@ -136,7 +137,7 @@ def test_reference_is_read_aligned_with_the_velocity(ramp_bag: Path) -> None:
 
 def test_drive_state_changes_include_the_switch_to_load_driving(ramp_bag: Path) -> None:
     """The pivot leaves motor driving for a state in which the load drives, near 55 deg."""
-    changes = bagplot.drive_state_changes(bagplot.read_bag(ramp_bag))
+    changes = bag_events.drive_state_changes(bag_read.read_bag(ramp_bag))
     assert changes["l_arm"] == []  # a held, self-locking axis stays in its stop state
     switch = next(
         c for c in changes["pivot"] if c.before == "motor_driving" and "load_driving" in c.after
@@ -149,8 +150,8 @@ def test_unmoved_axes_are_left_out_unless_asked(
     ramp_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Only the pivot moves on the ramp: one panel per figure, four with --all-axes."""
-    data = bagplot.read_bag(ramp_bag)
-    assert bagplot.moved_joints(data) == ["pivot"]
+    data = bag_read.read_bag(ramp_bag)
+    assert bag_events.moved_joints(data) == ["pivot"]
     plots = bagplot.write_plots(data, tmp_path / "moved", "ramp")
     assert len(plots.written) == 5
     assert all(panels == ["pivot"] for panels in plots.panels.values())
@@ -163,8 +164,8 @@ def test_unmoved_axes_are_left_out_unless_asked(
 
 def test_a_healthy_run_has_no_fault_band(ramp_bag: Path) -> None:
     """The lift parked on its lower end stop is no fault: the healthy ramp shows no band."""
-    data = bagplot.read_bag(ramp_bag)
-    assert bagplot.fault_bands(data) == []
+    data = bag_read.read_bag(ramp_bag)
+    assert bag_events.fault_bands(data) == []
 
 
 def write_warn_bag(path: Path, n: int = 100) -> None:
@@ -241,8 +242,8 @@ def test_warn_status_is_a_band_and_a_missing_reference_is_said(
     """A synthetic /diagnostics WARN of the pivot is one band; no velocity_commands is noted."""
     bag = tmp_path / "bag"
     write_warn_bag(bag)
-    data = bagplot.read_bag(bag)
-    bands = bagplot.fault_bands(data)
+    data = bag_read.read_bag(bag)
+    bands = bag_events.fault_bands(data)
     pivot = [b for b in bands if b.joint == "pivot"]
     assert len(pivot) == 1
     assert pivot[0].level_name == "WARN"
@@ -251,7 +252,7 @@ def test_warn_status_is_a_band_and_a_missing_reference_is_said(
     node = [b for b in bands if not b.joint]
     assert [(b.status, b.level_name) for b in node] == [("lca_hil/simulator", "ERROR")]
     assert (node[0].start_s, node[0].end_s) == pytest.approx((0.80, 0.99))  # to the end
-    changes = bagplot.drive_state_changes(data)["pivot"]
+    changes = bag_events.drive_state_changes(data)["pivot"]
     assert [(c.before, c.after) for c in changes] == [("stop_hold", "motor_driving")]
     assert changes[0].time_s == pytest.approx(0.20)
     assert changes[0].position == pytest.approx(0.20)
@@ -260,8 +261,8 @@ def test_warn_status_is_a_band_and_a_missing_reference_is_said(
     assert f"no {VELOCITY_COMMANDS} in the bag" in err
     assert "ERROR lca_hil/simulator: stalled" in err
     assert (tmp_path / "plots" / "velocities.png").is_file()
-    by_bag = bagplot.read_bag(bag, time_base="bag")
-    assert bagplot.fault_bands(by_bag)[0].start_s == pytest.approx(0.30, abs=1e-6)
+    by_bag = bag_read.read_bag(bag, time_base="bag")
+    assert bag_events.fault_bands(by_bag)[0].start_s == pytest.approx(0.30, abs=1e-6)
 
 
 # --- the shipped PlotJuggler and Foxglove layouts, checked against the recorded bag ------------
@@ -696,7 +697,7 @@ def test_ramp_figures_draw_the_reference_and_labels_that_do_not_overlap(
 ) -> None:
     """The main job's figures: the reference beside the velocity, one label per readable gap."""
     figures = _rendered(monkeypatch)
-    data = bagplot.read_bag(ramp_bag)
+    data = bag_read.read_bag(ramp_bag)
     bagplot.write_plots(data, tmp_path, "ramp")
     assert set(figures) == {
         "positions.png", "velocities.png", "currents.png", "drive_states.png", "efficiencies.png"
@@ -708,7 +709,7 @@ def test_ramp_figures_draw_the_reference_and_labels_that_do_not_overlap(
     ramp = np.asarray(reference.get_ydata(), dtype=float)
     assert max(ramp) == pytest.approx(5.0, abs=RAMP_DEG_S2 * PERIOD_S + 1e-9)  # deg/s
     assert velocity.get_ylabel() == "pivot velocity (deg/s)"
-    changes = bagplot.drive_state_changes(data)["pivot"]
+    changes = bag_events.drive_state_changes(data)["pivot"]
     fast = [c for c in changes if RAMP_END_S <= c.time_s < RAMP_END_S + 0.1]
     assert len(fast) >= 3  # the stop at 11 s: several changes within 0.1 s
     for name, fig in figures.items():
@@ -733,7 +734,7 @@ def test_the_braking_spike_is_clipped_and_marked(
 ) -> None:
     """currents.png: the y range holds the ramp's 0-2.5 A; the stop's -20 A peak is marked."""
     figures = _rendered(monkeypatch)
-    data = bagplot.read_bag(ramp_bag)
+    data = bag_read.read_bag(ramp_bag)
     plots = bagplot.write_plots(data, tmp_path, "ramp")
     current = np.asarray(data.motors["pivot"].values["effort"])
     assert current.min() < -15.0  # the velocity loop brakes at its limit at 11 s

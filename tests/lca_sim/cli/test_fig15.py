@@ -19,8 +19,8 @@ import pytest
 import support
 from support import strict_loads
 
-from lca_sim.cli.output import REASONS_KEY, strict_json, write_json
 from lca_sim.cli.run import node_parameters
+from lca_sim.output import REASONS_KEY, strict_json, write_json
 
 # --- the strict JSON helper ------------------------------------------------------------------
 

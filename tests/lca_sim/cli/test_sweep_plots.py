@@ -15,10 +15,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from lca_sim.analysis.sweep_spec import parse_spec
-from lca_sim.cli import sweep as sweep_cli
-from lca_sim.cli.output import write_json
+from lca_sim.batch.spec import parse_spec
+from lca_sim.batch.store import RECORD, RESULTS, sweep_record
+from lca_sim.cli import sweep_plots
 from lca_sim.errors import OutputError
+from lca_sim.output import write_json
 
 
 def _results(
@@ -31,9 +32,9 @@ def _results(
     spec = parse_spec(spec_doc, str(tmp_path / "study.yaml"))
     out = tmp_path / "out"
     out.mkdir()
-    write_json(out / sweep_cli.RECORD, sweep_cli.sweep_record(spec, len(rows), "0"))
+    write_json(out / RECORD, sweep_record(spec, len(rows), "0"))
     columns = {key: [row[key] for row in rows] for key in rows[0]}
-    pq.write_table(pa.table(columns), out / sweep_cli.RESULTS)
+    pq.write_table(pa.table(columns), out / RESULTS)
     return out, []
 
 
@@ -43,7 +44,7 @@ def _capture(monkeypatch: pytest.MonkeyPatch, figures: list[Any]) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path)
 
-    monkeypatch.setattr(sweep_cli, "save_png", keep)
+    monkeypatch.setattr(sweep_plots, "save_png", keep)
 
 
 def _row(index: int, **values: Any) -> dict[str, Any]:
@@ -78,7 +79,7 @@ def test_two_numeric_parameters_make_a_heatmap_with_its_mark(
     ]
     out, figures = _results(tmp_path, spec, rows)
     _capture(monkeypatch, figures)
-    (path,) = sweep_cli.plot_sweep(out)
+    (path,) = sweep_plots.plot_sweep(out)
     assert path.is_file() and path.stat().st_size > 0
     ax = figures[0].axes[0]
     (mesh,) = ax.collections
@@ -105,7 +106,7 @@ def test_a_text_parameter_gives_one_line_per_value(
     ]
     out, figures = _results(tmp_path, spec, rows)
     _capture(monkeypatch, figures)
-    sweep_cli.plot_sweep(out)
+    sweep_plots.plot_sweep(out)
     lines = figures[0].axes[0].lines
     assert [line.get_label() for line in lines] == ["robot_name = pivot", "robot_name = c_arc"]
     np.testing.assert_array_equal(lines[1].get_ydata(), np.array(KP) + 1000.0)
@@ -121,7 +122,7 @@ def test_a_grid_of_three_parameters_is_refused_with_the_reason(tmp_path: Path) -
     rows = [_row(i, kp=10.0, ti=1e-3, amps=1.0, peak_current_a=1.0) for i in range(8)]
     out, _ = _results(tmp_path, spec, rows)
     with pytest.raises(OutputError, match=r"varies 3 \(kp, ti, amps\)"):
-        sweep_cli.plot_sweep(out)
+        sweep_plots.plot_sweep(out)
     assert not (out / "plots").exists()
 
 
@@ -142,7 +143,7 @@ def test_a_random_sweep_is_a_histogram_of_its_finite_values(
         rows[i].update(status="failed", error="RuntimeError: x", peak_current_a=math.nan)
     out, figures = _results(tmp_path, spec, rows)
     _capture(monkeypatch, figures)
-    sweep_cli.plot_sweep(out)
+    sweep_plots.plot_sweep(out)
     ax = figures[0].axes[0]
     assert sum(patch.get_height() for patch in ax.patches) == 195
     assert "n = 195 (2 failed, 3 NaN)" in ax.texts[0].get_text()
@@ -159,7 +160,7 @@ def test_a_radian_metric_is_drawn_in_degrees_when_asked(
     rows = [_row(i, kp=kp, travel=0.01 * i) for i, kp in enumerate(KP)]
     out, figures = _results(tmp_path, spec, rows)
     _capture(monkeypatch, figures)
-    sweep_cli.plot_sweep(out)
+    sweep_plots.plot_sweep(out)
     ax = figures[0].axes[0]
     np.testing.assert_allclose(ax.lines[0].get_ydata(), np.degrees(0.01 * np.arange(5)))
     assert ax.get_ylabel() == "travel (deg)"
@@ -182,7 +183,7 @@ def test_sweep_axes_say_deg_and_what_a_flag_means(
     ]
     out, figures = _results(tmp_path, spec, rows)
     _capture(monkeypatch, figures)
-    sweep_cli.plot_sweep(out)
+    sweep_plots.plot_sweep(out)
     travel, contact = (fig.axes[0] for fig in figures)
     assert travel.get_ylabel() == "travel_after_cut (deg)"
     np.testing.assert_allclose(travel.lines[0].get_ydata(), np.degrees(0.01 * np.arange(5)))

@@ -23,7 +23,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from lca_control.cascade import CONTROL_PERIOD_S
 from lca_control.contract import DIAGNOSTICS, DRIVE_CHAIN_STATES, JOINT_STATES
-from lca_sim.cli import bagplot
+from lca_sim.cli import bag_events
+from lca_sim.ros import bag_read
 from lca_sim.ros.record import BagRecorder
 
 if TYPE_CHECKING:
@@ -131,7 +132,7 @@ def test_drive_chain_states_carry_each_fault_while_it_is_on(fault_bag: Path) -> 
 
 def test_frozen_encoder_reading_and_jammed_axis_in_joint_states(fault_bag: Path) -> None:
     """joint_states: the reading stands still while frozen; the jammed pivot does not move."""
-    data = bagplot.read_bag(fault_bag, time_base="header")
+    data = bag_read.read_bag(fault_bag, time_base="header")
     pivot = data.joints["pivot"]
     samples = list(zip(pivot.header_ns, pivot.values["position"], pivot.values["velocity"],
                        strict=True))  # fmt: skip
@@ -145,7 +146,7 @@ def test_frozen_encoder_reading_and_jammed_axis_in_joint_states(fault_bag: Path)
 
 def test_diagnostics_warn_on_the_joint_and_lca_plot_draws_the_bands(fault_bag: Path) -> None:
     """/diagnostics: the pivot's status is WARN 'injected: ...' while a fault is on."""
-    bands = [b for b in bagplot.fault_bands(bagplot.read_bag(fault_bag)) if b.joint == "pivot"]
+    bands = [b for b in bag_events.fault_bands(bag_read.read_bag(fault_bag)) if b.joint == "pivot"]
     words = {b.message for b in bands}
     assert any("injected: encoder_freeze" in m for m in words), words
     assert any("injected: jam" in m for m in words), words

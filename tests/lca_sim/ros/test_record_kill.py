@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 from support import RECORDED_TOPIC, numbered_joint_state, recorded_sequences
 
 from lca_control.contract import JOINT_STATE_TYPE
-from lca_sim.cli.bagplot import read_bag
+from lca_sim.ros.bag_read import read_bag
 from lca_sim.ros.bag_recover import recover_bag, scan_mcap
 
 

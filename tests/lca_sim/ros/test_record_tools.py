@@ -53,8 +53,8 @@ from lca_control.contract import (
     MOTOR_STATES,
     STATE_QOS_DEPTH,
 )
-from lca_sim.cli import bagplot
-from lca_sim.ros import record
+from lca_sim.cli import bag_events, bagplot
+from lca_sim.ros import bag_read, record
 from lca_sim.ros.echo import message_to_plain
 from lca_sim.ros.record import BagRecorder
 from lca_sim.ros.record_topics import subscription_qos
@@ -615,7 +615,7 @@ def test_plot_skips_missing_topics(tmp_path: Path, capsys: pytest.CaptureFixture
 def test_plot_reads_drive_states_and_units(tmp_path: Path) -> None:
     bag = tmp_path / "bag"
     write_test_bag(bag, (JOINT_STATES, DRIVE_CHAIN_STATES), n_messages=30)
-    data = bagplot.read_bag(bag)
+    data = bag_read.read_bag(bag)
     assert list(data.joints) == list(JOINTS)
     assert data.drives["pivot"].state[0] == "stop_hold"
     assert data.drives["pivot"].state[-1] == "motor_driving"
@@ -623,20 +623,20 @@ def test_plot_reads_drive_states_and_units(tmp_path: Path) -> None:
     assert data.time_base == "header"  # auto: every message has a header stamp
     assert data.joints["pivot"].time_s[:2] == pytest.approx([0.0, 0.02])
     assert data.drives["lift"].time_s[-1] == pytest.approx(29 * 0.02)
-    by_bag = bagplot.read_bag(bag, time_base="bag")
+    by_bag = bag_read.read_bag(bag, time_base="bag")
     assert by_bag.joints["pivot"].time_s[:2] == pytest.approx([0.0, 0.01])
     unstamped = tmp_path / "unstamped"
     write_test_bag(unstamped, (JOINT_STATES,), n_messages=3, header_stamps=False)
-    fallback = bagplot.read_bag(unstamped)
+    fallback = bag_read.read_bag(unstamped)
     assert fallback.time_base == "bag"
     assert fallback.joints["lift"].time_s == pytest.approx([0.0, 0.01, 0.02])
     # Simulated time starts at exactly 0 (lockstep): that first zero stamp is a stamp.
     from_zero = tmp_path / "from_zero"
     write_test_bag(from_zero, (JOINT_STATES, DRIVE_CHAIN_STATES), n_messages=4, header_start_ns=0)
-    sim_time = bagplot.read_bag(from_zero)
+    sim_time = bag_read.read_bag(from_zero)
     assert sim_time.time_base == "header"
     assert sim_time.joints["pivot"].time_s == pytest.approx([0.0, 0.02, 0.04, 0.06])
-    order = bagplot.state_order(["motor_driving", "stop_hold"])
+    order = bag_events.state_order(["motor_driving", "stop_hold"])
     assert order[0] == "stop_hold"
     assert order[-1] == "motor_driving"
 

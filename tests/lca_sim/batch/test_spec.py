@@ -16,20 +16,19 @@ import pytest
 import yaml
 from support import CONFIG
 
-from lca_sim.analysis.metrics import MetricArgs, Trace, parse_metric
+from lca_sim.analysis.metric_spec import parse_metric
+from lca_sim.analysis.metrics import MetricArgs, Trace
 from lca_sim.analysis.paper import current_step
-from lca_sim.analysis.sweep import CurrentStepRun, PointTask, build_task, run_point
-from lca_sim.analysis.sweep_spec import (
-    Documents,
-    add_payload,
-    apply_point,
-    expand_points,
-    parse_spec,
-    point_key,
-)
+from lca_sim.batch.compute import run_point
+from lca_sim.batch.payload import add_payload
+from lca_sim.batch.point import Documents, apply_point, expand_points, point_key
+from lca_sim.batch.spec import parse_spec
+from lca_sim.batch.tasks import CurrentStepRun, PointTask, build_task, build_tasks
+from lca_sim.batch.version import package_version
+from lca_sim.batch.worker import timed_point
 from lca_sim.cli import hil
 from lca_sim.cli.run import node_parameters
-from lca_sim.cli.sweep import build_tasks, load_spec, package_version, timed_point
+from lca_sim.cli.sweep_config import closed_loop_builder, load_spec
 from lca_sim.config.loader import load_robot, read_yaml
 from lca_sim.errors import EXIT_BAD_INPUT, ConfigError
 from lca_sim.model.params import RobotParams
@@ -181,7 +180,7 @@ def test_a_bad_path_or_value_is_caught_before_anything_runs(
     path = _write(tmp_path, _spec(parameters=[parameter]))
     spec, documents = load_spec(path)
     with pytest.raises(ConfigError) as caught:
-        build_tasks(spec, documents, "0")
+        build_tasks(spec, documents, "0", closed_loop_builder)
     assert message in str(caught.value)
 
 
@@ -201,7 +200,7 @@ def test_the_cli_exits_2_with_one_line_and_writes_nothing(
 def test_the_shipped_specs_are_valid(name: str) -> None:
     """Every example in config/sweeps/ validates and builds every point."""
     spec, documents = load_spec(SWEEPS / name)
-    tasks = build_tasks(spec, documents, "0")
+    tasks = build_tasks(spec, documents, "0", closed_loop_builder)
     assert len(tasks) == spec.n_points >= 2
     assert len({t.key for t in tasks}) == len(tasks)
 
@@ -294,7 +293,7 @@ def test_the_current_step_equals_the_papers_fig13(default_robot: RobotParams) ->
         "s",
     )
     run = CurrentStepRun(default_robot, "pivot", 5.0, 0.05, 1e-4, 31.62, 1e-3)
-    from lca_sim.analysis.sweep import PointTask
+    from lca_sim.batch.tasks import PointTask
 
     outcome = run_point(PointTask(0, 0, (), "k", run, spec.metrics, None))
     assert outcome.metrics["overshoot_pct"] == paper.overshoot_pct
@@ -443,7 +442,7 @@ def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
         "metrics": [{"metric": "peak_current_a"}, {"metric": "tracking_error_max"}],
     }
     spec, documents = load_spec(_write(tmp_path, spec_doc))
-    (task,) = build_tasks(spec, documents, "0")
+    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
     outcome = run_point(task)
     controller = node_parameters(CONFIG / "ros" / "controller.yaml", "controller")
     simulator = node_parameters(CONFIG / "ros" / "simulator.yaml", "simulator")
@@ -459,7 +458,7 @@ def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
     }
     spec, documents = load_spec(_write(tmp_path, bad))
     with pytest.raises(ConfigError, match="velocity_kp"):
-        build_tasks(spec, documents, "0")
+        build_tasks(spec, documents, "0", closed_loop_builder)
 
 
 def test_what_a_point_cannot_compute_is_refused_before_it_runs(tmp_path: Path) -> None:
@@ -467,7 +466,7 @@ def test_what_a_point_cannot_compute_is_refused_before_it_runs(tmp_path: Path) -
     bad_axes = _spec(trajectories={"every_s": 0.01, "axes": ["elbow"]})
     spec, documents = load_spec(_write(tmp_path, bad_axes))
     with pytest.raises(ConfigError, match=r"trajectories\.axes: expected axes among"):
-        build_tasks(spec, documents, "0")
+        build_tasks(spec, documents, "0", closed_loop_builder)
     open_loop = {
         "base": {"kind": "open_loop", "scenario": "hold_pivot", "axis": "pivot"},
         "parameters": [],
@@ -475,7 +474,7 @@ def test_what_a_point_cannot_compute_is_refused_before_it_runs(tmp_path: Path) -
     }
     spec, documents = load_spec(_write(tmp_path, open_loop))
     with pytest.raises(ConfigError, match=r"metrics\[0\]\.metric: tracking_error_rms needs a"):
-        build_tasks(spec, documents, "0")
+        build_tasks(spec, documents, "0", closed_loop_builder)
 
 
 def test_a_closed_loop_takes_the_simulators_robot_unless_the_base_names_one(
@@ -492,11 +491,11 @@ def test_a_closed_loop_takes_the_simulators_robot_unless_the_base_names_one(
     }  # fmt: skip
     doc = {"base": base, "parameters": [], "metrics": [{"metric": "peak_current_a"}]}
     spec, documents = load_spec(_write(tmp_path, doc))
-    (task,) = build_tasks(spec, documents, "0")
+    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
     assert task.run.robot.name == load_robot("reversible").name
     base["robot"] = "default"
     spec, documents = load_spec(_write(tmp_path, doc))
-    (task,) = build_tasks(spec, documents, "0")
+    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
     assert task.run.robot.name == load_robot("default").name
 
 

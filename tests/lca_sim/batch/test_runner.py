@@ -25,8 +25,10 @@ import pytest
 import yaml
 from support import ROOT, wait_until
 
-from lca_sim.analysis.sweep import PointOutcome, PointTask
-from lca_sim.cli.sweep import LOG, POINTS_DIR, RESULTS, TRAJECTORIES, run_sweep, timed_point
+from lca_sim.batch.store import LOG, POINTS_DIR, RESULTS, TRAJECTORIES
+from lca_sim.batch.tasks import PointOutcome, PointTask
+from lca_sim.batch.worker import timed_point
+from lca_sim.cli.sweep_config import run_sweep
 
 DEADLINE_S = 240.0  # a loaded, shared 2-core machine
 
@@ -284,7 +286,7 @@ def test_a_point_whose_worker_dies_is_retried_alone_then_recorded_failed(
     """
     import cloudpickle  # type: ignore[import-untyped]
 
-    from lca_sim.cli.sweep import dask_client
+    from lca_sim.batch.runner import dask_client
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the worker has no tests/
     try:
@@ -330,8 +332,10 @@ def test_closed_and_open_loop_sweeps_run_on_worker_processes(tmp_path: Path) -> 
     """
     from distributed import Client, LocalCluster
 
-    from lca_sim.analysis.sweep import run_point
-    from lca_sim.cli.sweep import build_tasks, load_spec, package_version
+    from lca_sim.batch.compute import run_point
+    from lca_sim.batch.tasks import build_tasks
+    from lca_sim.batch.version import package_version
+    from lca_sim.cli.sweep_config import closed_loop_builder, load_spec
 
     (tmp_path / "jam.yaml").write_text(
         yaml.safe_dump(
@@ -377,7 +381,10 @@ def test_closed_and_open_loop_sweeps_run_on_worker_processes(tmp_path: Path) -> 
             log = run_sweep(path, out, stream=None, client=client)
             assert log["computed"] == 2 and log["failed"] == 0, log
             spec, documents = load_spec(path)
-            here = [run_point(t).metrics for t in build_tasks(spec, documents, package_version())]
+            here = [
+                run_point(t).metrics
+                for t in build_tasks(spec, documents, package_version(), closed_loop_builder)
+            ]
             rows = _rows(out)
             for row, metrics in zip(rows, here, strict=True):
                 assert {k: row[k] for k in metrics} == metrics, name

@@ -1,4 +1,4 @@
-"""Writing the tools' files atomically: any file, CSV tables, strict JSON and matplotlib PNGs.
+"""Writing the tools' files atomically: any file, CSV tables and strict JSON.
 
 A file is written to a temporary name in the target folder and renamed into place, so an
 interrupted tool never leaves a half-written file behind. JSON is strict (RFC 8259): a
@@ -6,7 +6,8 @@ non-finite float (NaN, +-Infinity, which Python's `json` would write as the inva
 `NaN`/`Infinity`) becomes `null`, and the document's top-level `"reasons"` object says why,
 keyed by the value's path (`"summary.transition_time_s"`, `"runs[2].rate"`). Nothing here
 needs the model, so `lca-plot` (which only reads bags) does not load numba or Pinocchio
-through it.
+through it; the PNGs are written by `lca_sim.cli.plotting.save_png` (matplotlib stays in the
+entry layer).
 """
 
 from __future__ import annotations
@@ -19,14 +20,10 @@ import tempfile
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
-
-PNG_DPI = 110  # every PNG the tools write
 REASONS_KEY = "reasons"  # where a strict JSON document says why a value is null
 
 
@@ -64,13 +61,6 @@ def write_table(path: Path, header: Sequence[str], rows: Iterable[Sequence[objec
         writer = csv.writer(handle, lineterminator="\n")
         writer.writerow(header)
         writer.writerows([cell(x) for x in row] for row in rows)
-
-
-def save_png(fig: Figure, path: Path) -> None:
-    """Lay out and write a matplotlib figure as PNG, atomically."""
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=PNG_DPI)
 
 
 def _finite_only(value: Any, path: str, nulled: dict[str, str]) -> Any:

@@ -19,9 +19,10 @@ import yaml
 from support import CONFIG
 
 from lca_sim.analysis.closed_loop import ClosedLoop
-from lca_sim.analysis.sweep import run_point
+from lca_sim.batch.compute import run_point
+from lca_sim.batch.tasks import build_tasks
 from lca_sim.cli.run import closed_loop_config, node_parameters
-from lca_sim.cli.sweep import build_tasks, load_spec
+from lca_sim.cli.sweep_config import closed_loop_builder, load_spec
 from lca_sim.errors import ConfigError
 from lca_sim.model.fault_schedule import ScheduledFault
 
@@ -70,7 +71,7 @@ def test_a_swept_jam_start_runs_the_schedule_lca_hil_run_runs(tmp_path: Path) ->
     spec_doc = _spec(faults="jam.yaml")
     spec_doc["parameters"] = [{"name": "jam_s", "path": "faults.1.start_s", "values": [1.0, 2.0]}]
     spec, documents = load_spec(_write(tmp_path, "spec.yaml", spec_doc))
-    tasks = build_tasks(spec, documents, "0")
+    tasks = build_tasks(spec, documents, "0", closed_loop_builder)
     peaks = [run_point(task).metrics["peak_current_a"] for task in tasks]
     for jam_s, peak in zip((1.0, 2.0), peaks, strict=True):
         faults = (
@@ -98,7 +99,7 @@ def test_the_simulators_fault_schedule_and_standing_faults_reach_a_point(tmp_pat
     _write(tmp_path, "simulator.yaml", simulator_doc)
     spec, documents = load_spec(_write(tmp_path, "spec.yaml", _spec(simulator="simulator.yaml")))
     assert documents.simulator["faults.pivot.payload_kg"] == 60.0
-    (task,) = build_tasks(spec, documents, "0")
+    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
     faults = task.run.faults  # type: ignore[union-attr]
     assert ScheduledFault("pivot", "payload_kg", 60.0, 0.0, float("inf")) in faults
     assert [f.kind for f in faults if f.start_s > 0.0] == ["encoder_freeze", "jam"]
@@ -114,7 +115,9 @@ def test_a_swept_standing_fault_changes_the_run(tmp_path: Path) -> None:
         {"name": "payload_kg", "path": "simulator.faults.pivot.payload_kg", "values": [0.0, 80.0]}
     ]
     spec, documents = load_spec(_write(tmp_path, "spec.yaml", spec_doc))
-    unloaded, loaded = (run_point(t).metrics for t in build_tasks(spec, documents, "0"))
+    unloaded, loaded = (
+        run_point(t).metrics for t in build_tasks(spec, documents, "0", closed_loop_builder)
+    )
     assert unloaded["peak_current_a"] == _direct_peak((), _simulator())
     payload = (ScheduledFault("pivot", "payload_kg", 80.0, 0.0, float("inf")),)
     assert loaded["peak_current_a"] == _direct_peak(payload, _simulator())
@@ -166,7 +169,7 @@ def test_a_bad_fault_is_one_error_before_anything_runs(
     spec_doc["parameters"] = [parameter]
     with pytest.raises(ConfigError, match=re.escape(message)):
         spec, documents = load_spec(_write(tmp_path, "spec.yaml", spec_doc))
-        build_tasks(spec, documents, "0")
+        build_tasks(spec, documents, "0", closed_loop_builder)
 
 
 def test_faults_are_refused_outside_a_closed_loop(tmp_path: Path) -> None:

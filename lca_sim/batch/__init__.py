@@ -1,0 +1,1 @@
+"""Sweeps: a spec's points, built and checked, run on Dask into a Parquet store (docs/sweeps.md)."""
