@@ -526,9 +526,7 @@ def test_controller_node_needs_no_model(tmp_path: Path) -> None:
     node_imports = {
         imp.target
         for imp in graph().imports
-        if imp.source.name == CONTROLLER_NODE
-        and imp.is_project
-        and imp.kind != TYPING
+        if imp.source.name == CONTROLLER_NODE and imp.is_project and imp.kind != TYPING
     }
     named = {"lca_control.controller", "lca_control.cascade", "lca_control.contract"}
     modules = sorted(named | node_imports)
