@@ -99,6 +99,9 @@ PURE_FORBIDDEN: dict[str, str] = {
     "matplotlib": "plotting: lca_sim.cli",
     "yaml": "config files: lca_sim.config parses them, the core gets typed params",
     "rosbags": "bag files: lca_sim.ros and lca_sim.cli",
+    "dask": "sweeps on a cluster: lca_sim.batch",
+    "distributed": "sweeps on a cluster: lca_sim.batch",
+    "pyarrow": "the sweep's Parquet store: lca_sim.batch",
     "time": "a clock: the core gets time as an explicit dt_s",
     "datetime": "a clock: the core gets time as an explicit dt_s",
 }
