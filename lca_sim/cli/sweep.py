@@ -48,6 +48,7 @@ from lca_sim.cli.output import atomic_path, save_png, write_json
 from lca_sim.cli.plotting import metric_label, metric_unit
 from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
 from lca_sim.config.loader import config_dir, read_robot_document, read_yaml, resolve
+from lca_sim.config.simulator_params import validate_simulator_params
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, OutputError, run_guarded
 from lca_sim.model.faults import (
     FAULT_SCHEDULE,
@@ -57,7 +58,6 @@ from lca_sim.model.faults import (
     standing_faults,
 )
 from lca_sim.model.params import RobotParams
-from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil sweep"
 POINTS_DIR = "points"

@@ -66,13 +66,13 @@ from lca_sim.canbus.master import (
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CST, PowerState
 from lca_sim.cia402.master import bus_load_pct
-from lca_sim.config.loader import config_dir, load_robot
-from lca_sim.errors import FILE_NOT_FOUND, USER_ERRORS, ConfigError
-from lca_sim.ros.can_bridge_params import (
+from lca_sim.config.can_bridge_params import (
     CAN_BRIDGE_PARAMETERS,
     CanBridgeNodeParams,
     validate_can_bridge_params,
 )
+from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.errors import FILE_NOT_FOUND, USER_ERRORS, ConfigError
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, status
 from lca_sim.ros.plant_contract import (
     JointCommand,

@@ -1,7 +1,7 @@
 """The simulator node: `ros2 run lca_hil simulator` (console script `lca-simulator`).
 
 A thin shell around `CommandedPlant`: parameters in, commands in, states out. See
-`lca_control.contract` for the topics and `lca_sim.ros.simulator_params` for the parameters:
+`lca_control.contract` for the topics and `lca_sim.config.simulator_params` for the parameters:
 
     lca-simulator --ros-args --params-file config/ros/simulator.yaml
 
@@ -81,6 +81,13 @@ from lca_control.contract import PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
+from lca_sim.config.simulator_params import (
+    ENDED_KEY,
+    SIMULATOR_PARAMETERS,
+    SIMULATOR_STATUS,
+    SimulatorNodeParams,
+    validate_simulator_params,
+)
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.faults import LINK, FaultInjector, StateLink
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
@@ -98,13 +105,6 @@ from lca_sim.ros.plant_contract import (
     qos_profile,
     read_joint_command,
     worst_first,
-)
-from lca_sim.ros.simulator_params import (
-    ENDED_KEY,
-    SIMULATOR_PARAMETERS,
-    SIMULATOR_STATUS,
-    SimulatorNodeParams,
-    validate_simulator_params,
 )
 
 MAX_CATCH_UP_PERIODS = 4
