@@ -58,14 +58,14 @@ from lca_control.contract import JOINT_STATES, STATE_QOS_DEPTH, VOLTAGE_COMMANDS
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
 from lca_sim.cli.ros_guard import ROS_MODULES
+from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS
 from lca_sim.config.loader import load_robot
+from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.model.state_machine import MotionState
 from lca_sim.output import REASONS_KEY
-from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import from_stamp
 from lca_sim.ros.simulator_node import SimulatorNode
-from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S
 
 FIRST_DOMAIN_ID = 200  # item N runs on FIRST_DOMAIN_ID + N - 1

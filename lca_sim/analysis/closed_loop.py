@@ -88,7 +88,7 @@ class ClosedLoopConfig:
     """One composed run: the robot, the controller's parameters and the simulator node's.
 
     The plant fields are the simulator node's parameters of the same names
-    (`lca_sim.ros.simulator_params`), the ones a lockstep run uses.
+    (`lca_sim.config.simulator_params`), the ones a lockstep run uses.
 
     Attributes:
         robot: the validated robot.

@@ -52,12 +52,12 @@ from lca_sim.analysis.closed_loop import ClosedLoopConfig, replay_references, tr
 from lca_sim.analysis.metrics import VelocityTracking, velocity_tracking
 from lca_sim.cli.run import load_config, load_run_scenario
 from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
 from lca_sim.model.gantry import Gantry
 from lca_sim.output import write_json
 from lca_sim.ros.bag_read import NS_PER_S, BagData, BagReadError, JointSeries, read_bag
 from lca_sim.ros.node_util import from_stamp
-from lca_sim.ros.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 
 SCENARIO = "fig15"  # config/runs/fig15.yaml: the run `lca-hil run fig15` computes too
 END_WAIT_S = 60.0  # wall time for start-up and shut-down, on top of ...

@@ -22,9 +22,9 @@ from lca_control import contract as ri
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
 from lca_sim.cli.console import own_arguments, script_arguments, wants_help
+from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS
+from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.errors import EXIT_OK
-from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
-from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
 from lca_sim.ros.tool_args import echo_parser, record_parser
 
 

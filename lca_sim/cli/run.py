@@ -44,12 +44,12 @@ from lca_sim.config.loader import (
     read_yaml,
     resolve,
 )
+from lca_sim.config.simulator_params import validate_simulator_params
 from lca_sim.errors import EXIT_OK, FILE_NOT_FOUND, ConfigError, run_guarded, unknown_key
 from lca_sim.model.fault_schedule import standing_faults
 from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter
 from lca_sim.model.params import RobotParams
 from lca_sim.output import number_cell, write_json, write_table
-from lca_sim.ros.simulator_params import validate_simulator_params
 
 PROG = "lca-hil run"
 SCENARIO_KEYS = ("description", "controller", "simulator", "robot", "faults", "duration_s")

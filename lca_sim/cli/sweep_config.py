@@ -22,11 +22,11 @@ from lca_sim.batch.tasks import build_tasks
 from lca_sim.batch.version import package_version
 from lca_sim.cli.run import closed_loop_config, file_ref, node_parameters
 from lca_sim.config.loader import config_dir, read_robot_document, read_yaml, resolve
+from lca_sim.config.simulator_params import validate_simulator_params
 from lca_sim.errors import ConfigError
 from lca_sim.model.fault_schedule import parse_fault_schedule, schedule_entries, standing_faults
 from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter
 from lca_sim.model.params import RobotParams
-from lca_sim.ros.simulator_params import validate_simulator_params
 
 
 def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:

@@ -16,9 +16,7 @@ for, so it goes first, then motor_states, /clock and the drive chain.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -198,60 +196,6 @@ class PlantPublisher:
             self._other_publishers = tuple(found)
         values["other_publishers"] = "; ".join(found) or "none"
         return (DiagnosticStatus.ERROR, f"another node publishes {found[0]}") if found else None
-
-
-@dataclass(frozen=True, slots=True)
-class JointCommand:
-    """What one sensor_msgs/JointState command says, per joint of the receiving node.
-
-    Attributes:
-        effort: joint -> the effort entry (finite only; NaN entries are left out).
-        velocity: joint -> the velocity entry (finite only).
-        unknown: names the node has no joint of, in message order.
-        error: why the whole message was refused ("" when it was not).
-    """
-
-    effort: dict[str, float]
-    velocity: dict[str, float]
-    unknown: tuple[str, ...] = ()
-    error: str = ""
-
-
-def read_joint_command(
-    names: Sequence[str],
-    velocity: Sequence[float],
-    effort: Sequence[float],
-    joints: Sequence[str],
-) -> JointCommand:
-    """Read a JointState command as ros2_control's topic-based hardware interface sends it.
-
-    The interface names every joint of its `<ros2_control>` block and appends one entry per
-    joint to `velocity` / `effort` for each command interface that joint declares, so a field
-    is either empty (no joint commands it) or exactly as long as `name`. Any other length
-    cannot be mapped to names and refuses the message. Joints match by name (any order, any
-    subset); a NaN entry leaves that joint's command as it is. `position` is not read (no
-    plant here takes a position command).
-    """
-    n = len(names)
-    for field, values in (("velocity", velocity), ("effort", effort)):
-        if len(values) not in (0, n):
-            return JointCommand(
-                {},
-                {},
-                error=(
-                    f"{field} has {len(values)} entries for {n} names: declare the same "
-                    "command interfaces on every joint of the <ros2_control> block"
-                ),
-            )
-    wanted = set(joints)
-    unknown = tuple(name for name in names if name not in wanted)
-    taken_effort: dict[str, float] = {}
-    taken_velocity: dict[str, float] = {}
-    for values, taken in ((velocity, taken_velocity), (effort, taken_effort)):
-        for name, value in zip(names, values, strict=False):
-            if name in wanted and math.isfinite(value):
-                taken[name] = float(value)
-    return JointCommand(taken_effort, taken_velocity, unknown)
 
 
 def worst_first(found: Sequence[tuple[bytes, str]]) -> tuple[bytes, str]:

@@ -1,7 +1,7 @@
 """The simulator node: `ros2 run lca_hil simulator` (console script `lca-simulator`).
 
 A thin shell around `CommandedPlant`: parameters in, commands in, states out. See
-`lca_control.contract` for the topics and `lca_sim.ros.simulator_params` for the parameters:
+`lca_control.contract` for the topics and `lca_sim.config.simulator_params` for the parameters:
 
     lca-simulator --ros-args --params-file config/ros/simulator.yaml
 
@@ -81,10 +81,18 @@ from lca_control.contract import PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
+from lca_sim.config.simulator_params import (
+    ENDED_KEY,
+    SIMULATOR_PARAMETERS,
+    SIMULATOR_STATUS,
+    SimulatorNodeParams,
+    validate_simulator_params,
+)
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.faults import LINK, FaultInjector, StateLink
 from lca_sim.model.simulator import SIGNAL_NAMES, Simulator
 from lca_sim.ros.fault_params import FaultParameters, is_fault_parameter
+from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
 from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
@@ -92,20 +100,7 @@ from lca_sim.ros.node_util import (
     set_enabled_by_service,
     status,
 )
-from lca_sim.ros.plant_contract import (
-    JointCommand,
-    PlantPublisher,
-    qos_profile,
-    read_joint_command,
-    worst_first,
-)
-from lca_sim.ros.simulator_params import (
-    ENDED_KEY,
-    SIMULATOR_PARAMETERS,
-    SIMULATOR_STATUS,
-    SimulatorNodeParams,
-    validate_simulator_params,
-)
+from lca_sim.ros.plant_contract import PlantPublisher, qos_profile, worst_first
 
 MAX_CATCH_UP_PERIODS = 4
 # Time skipped within one diagnostics period above which it is reported as a stall (WARN):
@@ -204,15 +199,20 @@ class SimulatorNode(Node):
         self.create_subscription(Float64MultiArray, active, self._on_command, command_qos)
         self.create_subscription(Float64MultiArray, other, self._on_wrong_interface, command_qos)
         # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N).
-        axes = [self.sim.robot.axes[self.sim.axis_names.index(j)] for j in p.joints]
         self._joint_index = [self.sim.axis_names.index(j) for j in p.joints]
-        self._effort_to_command = {
-            j: 1.0
-            if p.joint_command_effort == "current"
-            else 1.0 / (a.motor.torque_constant_nm_per_a * a.gear_ratio)
-            for j, a in zip(p.joints, axes, strict=True)
-        }
-        self.joint_command_counts = {"accepted": 0, "refused": 0, "unknown_names": 0}
+        self._joint_commands = JointCommandAdapter(
+            p.joints,
+            effort_scales(robot, p.joints, p.joint_command_effort),
+            takes_effort=p.command_interface != "voltage",
+            velocity_refused=lambda j: (
+                f"velocity commands for {j}: the simulator has no velocity loop (command "
+                "effort, or use the CAN bridge with the axis in csv mode)"
+            ),
+            effort_refused=lambda _: (
+                "effort refused: the simulator takes voltages (command_interface)"
+            ),
+            topic=p.joint_command_topic,
+        )
         if p.joint_command_topic:
             self.create_subscription(
                 JointState, p.joint_command_topic, self._on_joint_command, command_qos
@@ -237,6 +237,11 @@ class SimulatorNode(Node):
     def params(self) -> SimulatorNodeParams:
         """The parameters in force (a live set replaces them as a whole)."""
         return self._live.params
+
+    @property
+    def joint_command_counts(self) -> dict[str, int]:
+        """JointState commands accepted and refused, and unknown joint names in them."""
+        return self._joint_commands.counts
 
     # --- time ----------------------------------------------------------------------------
 
@@ -301,50 +306,14 @@ class SimulatorNode(Node):
         In voltage mode effort has no meaning here and the message is refused. In lockstep
         the message is the period's command either way, as a refused array is.
         """
-        p = self.params
-        counts = self.joint_command_counts
-        cmd = read_joint_command(msg.name, msg.velocity, msg.effort, p.joints)
-        counts["unknown_names"] += len(cmd.unknown)
-        problems = self._joint_command_problems(cmd)
-        values: list[float] | None = None
-        if cmd.effort and not cmd.error and p.command_interface != "voltage":
-            target = self.plant.target
-            values = [float(target[a]) for a in self._joint_index]
-            for k, joint in enumerate(p.joints):
-                if joint in cmd.effort:
-                    values[k] = cmd.effort[joint] * self._effort_to_command[joint]
-            counts["accepted"] += 1
-        else:
-            counts["refused"] += 1
-        if problems:
-            self._warn_joint_command(problems)
+        adapter = self._joint_commands
+        cmd = adapter.read(msg.name, msg.velocity, msg.effort)
+        values = None
+        if cmd.accepted:
+            values = adapter.fill(self.plant.target[self._joint_index].tolist(), cmd.effort)
+        if cmd.problems:
+            self.get_logger().warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
         self._take_command(values)
-
-    def _joint_command_problems(self, cmd: JointCommand) -> list[str]:
-        """What to warn about in a JointState command (empty: nothing)."""
-        p = self.params
-        problems: list[str] = []
-        if cmd.unknown:
-            problems.append(f"unknown joints {list(cmd.unknown)} (this node's: {list(p.joints)})")
-        if cmd.error:
-            problems.append(cmd.error)
-        moving = sorted(j for j, v in cmd.velocity.items() if v != 0.0)
-        if moving:
-            problems.append(
-                f"velocity commands for {moving}: the simulator has no velocity loop (command "
-                "effort, or use the CAN bridge with the axis in csv mode)"
-            )
-        if cmd.effort and p.command_interface == "voltage":
-            problems.append("effort refused: the simulator takes voltages (command_interface)")
-        return problems
-
-    def _warn_joint_command(self, problems: list[str]) -> None:
-        counts = self.joint_command_counts
-        self.get_logger().warning(
-            f"{self.params.joint_command_topic}: {'; '.join(problems)} ({counts['refused']} "
-            f"refused, {counts['unknown_names']} unknown names so far)",
-            throttle_duration_sec=1.0,
-        )
 
     def _take_command(self, values: list[float] | None) -> None:
         """One command array (joints order): in force, and in lockstep the period's command.

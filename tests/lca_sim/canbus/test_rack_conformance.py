@@ -401,7 +401,7 @@ def test_item_12_every_rack_config_key_and_emcy_code_is_documented() -> None:
 
 def test_every_bridge_parameter_is_documented_with_its_default() -> None:
     """docs/can.md's bridge table lists exactly the bridge's parameters, defaults as declared."""
-    from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
+    from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS
 
     text = (CONFIG.parent / "docs" / "can.md").read_text()
     after = text[text.index("## The bridge's parameters") :]

@@ -73,8 +73,8 @@ def test_progress_sees_the_simulators_end() -> None:
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
     from lca_sim.cli.fig15 import _Progress
+    from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
     from lca_sim.ros.node_util import status
-    from lca_sim.ros.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 
     progress = _Progress()
     running = status(SIMULATOR_STATUS, DiagnosticStatus.OK, "running", {ENDED_KEY: False})

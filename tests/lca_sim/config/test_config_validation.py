@@ -977,7 +977,7 @@ def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
 def test_bad_rigid_body_period(value: object, expected: str) -> None:
     """The rigid-body update period must be a whole number of model steps, at most 10 ms."""
     from lca_control.parameters import ParameterError
-    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS, validate_simulator_params
+    from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS, validate_simulator_params
 
     values = SIMULATOR_PARAMETERS.defaults()
     assert validate_simulator_params(values).rigid_body_update_steps == 10  # 1 ms / 0.1 ms

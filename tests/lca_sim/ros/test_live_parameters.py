@@ -216,7 +216,7 @@ STORED_IN_REALTIME_CURRENT: dict[str, Any] = {
 
 def test_every_simulator_parameter_has_its_effect_probed_in_one_walk() -> None:
     """No live parameter is merely stored in both walks (realtime_factor: test_sim_control)."""
-    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+    from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS
 
     assert not STORED_IN_LOCKSTEP_VOLTAGE.keys() & STORED_IN_REALTIME_CURRENT.keys()
     assert STORED_IN_LOCKSTEP_VOLTAGE.keys() | STORED_IN_REALTIME_CURRENT.keys() <= {
@@ -226,7 +226,7 @@ def test_every_simulator_parameter_has_its_effect_probed_in_one_walk() -> None:
 
 def test_simulator_applies_or_rejects_every_parameter() -> None:
     """The simulator's whole table, on a lockstep voltage node whose loop the test drives."""
-    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+    from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS
 
     with ros_context() as (ctx, executor):
         sim = SimulatorNode(
@@ -261,7 +261,7 @@ def test_realtime_current_simulator_applies_or_rejects_every_parameter() -> None
     The realtime- and current-only parameters show their effect here; a command timeout of
     30 s at start makes a drop within the probe's deadline the new value's doing.
     """
-    from lca_sim.ros.simulator_params import SIMULATOR_PARAMETERS
+    from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS
 
     with ros_context() as (ctx, executor):
         sim = SimulatorNode(
@@ -404,7 +404,7 @@ def test_controller_applies_or_rejects_every_parameter() -> None:
 
 def test_can_bridge_applies_or_rejects_every_parameter() -> None:
     """The bridge's whole table, with its virtual rack; safety timing reaches the master."""
-    from lca_sim.ros.can_bridge_params import CAN_BRIDGE_PARAMETERS
+    from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS
 
     with ros_context() as (ctx, executor):
         bridge = CanBridgeNode(

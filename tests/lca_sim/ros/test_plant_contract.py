@@ -60,7 +60,8 @@ from lca_sim import load_robot
 from lca_sim.canbus.master import AxisState, Snapshot
 from lca_sim.config.loader import config_dir
 from lca_sim.model.state_machine import MotionState, StopState
-from lca_sim.ros.can_bridge_node import CanBridgeNode, plant_snapshot
+from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.ros.can_drives import plant_snapshot
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import make_executor
 from lca_sim.ros.plant_contract import drive_chain_template, fill_drive_chain

@@ -28,8 +28,8 @@ from sensor_msgs.msg import JointState
 from lca_control import contract as ri
 from lca_sim.config.loader import config_dir
 from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.ros.joint_command import read_joint_command
 from lca_sim.ros.node_util import make_executor
-from lca_sim.ros.plant_contract import read_joint_command
 from lca_sim.ros.simulator_node import SimulatorNode
 
 DOMAIN_ID = 163

@@ -1,6 +1,6 @@
 """Typed, validated parameters of the CAN bridge node (pure: no ROS, no CAN import).
 
-Same pattern as `lca_sim.ros.simulator_params`: the node declares `CAN_BRIDGE_PARAMETERS`, and
+Same pattern as `lca_sim.config.simulator_params`: the node declares `CAN_BRIDGE_PARAMETERS`, and
 start-up builds `CanBridgeNodeParams` here (one error line and exit code 2 on a bad value); a
 live set goes through the same check, and a read-only parameter is refused while running.
 """
@@ -18,12 +18,12 @@ from lca_control.parameters import (
     ParamSpec,
     positive,
 )
-from lca_sim.model.params import AXIS_NAMES
-from lca_sim.ros.simulator_params import (
+from lca_sim.config.simulator_params import (
     ROS2_CONTROL_PARAMETERS,
     SIMULATOR_PARAMETERS,
     check_topic,
 )
+from lca_sim.model.params import AXIS_NAMES
 
 S, INT = ParamKind.STRING, ParamKind.INTEGER
 

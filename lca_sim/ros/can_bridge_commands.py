@@ -1,0 +1,163 @@
+"""The CAN bridge's command inputs: current, velocity and JointState commands to the drives.
+
+`BridgeCommands` subscribes to `current_commands`, `velocity_commands` (csv axes only),
+`voltage_commands` (refused: CiA 402 drives take torque) and the JointState command topic
+(docs/ros2_control.md), hands the values to the master while the node is active, and in
+lockstep lets the controller's answer release the next SYNC. docs/can.md has the whole story.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from lca_control import contract as pc
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.config.can_bridge_params import CanBridgeNodeParams
+from lca_sim.model.params import RobotParams
+from lca_sim.ros.can_drives import CanDrives
+from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
+from lca_sim.ros.plant_contract import qos_profile
+
+
+class BridgeCommands:
+    """The bridge's command subscriptions and what they count.
+
+    Args:
+        node: the bridge node; the subscriptions are created on it.
+        p: its parameters at start-up (the joints, modes and topics are read-only).
+        robot: the robot config (k_t and gear ratios for a JointState torque).
+        drives: the node's drives (the master, the lockstep loop).
+        active: the node is lifecycle ACTIVE (commands are passed on only then).
+        lifecycle_state: the lifecycle state's label, for the warning while inactive.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        p: CanBridgeNodeParams,
+        robot: RobotParams,
+        drives: CanDrives,
+        active: Callable[[], bool],
+        lifecycle_state: Callable[[], str],
+    ) -> None:
+        self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
+        self._drives = drives
+        self._active = active
+        self._lifecycle_state = lifecycle_state
+        self.velocity_axes = tuple(j for j, m in zip(p.joints, p.modes, strict=False) if m == "csv")
+        self.wrong_interface = 0
+        self.ignored_inactive = 0  # commands that came while not active
+        # ros2_control's topic-based interface: the commands in force, joint order, so a
+        # JointState naming some joints leaves the others as they are.
+        self._held_current_a = [0.0] * len(p.joints)
+        self._held_velocity = [0.0] * len(p.joints)
+        self.joint_commands = JointCommandAdapter(
+            p.joints,
+            effort_scales(robot, p.joints, p.joint_command_effort),
+            velocity_joints=self.velocity_axes,
+            velocity_refused=lambda j: (
+                f"velocity for {j}: their drives run cst (modes), send effort"
+            ),
+            effort_refused=lambda j: f"effort for {j}: their drives run csv (modes), send velocity",
+            topic=p.joint_command_topic,
+        )
+        qos = qos_profile(pc.COMMAND_QOS)
+        node.create_subscription(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current, qos)
+        node.create_subscription(Float64MultiArray, pc.VOLTAGE_COMMANDS, self._on_voltage, qos)
+        if self.velocity_axes:  # CSV axes close their velocity loop in the drive
+            node.create_subscription(
+                Float64MultiArray, pc.VELOCITY_COMMANDS, self._on_velocity, qos
+            )
+        if p.joint_command_topic:
+            node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
+
+    def _commanding(self) -> Cia402Master | None:
+        """The master, when the node is active; else None, the command counted and warned."""
+        master = self._drives.master
+        if self._active() and master is not None:
+            return master
+        self.ignored_inactive += 1
+        self._log.warning(
+            f"ignoring commands while {self._lifecycle_state()} ({self.ignored_inactive} so "
+            "far): activate the node",
+            throttle_duration_sec=5.0,
+        )
+        return None
+
+    def _on_current(self, msg: Float64MultiArray) -> None:
+        master = self._commanding()
+        if master is not None:
+            self._set_currents(master, list(msg.data))
+            if not self.velocity_axes:
+                self._answered()
+
+    def _answered(self) -> None:
+        """Lockstep: the controller's answer (taken or refused) releases the next SYNC.
+
+        The answer is the last message the controller sends per state: current_commands, or
+        with CSV axes the velocity_commands it publishes after them (the currents are then in
+        force already), or one JointState command.
+        """
+        loop = self._drives.loop
+        if loop is not None:
+            loop.on_command(time.monotonic())
+
+    def _set_currents(self, master: Cia402Master, currents_a: list[float]) -> None:
+        reason = master.set_currents(currents_a)
+        if reason is None:
+            self._held_current_a[:] = currents_a
+        else:
+            self._log.warning(
+                f"command rejected ({master.counters.commands_rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
+
+    def _on_velocity(self, msg: Float64MultiArray) -> None:
+        master = self._commanding()
+        if master is not None:
+            self._set_velocities(master, list(msg.data))
+            self._answered()
+
+    def _set_velocities(self, master: Cia402Master, velocities: list[float]) -> None:
+        reason = master.set_velocities(velocities)
+        if reason is None:
+            self._held_velocity[:] = velocities
+        else:
+            self._log.warning(
+                f"velocity command rejected ({master.counters.commands_rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
+
+    def _on_joint(self, msg: JointState) -> None:
+        """A JointState command (docs/ros2_control.md), each joint by its drive's mode.
+
+        A cst joint takes its effort entry (A, or joint torque per `joint_command_effort`),
+        a csv joint its velocity entry (the drive closes the loop); joints not named, or with
+        NaN, keep their command. The entry of the other field is ignored when zero (what the
+        interface sends for an interface no controller claims) and refused when not.
+        """
+        master = self._commanding()
+        if master is None:
+            return
+        adapter = self.joint_commands
+        cmd = adapter.read(msg.name, msg.velocity, msg.effort)
+        if cmd.accepted and cmd.effort:
+            self._set_currents(master, adapter.fill(self._held_current_a, cmd.effort))
+        if cmd.accepted and cmd.velocity:
+            self._set_velocities(master, adapter.fill(self._held_velocity, cmd.velocity))
+        if cmd.problems:
+            self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
+        self._answered()
+
+    def _on_voltage(self, msg: Float64MultiArray) -> None:
+        self.wrong_interface += 1
+        self._log.warning(
+            f"ignoring voltage commands ({self.wrong_interface} so far): CiA 402 drives take "
+            "torque; run the controller with command_interface: current",
+            throttle_duration_sec=5.0,
+        )
