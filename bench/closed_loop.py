@@ -42,7 +42,7 @@ import numpy as np
 
 from lca_control.controller import JointController
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
-from lca_sim.cli.run import load_config
+from lca_sim.batch.closed_loop_config import load_config
 from lca_sim.output import strict_json
 
 REPO_ROOT = Path(__file__).resolve().parent.parent

@@ -50,13 +50,13 @@ from typing import Any
 
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig
 from lca_sim.analysis.metric_spec import parse_metric
+from lca_sim.batch.closed_loop_config import load_config
 from lca_sim.batch.compute import run_point
+from lca_sim.batch.plan import run_sweep
 from lca_sim.batch.runner import Progress, dask_client, run_tasks
 from lca_sim.batch.store import PointStore
 from lca_sim.batch.tasks import PointTask
 from lca_sim.batch.worker import warm_up
-from lca_sim.cli.run import load_config
-from lca_sim.cli.sweep_config import run_sweep
 from lca_sim.output import strict_json
 
 REPO_ROOT = Path(__file__).resolve().parent.parent

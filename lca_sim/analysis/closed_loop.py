@@ -24,8 +24,8 @@ So a run of this module and a lockstep run recorded through the nodes are equal 
 (`tests/lca_sim/analysis/test_closed_loop.py` runs both): JointState and Float64MultiArray carry
 float64, so the only rounding on the way is that of the stamps, which is done here too.
 
-Pure: no ROS, no clock, no files. `lca-hil run` (`lca_sim.cli.run`) builds the config from the
-nodes' parameter files and writes the result.
+Pure: no ROS, no clock, no files. `lca_sim.batch.closed_loop_config` builds the config from the
+nodes' parameter files; `lca-hil run` (`lca_sim.cli.run`) writes the result.
 """
 
 from __future__ import annotations

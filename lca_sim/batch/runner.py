@@ -233,7 +233,7 @@ def run_plan(
     """Run a planned sweep into `out` (see the module docstring); returns the run log.
 
     Args:
-        plan: the sweep (`lca_sim.cli.sweep_config.plan_sweep` reads it from its files).
+        plan: the sweep (`lca_sim.batch.plan.plan_sweep` reads it from its files).
         out: the output folder (created; its points are reused).
         scheduler: an existing Dask scheduler's address; None starts a local cluster.
         workers: local worker processes (default: one per core).

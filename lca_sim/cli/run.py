@@ -4,17 +4,13 @@
     lca-hil run fig15_encoder_freeze --out out/freeze # a closed-loop scenario (config/runs/)
     lca-hil run --controller-config my_gains.yaml --duration-s 5 --out out/gains
 
-A closed-loop scenario is a small YAML file naming what a run is made of: `controller` and
-`simulator` (the nodes' params files), `robot`, `faults` (a fault schedule) and `duration_s`,
-each optional (the same keys as a closed-loop sweep's base, docs/sweeps.md); a file it names is
-a shipped name or a path from the scenario's folder. The options override it.
-
-Reads the two nodes' parameter files (config/ros/controller.yaml and simulator.yaml by default),
-runs the composed loop (`lca_sim.analysis.closed_loop`): the same numbers as the lockstep run of
-the two nodes over ROS 2 (`timing_mode` of the simulator's file is not used: the composed loop
-is the lockstep one), and writes trajectory.csv (one row per control period, floats in shortest
-round-trip form) and summary.json (strict JSON: duration, wall time, real-time factor, tracking
-errors, drive-state changes).
+A closed-loop scenario (`lca_sim.config.run_scenario`) names the nodes' params files, the
+robot, a fault schedule and the length; the options override it. The params files
+(config/ros/controller.yaml and simulator.yaml by default) become the composed loop's config
+(`lca_sim.batch.closed_loop_config`); the loop (`lca_sim.analysis.closed_loop`) gives the same
+numbers as the lockstep run of the two nodes over ROS 2. Writes trajectory.csv (one row per
+control period, floats in shortest round-trip form) and summary.json (strict JSON: duration,
+wall time, real-time factor, tracking errors, drive-state changes).
 """
 
 from __future__ import annotations
@@ -23,13 +19,12 @@ import argparse
 import dataclasses
 import math
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lca_control.controller import validate_controller_params
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import (
     ClosedLoop,
@@ -37,191 +32,18 @@ from lca_sim.analysis.closed_loop import (
     ClosedLoopResult,
     tracking_window,
 )
-from lca_sim.config.loader import (
-    config_dir,
-    load_fault_schedule,
-    load_robot,
-    read_yaml,
-    resolve,
-)
-from lca_sim.config.simulator_params import validate_simulator_params
-from lca_sim.errors import EXIT_OK, FILE_NOT_FOUND, ConfigError, run_guarded, unknown_key
+from lca_sim.batch.closed_loop_config import load_config
+from lca_sim.config.loader import config_dir, load_fault_schedule, load_robot
+from lca_sim.config.params_file import in_file, node_parameters
+from lca_sim.config.run_scenario import RunScenario, load_run_scenario
+from lca_sim.errors import EXIT_OK, run_guarded
 from lca_sim.model.fault_schedule import standing_faults
-from lca_sim.model.faults import FAULT_SCHEDULE, is_fault_parameter
-from lca_sim.model.params import RobotParams
+from lca_sim.model.faults import FAULT_SCHEDULE
 from lca_sim.output import number_cell, write_json, write_table
 
 PROG = "lca-hil run"
-SCENARIO_KEYS = ("description", "controller", "simulator", "robot", "faults", "duration_s")
 DEFAULT_DURATION_S = 13.0  # Fig. 15: 1 s still, the 10 s ramp, 2 s after it
-PARAMS_KEY = "ros__parameters"
 MAX_LISTED_CHANGES = 50  # drive-state changes listed per joint in summary.json
-
-
-def node_parameters(path: Path, node: str) -> dict[str, Any]:
-    """The `ros__parameters` of `node` (or of `/**`) in a ROS 2 params file, by dotted name.
-
-    A nested mapping is a group of parameters, as ROS 2 reads the file:
-    `faults: {pivot: {jam: true}}` is the parameter `faults.pivot.jam`.
-
-    Raises:
-        ConfigError: the file, and what is missing.
-    """
-    document = read_yaml(path)
-    if not isinstance(document, Mapping):
-        raise ConfigError(str(path), "", "expected a ROS 2 params file (a mapping)")
-    for key in (node, f"/{node}", "/**"):
-        section = document.get(key)
-        if isinstance(section, Mapping) and isinstance(section.get(PARAMS_KEY), Mapping):
-            return _dotted(section[PARAMS_KEY], "")
-    raise ConfigError(str(path), node, f"expected {node}: {PARAMS_KEY}: (the node's parameters)")
-
-
-def _dotted(group: Mapping[str, Any], prefix: str) -> dict[str, Any]:
-    """A parameter group's values by dotted name (rcl's params-file reading)."""
-    values: dict[str, Any] = {}
-    for key, value in group.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            values.update(_dotted(value, f"{name}."))
-        else:
-            values[name] = value
-    return values
-
-
-def closed_loop_config(
-    controller_values: Mapping[str, Any],
-    simulator_values: Mapping[str, Any],
-    duration_s: float | None = None,
-    robot: RobotParams | None = None,
-) -> ClosedLoopConfig:
-    """The composed run of the two nodes started with these parameter values.
-
-    Every value goes through the node's own validation, so what a node refuses is refused here
-    with the same words. The simulator's `timing_mode` is ignored (this is the lockstep loop).
-
-    Args:
-        controller_values: the controller node's parameters (missing ones at their defaults).
-        simulator_values: the simulator node's.
-        duration_s: simulated time of the run; None takes the simulator's `lockstep_end_s`.
-        robot: the robot in place of the simulator's `robot` (a sweep's varied one).
-
-    Raises:
-        ParameterError: a bad value, named as the node's parameter.
-        ConfigError: a bad robot.
-    """
-    controller = validate_controller_params(controller_values)
-    plant_values = {k: v for k, v in simulator_values.items() if not is_fault_parameter(k)}
-    simulator = validate_simulator_params(plant_values)
-    if duration_s is None:
-        duration_s = simulator.lockstep_end_s
-        if duration_s <= 0.0:
-            raise ParameterError("lockstep_end_s", "a run's end > 0 (or --duration-s)", 0.0)
-    interface = simulator.command_interface
-    return ClosedLoopConfig(
-        robot=load_robot(simulator.robot) if robot is None else robot,
-        controller=controller,
-        duration_s=duration_s,
-        joints=simulator.joints,
-        command_interface=interface,
-        dt_s=simulator.dt_s,
-        rigid_body_update_steps=simulator.rigid_body_update_steps,
-        control_period_s=simulator.control_period_s,
-        current_kp_v_per_a=simulator.current_kp_v_per_a,
-        current_ti_s=simulator.current_ti_s,
-        max_abs_command=(
-            simulator.max_command_voltage_v
-            if interface == "voltage"
-            else simulator.max_command_current_a
-        ),
-        initial_position=simulator.initial_position,
-        plant_enabled=simulator.enabled,
-    )
-
-
-def file_ref(ref: object, home: Path, kind: str, key: str) -> Path:
-    """A shipped name (config/KIND/NAME.yaml) or a path from `home`'s folder, as a file.
-
-    Raises:
-        ConfigError: `home`, `key`: not a name or path, or no such file.
-        UnknownNameError: no shipped file of that name.
-    """
-    if not isinstance(ref, str):
-        raise ConfigError(str(home), key, f"expected a shipped {kind} name or a path")
-    if "/" in ref or ref.endswith((".yaml", ".yml")):
-        path = Path(ref) if Path(ref).is_absolute() else home.parent / ref
-        if not path.is_file():
-            raise ConfigError(str(home), key, f"{FILE_NOT_FOUND}: {path}")
-        return path
-    return resolve(ref, kind)
-
-
-@dataclasses.dataclass(frozen=True, slots=True)
-class RunScenario:
-    """A closed-loop scenario file: what a run is made of (None: not given)."""
-
-    controller: Path | None = None
-    simulator: Path | None = None
-    robot: Path | None = None
-    faults: Path | None = None
-    duration_s: float | None = None
-
-
-def load_run_scenario(name_or_path: str) -> RunScenario:
-    """A closed-loop scenario: a shipped name (config/runs/) or a path.
-
-    Raises:
-        ConfigError: the file, the bad key and what was expected.
-    """
-    path = resolve(name_or_path, "runs")
-    document = read_yaml(path)
-    if not isinstance(document, Mapping):
-        raise ConfigError(str(path), "", "expected a closed-loop scenario (a mapping)")
-    for key in document:
-        if key not in SCENARIO_KEYS:
-            raise ConfigError(str(path), str(key), unknown_key(str(key), SCENARIO_KEYS))
-    duration = document.get("duration_s")
-    if duration is not None and (
-        isinstance(duration, bool) or not isinstance(duration, int | float) or not duration > 0
-    ):
-        raise ConfigError(str(path), "duration_s", f"expected a time > 0 s, got {duration!r}")
-    kinds = {"controller": "ros", "simulator": "ros", "robot": "robots", "faults": "faults"}
-    files = {
-        key: file_ref(document[key], path, kind, key)
-        for key, kind in kinds.items()
-        if document.get(key) is not None
-    }
-    return RunScenario(**files, duration_s=None if duration is None else float(duration))
-
-
-def load_config(
-    controller_path: Path,
-    simulator_path: Path,
-    duration_s: float | None,
-    robot: RobotParams | None = None,
-) -> ClosedLoopConfig:
-    """`closed_loop_config` from the two params files; a bad value names its file.
-
-    Raises:
-        ConfigError: the file, the parameter and what was expected.
-    """
-    controller_values = node_parameters(controller_path, "controller")
-    simulator_values = node_parameters(simulator_path, "simulator")
-    try:
-        validate_controller_params(controller_values)
-    except ParameterError as exc:
-        raise _in_file(controller_path, "controller", exc) from exc
-    try:
-        validate_simulator_params(
-            {k: v for k, v in simulator_values.items() if not is_fault_parameter(k)}
-        )
-    except ParameterError as exc:
-        raise _in_file(simulator_path, "simulator", exc) from exc
-    return closed_loop_config(controller_values, simulator_values, duration_s, robot=robot)
-
-
-def _in_file(path: Path, node: str, exc: ParameterError) -> ConfigError:
-    return ConfigError(str(path), f"{node}.{PARAMS_KEY}.{exc.name}", str(exc).split(": ", 1)[1])
 
 
 def trajectory_header(result: ClosedLoopResult) -> list[str]:
@@ -374,7 +196,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         standing = standing_faults(values, config.robot.axis_names)
     except ParameterError as exc:
-        raise _in_file(simulator_path, "simulator", exc) from exc
+        raise in_file(simulator_path, "simulator", exc) from exc
     faults = (*standing, *load_fault_schedule(schedule, config.robot.axis_names))
     if faults:
         config = dataclasses.replace(config, faults=faults)

@@ -23,8 +23,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from lca_sim.batch.plan import run_sweep
 from lca_sim.batch.store import RESULTS
-from lca_sim.cli.sweep_config import run_sweep
 from lca_sim.cli.sweep_plots import plot_sweep
 from lca_sim.errors import EXIT_FAILED, EXIT_OK, ConfigError, run_guarded
 

@@ -62,6 +62,26 @@ def resolve(name_or_path: str, kind: str) -> Path:
     return path
 
 
+def file_ref(ref: object, home: Path, kind: str, key: str) -> Path:
+    """A shipped name (config/KIND/NAME.yaml) or a path from `home`'s folder, as a file.
+
+    For a file that names another (a closed-loop scenario, a sweep spec's base); `key` is
+    where `home` names it.
+
+    Raises:
+        ConfigError: `home`, `key`: not a name or path, or no such file.
+        UnknownNameError: no shipped file of that name.
+    """
+    if not isinstance(ref, str):
+        raise ConfigError(str(home), key, f"expected a shipped {kind} name or a path")
+    if "/" in ref or ref.endswith((".yaml", ".yml")):
+        path = Path(ref) if Path(ref).is_absolute() else home.parent / ref
+        if not path.is_file():
+            raise ConfigError(str(home), key, f"{FILE_NOT_FOUND}: {path}")
+        return path
+    return resolve(ref, kind)
+
+
 class _StrictLoader(yaml.SafeLoader):
     """PyYAML's safe loader, where a key given twice in one mapping is an error.
 

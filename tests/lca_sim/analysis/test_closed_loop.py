@@ -31,9 +31,10 @@ from lca_control import contract as ri
 from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopResult, stamp_time_s
 from lca_sim.analysis.metrics import Trace
+from lca_sim.batch.closed_loop_config import closed_loop_config
 from lca_sim.cli import hil
-from lca_sim.cli.run import closed_loop_config, node_parameters
 from lca_sim.config.loader import load_robot
+from lca_sim.config.params_file import node_parameters
 from lca_sim.errors import EXIT_BAD_INPUT
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import from_stamp, to_stamp

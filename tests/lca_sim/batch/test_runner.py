@@ -25,10 +25,10 @@ import pytest
 import yaml
 from support import ROOT, wait_until
 
+from lca_sim.batch.plan import run_sweep
 from lca_sim.batch.store import LOG, POINTS_DIR, RESULTS, TRAJECTORIES
 from lca_sim.batch.tasks import PointOutcome, PointTask
 from lca_sim.batch.worker import timed_point
-from lca_sim.cli.sweep_config import run_sweep
 
 DEADLINE_S = 240.0  # a loaded, shared 2-core machine
 
@@ -332,10 +332,11 @@ def test_closed_and_open_loop_sweeps_run_on_worker_processes(tmp_path: Path) -> 
     """
     from distributed import Client, LocalCluster
 
+    from lca_sim.batch.closed_loop_config import closed_loop_builder
     from lca_sim.batch.compute import run_point
+    from lca_sim.batch.plan import load_spec
     from lca_sim.batch.tasks import build_tasks
     from lca_sim.batch.version import package_version
-    from lca_sim.cli.sweep_config import closed_loop_builder, load_spec
 
     (tmp_path / "jam.yaml").write_text(
         yaml.safe_dump(

@@ -19,17 +19,18 @@ from support import CONFIG
 from lca_sim.analysis.metric_spec import parse_metric
 from lca_sim.analysis.metrics import MetricArgs, Trace
 from lca_sim.analysis.paper import current_step
+from lca_sim.batch.closed_loop_config import closed_loop_builder
 from lca_sim.batch.compute import run_point
 from lca_sim.batch.payload import add_payload
+from lca_sim.batch.plan import load_spec
 from lca_sim.batch.point import Documents, apply_point, expand_points, point_key
 from lca_sim.batch.spec import parse_spec
 from lca_sim.batch.tasks import CurrentStepRun, PointTask, build_task, build_tasks
 from lca_sim.batch.version import package_version
 from lca_sim.batch.worker import timed_point
 from lca_sim.cli import hil
-from lca_sim.cli.run import node_parameters
-from lca_sim.cli.sweep_config import closed_loop_builder, load_spec
 from lca_sim.config.loader import load_robot, read_yaml
+from lca_sim.config.params_file import node_parameters
 from lca_sim.errors import EXIT_BAD_INPUT, ConfigError
 from lca_sim.model.params import RobotParams
 
@@ -432,7 +433,8 @@ def test_documents_root_names() -> None:
 def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
     """A closed-loop point with a controller gain set runs the loop `lca-hil run` runs."""
     from lca_sim.analysis.closed_loop import ClosedLoop
-    from lca_sim.cli.run import closed_loop_config, node_parameters
+    from lca_sim.batch.closed_loop_config import closed_loop_config
+    from lca_sim.config.params_file import node_parameters
 
     spec_doc = {
         "base": {"kind": "closed_loop", "duration_s": 1.2, "axis": "pivot"},

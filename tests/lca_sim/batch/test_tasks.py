@@ -19,10 +19,11 @@ import yaml
 from support import CONFIG
 
 from lca_sim.analysis.closed_loop import ClosedLoop
+from lca_sim.batch.closed_loop_config import closed_loop_builder, closed_loop_config
 from lca_sim.batch.compute import run_point
+from lca_sim.batch.plan import load_spec
 from lca_sim.batch.tasks import build_tasks
-from lca_sim.cli.run import closed_loop_config, node_parameters
-from lca_sim.cli.sweep_config import closed_loop_builder, load_spec
+from lca_sim.config.params_file import node_parameters
 from lca_sim.errors import ConfigError
 from lca_sim.model.fault_schedule import ScheduledFault
 

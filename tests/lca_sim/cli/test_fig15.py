@@ -19,7 +19,7 @@ import pytest
 import support
 from support import strict_loads
 
-from lca_sim.cli.run import node_parameters
+from lca_sim.config.params_file import node_parameters
 from lca_sim.output import REASONS_KEY, strict_json, write_json
 
 # --- the strict JSON helper ------------------------------------------------------------------
