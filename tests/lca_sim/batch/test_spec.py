@@ -29,8 +29,7 @@ from lca_sim.batch.tasks import CurrentStepRun, PointTask, build_task, build_tas
 from lca_sim.batch.version import package_version
 from lca_sim.batch.worker import timed_point
 from lca_sim.cli import hil
-from lca_sim.config.loader import load_robot, read_yaml
-from lca_sim.config.params_file import node_parameters
+from lca_sim.config.loader import read_yaml
 from lca_sim.errors import EXIT_BAD_INPUT, ConfigError
 from lca_sim.model.params import RobotParams
 
@@ -430,39 +429,6 @@ def test_documents_root_names() -> None:
     assert documents.root("base") == {"a": 1} and documents.root("scenario") == {}
 
 
-def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
-    """A closed-loop point with a controller gain set runs the loop `lca-hil run` runs."""
-    from lca_sim.analysis.closed_loop import ClosedLoop
-    from lca_sim.batch.closed_loop_config import closed_loop_config
-    from lca_sim.config.params_file import node_parameters
-
-    spec_doc = {
-        "base": {"kind": "closed_loop", "duration_s": 1.2, "axis": "pivot"},
-        "parameters": [
-            {"name": "kp", "path": "controller.velocity_kp_a_per_rad_s", "values": [200.0]}
-        ],
-        "metrics": [{"metric": "peak_current_a"}, {"metric": "tracking_error_max"}],
-    }
-    spec, documents = load_spec(_write(tmp_path, spec_doc))
-    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
-    outcome = run_point(task)
-    controller = node_parameters(CONFIG / "ros" / "controller.yaml", "controller")
-    simulator = node_parameters(CONFIG / "ros" / "simulator.yaml", "simulator")
-    config = closed_loop_config({**controller, "velocity_kp_a_per_rad_s": 200.0}, simulator, 1.2)
-    result = ClosedLoop(config).run()
-    pivot = result.axes.index("pivot")
-    assert outcome.metrics["peak_current_a"] == float(np.max(np.abs(result.current_a[:, pivot])))
-    error = result.tracking_error()[:, result.joints.index("pivot")]
-    assert outcome.metrics["tracking_error_max"] == float(np.max(np.abs(error)))
-    bad = {
-        **spec_doc,
-        "parameters": [{"name": "k", "path": "controller.velocity_kp", "values": [1]}],
-    }
-    spec, documents = load_spec(_write(tmp_path, bad))
-    with pytest.raises(ConfigError, match="velocity_kp"):
-        build_tasks(spec, documents, "0", closed_loop_builder)
-
-
 def test_what_a_point_cannot_compute_is_refused_before_it_runs(tmp_path: Path) -> None:
     """Trajectories of an axis the robot lacks; tracking error of a run with no reference."""
     bad_axes = _spec(trajectories={"every_s": 0.01, "axes": ["elbow"]})
@@ -477,28 +443,6 @@ def test_what_a_point_cannot_compute_is_refused_before_it_runs(tmp_path: Path) -
     spec, documents = load_spec(_write(tmp_path, open_loop))
     with pytest.raises(ConfigError, match=r"metrics\[0\]\.metric: tracking_error_rms needs a"):
         build_tasks(spec, documents, "0", closed_loop_builder)
-
-
-def test_a_closed_loop_takes_the_simulators_robot_unless_the_base_names_one(
-    tmp_path: Path,
-) -> None:
-    """The simulator params' robot is the run's robot, as for the node and lca-hil run."""
-    simulator = node_parameters(CONFIG / "ros" / "simulator.yaml", "simulator")
-    (tmp_path / "sim.yaml").write_text(
-        yaml.safe_dump({"simulator": {"ros__parameters": {**simulator, "robot": "reversible"}}}),
-        encoding="utf-8",
-    )
-    base: dict[str, Any] = {
-        "kind": "closed_loop", "duration_s": 0.1, "simulator": "sim.yaml", "axis": "pivot"
-    }  # fmt: skip
-    doc = {"base": base, "parameters": [], "metrics": [{"metric": "peak_current_a"}]}
-    spec, documents = load_spec(_write(tmp_path, doc))
-    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
-    assert task.run.robot.name == load_robot("reversible").name
-    base["robot"] = "default"
-    spec, documents = load_spec(_write(tmp_path, doc))
-    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
-    assert task.run.robot.name == load_robot("default").name
 
 
 def test_the_version_in_a_key_names_the_code_and_a_worker_checks_it() -> None:

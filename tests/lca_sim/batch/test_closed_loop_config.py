@@ -1,9 +1,10 @@
-"""Faults in a closed-loop sweep: the schedule of the base run, and swept fault values.
+"""A closed-loop run's config from the nodes' parameters: lca-hil run's, and a sweep point's.
 
-A sweep's closed-loop point must run the faults `lca-hil run` would run with the same files:
-the spec's `base.faults` schedule (or the simulator's `fault_schedule`) and the simulator's
-standing `faults.<joint>.<kind>` parameters. Before these tests the sweep dropped all of them
-without a word, so a study of a jammed pivot computed the healthy one.
+A sweep's closed-loop point must run what `lca-hil run` would run with the same files: the
+nodes' parameters checked as the nodes check them, the spec's `base.faults` schedule (or the
+simulator's `fault_schedule`) and the simulator's standing `faults.<joint>.<kind>` parameters.
+Before the fault tests the sweep dropped all faults without a word, so a study of a jammed
+pivot computed the healthy one.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ import pytest
 import yaml
 from support import CONFIG
 
+from lca_control.parameters import ParameterError
 from lca_sim.analysis.closed_loop import ClosedLoop
-from lca_sim.batch.closed_loop_config import closed_loop_builder, closed_loop_config
+from lca_sim.batch.closed_loop_config import closed_loop_builder, closed_loop_config, load_config
 from lca_sim.batch.compute import run_point
 from lca_sim.batch.plan import load_spec
 from lca_sim.batch.tasks import build_tasks
@@ -57,6 +59,56 @@ def _direct_peak(faults: tuple[ScheduledFault, ...], simulator: dict[str, Any]) 
 
 def _simulator() -> dict[str, Any]:
     return node_parameters(CONFIG / "ros" / "simulator.yaml", "simulator")
+
+
+def test_the_loop_refuses_what_the_nodes_could_not_run() -> None:
+    """Interfaces that differ, or an end that is no whole number of steps: the parameter named."""
+    controller = node_parameters(CONFIG / "ros" / "controller.yaml", "controller")
+    simulator = {**_simulator(), "lockstep_end_s": 1.0}
+    with pytest.raises(ParameterError, match=r"^command_interface: expected the controller's"):
+        closed_loop_config({**controller, "command_interface": "voltage"}, simulator)
+    with pytest.raises(ParameterError, match=r"^duration_s: expected a time > 0 s, a whole mul"):
+        closed_loop_config(controller, simulator, duration_s=1.00005)
+    with pytest.raises(ParameterError, match=r"^velocity_ti_s: expected"):
+        closed_loop_config({**controller, "velocity_ti_s": -1.0}, simulator)
+    with pytest.raises(ParameterError, match=r"^lockstep_end_s: expected a run's end > 0"):
+        closed_loop_config(controller, _simulator())  # no length, and the shipped end is 0
+
+
+def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
+    """A closed-loop point with a controller gain set runs the loop `lca-hil run` runs."""
+    spec_doc = {
+        "base": {"kind": "closed_loop", "duration_s": 1.2, "axis": "pivot"},
+        "parameters": [
+            {"name": "kp", "path": "controller.velocity_kp_a_per_rad_s", "values": [200.0]}
+        ],
+        "metrics": [{"metric": "peak_current_a"}, {"metric": "tracking_error_max"}],
+    }
+    spec, documents = load_spec(_write(tmp_path, "spec.yaml", spec_doc))
+    (task,) = build_tasks(spec, documents, "0", closed_loop_builder)
+    outcome = run_point(task)
+    controller = node_parameters(CONFIG / "ros" / "controller.yaml", "controller")
+    config = closed_loop_config({**controller, "velocity_kp_a_per_rad_s": 200.0}, _simulator(), 1.2)
+    result = ClosedLoop(config).run()
+    pivot = result.axes.index("pivot")
+    assert outcome.metrics["peak_current_a"] == float(np.max(np.abs(result.current_a[:, pivot])))
+    error = result.tracking_error()[:, result.joints.index("pivot")]
+    assert outcome.metrics["tracking_error_max"] == float(np.max(np.abs(error)))
+    bad = {
+        **spec_doc,
+        "parameters": [{"name": "k", "path": "controller.velocity_kp", "values": [1]}],
+    }
+    spec, documents = load_spec(_write(tmp_path, "spec.yaml", bad))
+    with pytest.raises(ConfigError, match="velocity_kp"):
+        build_tasks(spec, documents, "0", closed_loop_builder)
+
+
+def test_load_config_is_closed_loop_config_of_the_files() -> None:
+    """`lca-hil run`'s config from the shipped params files: the values' config, unchanged."""
+    controller = node_parameters(CONFIG / "ros" / "controller.yaml", "controller")
+    expected = closed_loop_config(controller, _simulator(), 2.0)
+    loaded = load_config(CONFIG / "ros" / "controller.yaml", CONFIG / "ros" / "simulator.yaml", 2.0)
+    assert loaded == expected
 
 
 def test_a_swept_jam_start_runs_the_schedule_lca_hil_run_runs(tmp_path: Path) -> None:
