@@ -26,7 +26,8 @@ from lca_sim.analysis.tuning import (
     TuneReport,
     tune_axis,
 )
-from lca_sim.config.loader import config_dir, load_robot, read_yaml
+from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.params_file import read_params_document, with_parameters
 from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, run_guarded
 from lca_sim.model.simulator import Simulator
 from lca_sim.output import atomic_path
@@ -36,19 +37,13 @@ REPORTED_DELAYS_PERIODS = (1.0, 2.0)  # the margins printed besides: a CAN cycle
 
 def params_document(report: TuneReport, base: dict[str, Any]) -> dict[str, Any]:
     """The controller params file `base` with the tuned gains in place."""
-    document = dict(base)
-    node = next(iter(document)) if document else "controller"
-    section = dict(document.get(node, {}))
-    params = dict(section.get("ros__parameters", {}))
-    params.update(
-        velocity_kp_a_per_rad_s=round(report.velocity.kp, 3),
-        velocity_ti_s=report.velocity.ti_s,
-        current_kp_v_per_a=round(report.current.kp, 3),
-        current_ti_s=report.current.ti_s,
-    )
-    section["ros__parameters"] = params
-    document[node] = section
-    return document
+    gains = {
+        "velocity_kp_a_per_rad_s": round(report.velocity.kp, 3),
+        "velocity_ti_s": report.velocity.ti_s,
+        "current_kp_v_per_a": round(report.current.kp, 3),
+        "current_ti_s": report.current.ti_s,
+    }
+    return with_parameters(base, gains, node="controller")
 
 
 def format_report(report: TuneReport) -> str:
@@ -167,9 +162,7 @@ def _run(args: argparse.Namespace) -> int:
         delay_periods=args.delay_periods,
     )
     base_path = args.base_params or config_dir() / "ros" / "controller.yaml"
-    base = read_yaml(base_path)
-    if not isinstance(base, dict):
-        raise ConfigError(str(base_path), "", "expected a controller params mapping")
+    base = read_params_document(base_path)
     print(format_report(report))
     header = (
         f"# Written by lca-hil tune for {robot.name} ({args.axis}): section 6 gains from\n"

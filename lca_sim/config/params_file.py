@@ -86,3 +86,27 @@ def read_node_files(
     except ParameterError as exc:
         raise in_file(simulator_path, "simulator", exc) from exc
     return controller_values, simulator_values
+
+
+def read_params_document(path: Path) -> dict[str, Any]:
+    """A params file as written (node sections, nesting kept), for a tool that rewrites it.
+
+    Raises:
+        ConfigError: the file is missing, not YAML, or not a mapping.
+    """
+    document = read_yaml(path)
+    if not isinstance(document, dict):
+        raise ConfigError(str(path), "", "expected a controller params mapping")
+    return document
+
+
+def with_parameters(
+    document: Mapping[str, Any], values: Mapping[str, Any], node: str
+) -> dict[str, Any]:
+    """`document` with `values` set in its first node's `ros__parameters` (or in `node`'s)."""
+    rewritten = dict(document)
+    name = next(iter(rewritten)) if rewritten else node
+    section = dict(rewritten.get(name, {}))
+    section[PARAMS_KEY] = {**section.get(PARAMS_KEY, {}), **values}
+    rewritten[name] = section
+    return rewritten

@@ -10,7 +10,13 @@ import yaml
 from support import CONFIG
 
 from lca_control.parameters import ParameterError
-from lca_sim.config.params_file import in_file, node_parameters, plant_params, read_node_files
+from lca_sim.config.params_file import (
+    in_file,
+    node_parameters,
+    plant_params,
+    read_node_files,
+    with_parameters,
+)
 from lca_sim.errors import ConfigError
 
 CONTROLLER_YAML = CONFIG / "ros" / "controller.yaml"
@@ -104,3 +110,20 @@ def test_in_file_keeps_the_nodes_words() -> None:
     error = ParameterError("dt_s", "a number > 0", -1.0)
     converted = in_file(Path("sim.yaml"), "simulator", error)
     assert str(converted) == f"sim.yaml: simulator.ros__parameters.{error!s}"
+
+
+def test_with_parameters_sets_values_and_keeps_the_rest_of_the_file() -> None:
+    """The first node's values replaced in place, its other values, order and nodes kept."""
+    document = {
+        "/controller": {"ros__parameters": {"joints": ["pivot"], "velocity_ti_s": 0.01}},
+        "other": {"ros__parameters": {"x": 1}},
+    }
+    rewritten = with_parameters(document, {"velocity_ti_s": 0.02, "current_ti_s": 0.001}, "c")
+    params = rewritten["/controller"]["ros__parameters"]
+    assert list(params) == ["joints", "velocity_ti_s", "current_ti_s"]
+    assert params["velocity_ti_s"] == 0.02 and params["joints"] == ["pivot"]
+    assert rewritten["other"] == document["other"]
+    assert document["/controller"]["ros__parameters"]["velocity_ti_s"] == 0.01  # not mutated
+    assert with_parameters({}, {"a": 1}, "controller") == {
+        "controller": {"ros__parameters": {"a": 1}}
+    }
