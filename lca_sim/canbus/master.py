@@ -39,20 +39,19 @@ from canopen.sdo.base import SdoArray, SdoRecord
 from canopen.sdo.client import SdoClient
 
 from lca_sim.canbus import emcy
+from lca_sim.canbus.freeze import Freeze, FreezeWatch
 from lca_sim.canbus.remote import batched_sends
-from lca_sim.cia402 import codec
+from lca_sim.cia402 import cia301, codec
 from lca_sim.cia402 import master as cm
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
 from lca_sim.cia402.device import CW_HALT, MODE_CST, MODE_CSV, PowerState
 from lca_sim.cia402.master import TorqueScale, Want
-from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
+from lca_sim.errors import LcaHilError
+from lca_sim.runtime import discounted
 
 log = logging.getLogger(__name__)
 
-SYNC_COB_ID = 0x80
-HEARTBEAT_BASE = 0x700
-NMT_OPERATIONAL_CODE = 0x05
 CAN_ERR_BUSOFF = 0x00000040  # SocketCAN error class bit in an error frame's identifier
 CAN_ERR_CRTL = 0x00000004
 
@@ -133,8 +132,11 @@ def configure_compact_pdos(node: Any, slow_every: int, target: int = od.TARGET_T
     node.tpdo.save()
 
 
-class BridgeError(RuntimeError):
-    """A drive could not be configured or started (one line, with the drive and the object)."""
+class BridgeError(LcaHilError, RuntimeError):
+    """A drive could not be configured or started (one line, with the drive and the object).
+
+    Also a RuntimeError: bench/can_cycle.py catches it as one around its rig.
+    """
 
 
 @dataclass(frozen=True, slots=True)
@@ -448,6 +450,7 @@ class Cia402Master:
         self._initialized = False
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._freeze_watch = FreezeWatch()  # the cycle thread forgives every freeze in full
         self._next_heartbeat_t = 0.0
         # Timing records for benchmarks, kept only while keep_latencies is set.
         self.latencies_s: list[float] = []  # SYNC -> last TPDO of a complete cycle
@@ -516,7 +519,9 @@ class Cia402Master:
             node.emcy.add_callback(self._emcy_callback(axis))
             if axis.boot_watch is None:  # once: init() may run again
                 axis.boot_watch = self._heartbeat_callback(axis)
-                self.network.subscribe(HEARTBEAT_BASE + self.params.node_ids[k], axis.boot_watch)
+                self.network.subscribe(
+                    cia301.HEARTBEAT_COB_BASE + self.params.node_ids[k], axis.boot_watch
+                )
         for axis in self._axes:
             _forget_invalid_nmt_state(axis.node)
             axis.node.nmt.state = "OPERATIONAL"
@@ -924,9 +929,9 @@ class Cia402Master:
         previous_start = math.nan
         while not self._stop.is_set():
             now = time.monotonic()
-            frozen_s = now - previous_start - period
-            if frozen_s > FREEZE_THRESHOLD_S:
-                self._discount_freeze(frozen_s, now)
+            freeze = self._freeze_watch.check(now - previous_start - period)
+            if freeze is not None:
+                self._discount_freeze(freeze, now)
             previous_start = now
             self.cycle(now)
             next_t += period
@@ -977,14 +982,17 @@ class Cia402Master:
             with batched_sends(self.network.bus):  # over lca_remote: one write for the cycle
                 for cob_id, data in frames:
                     self._send(cob_id, data)
-                self._send(SYNC_COB_ID, b"")
+                self._send(cia301.SYNC_COB_ID, b"")
                 if now >= self._next_heartbeat_t:
                     self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
-                    self._send(HEARTBEAT_BASE + p.master_node_id, bytes([NMT_OPERATIONAL_CODE]))
+                    self._send(
+                        cia301.HEARTBEAT_COB_BASE + p.master_node_id,
+                        bytes([cia301.NMT_STATE_OPERATIONAL]),
+                    )
         except can.CanError as exc:  # the batch's one write failed
             self._send_failed(exc)
 
-    def _discount_freeze(self, frozen_s: float, now: float) -> None:
+    def _discount_freeze(self, freeze: Freeze, now: float) -> None:
         """Move the silence deadlines on by `frozen_s`: this process stood still, not the others.
 
         Two cycle starts further apart than a period plus `FREEZE_THRESHOLD_S` mean the cycle
@@ -995,15 +1003,16 @@ class Cia402Master:
         """
         with self._lock:
             self.counters.process_freezes += 1
-            self._last_command_t = discounted(self._last_command_t, frozen_s, now)
+            skip_s = freeze.discount_s
+            self._last_command_t = discounted(self._last_command_t, skip_s, now)
             for axis in self._axes:
-                axis.last_tpdo_t = discounted(axis.last_tpdo_t, frozen_s, now)
-                axis.last_heartbeat_t = discounted(axis.last_heartbeat_t, frozen_s, now)
+                axis.last_tpdo_t = discounted(axis.last_tpdo_t, skip_s, now)
+                axis.last_heartbeat_t = discounted(axis.last_heartbeat_t, skip_s, now)
         if self.counters.process_freezes == 1:
             log.warning(
                 "the cycle thread stood still for %.0f ms; silence deadlines do not count it "
                 "(further freezes are only counted)",
-                frozen_s * 1e3,
+                freeze.frozen_s * 1e3,
             )
 
     def _check_safety(self, now: float) -> None:

@@ -102,9 +102,10 @@ from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVari
 
 from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
 from lca_control.pi import PIController, PIParams
+from lca_sim.canbus.freeze import Freeze, FreezeWatch
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.remote import batched_sends
-from lca_sim.cia402 import codec, sync_rate
+from lca_sim.cia402 import cia301, codec, sync_rate
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
@@ -116,7 +117,6 @@ from lca_sim.model.params import AXIS_NAMES, RobotParams
 from lca_sim.model.schema import MappingReader
 from lca_sim.model.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 from lca_sim.runtime import (
-    FREEZE_THRESHOLD_S,
     GIL_SWITCH_INTERVAL_S,
     discounted,
     settle_heap,
@@ -125,12 +125,6 @@ from lca_sim.runtime import (
 
 logger = logging.getLogger(__name__)
 
-SYNC_COB_ID = 0x080
-NMT_COB_ID = 0x000
-EMCY_COB_BASE = 0x080  # + node id (0x1014, read-only here)
-HEARTBEAT_COB_BASE = 0x700
-SDO_REQUEST_COB_BASE = 0x600  # CiA 301 pre-defined connection set: client -> server
-SDO_RESPONSE_COB_BASE = 0x580  # server -> client
 # CiA 301 EMCY 0x8140 "recovered from bus off": sent when a node is back on the bus, and the
 # 0x603F code of the bus-off while it lasts (as CANopenNode's CO_EM_CAN_TX_BUS_OFF reports it).
 EMCY_BUS_OFF_RECOVERED = 0x8140
@@ -150,17 +144,6 @@ DEFAULT_MAX_STALL_DISCOUNT_S = 0.5
 NMT_OPERATIONAL = "OPERATIONAL"
 NMT_PRE_OPERATIONAL = "PRE-OPERATIONAL"
 NMT_STOPPED = "STOPPED"
-_NMT_START, _NMT_STOP, _NMT_PRE_OPERATIONAL = 0x01, 0x02, 0x80
-_NMT_RESET_NODE, _NMT_RESET_COMMUNICATION = 0x81, 0x82
-
-# SDO abort codes (CiA 301) the drive answers with.
-ABORT_NO_SUBINDEX = 0x06090011
-ABORT_VALUE_RANGE = 0x06090030
-ABORT_VALUE_TOO_HIGH = 0x06090031
-ABORT_NOT_MAPPABLE = 0x06040041
-ABORT_PDO_LENGTH = 0x06040042
-ABORT_DEVICE_STATE = 0x08000022
-
 
 # Option codes: the values a write may set (others are refused with ABORT_VALUE_RANGE).
 _OPTION_VALUES: dict[tuple[int, int], frozenset[int]] = {
@@ -595,7 +578,7 @@ def _number_format(obj: ODVariable) -> str:
     """
     packer = None if obj.data_type is None else ODVariable.STRUCT_TYPES.get(obj.data_type)
     if packer is None or packer.size != struct.calcsize(packer.format):
-        raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
     return packer.format.lstrip("<")
 
 
@@ -888,7 +871,7 @@ class VirtualDriveRack:
         self._sync_period_s = 0.0
         self._sync_rate: sync_rate.SyncRateParams | None = None
         self._sync_judge = sync_rate.SyncRateState()
-        self._longest_stall_s = 0.0  # 0x2021
+        self._freeze_watch = FreezeWatch(config.max_stall_discount_s)  # 0x2020, 0x2021
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
         # Fault injection: the plant steps run since start (the rack's time, which SYNCs
@@ -934,7 +917,7 @@ class VirtualDriveRack:
             self._network.add_node(node)
             self._axes.append(axis)
             self._by_name[axis_config.name] = axis
-            self._sdo_servers[SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
+            self._sdo_servers[cia301.SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
         self._stop_event = threading.Event()
         self._monitor_thread: threading.Thread | None = None
         self._started = False
@@ -1158,7 +1141,7 @@ class VirtualDriveRack:
             (od.DRIVE_STATE, 0): lambda: int(modes[1, a]),
             (od.MOTION_STATE, 0): lambda: int(modes[0, a]),
             (od.PROCESS_STALLS, 0): lambda: min(self._counters.process_freezes, 0xFFFFFFFF),
-            (od.LONGEST_STALL, 0): lambda: encode_stall(self._longest_stall_s),
+            (od.LONGEST_STALL, 0): lambda: encode_stall(self._freeze_watch.longest_s),
             (od.FAULT_INJECTION, od.FAULT_LOST_TPDOS): lambda: axis.faults.lost_tpdos,
             (od.FAULT_INJECTION, od.FAULT_HEARTBEAT_OFF): lambda: int(axis.faults.heartbeat_off),
             (od.FAULT_INJECTION, od.FAULT_RAISE_EMCY): lambda: axis.faults.emcy_code,
@@ -1225,7 +1208,7 @@ class VirtualDriveRack:
     def _read_callback(self, axis: _Axis) -> Callable[..., int | None]:
         def on_read(*, index: int, subindex: int, od: ODVariable, **_: Any) -> int | None:
             if od.subindex != subindex:
-                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+                raise SdoAbortedError(cia301.ABORT_NO_SUBINDEX)
             with self._lock:
                 return self._value(axis, index, subindex)
 
@@ -1234,10 +1217,10 @@ class VirtualDriveRack:
     def _write_callback(self, axis: _Axis) -> Callable[..., None]:
         def on_write(*, index: int, subindex: int, od: ODVariable, data: bytes, **_: Any) -> None:
             if od.subindex != subindex:
-                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+                raise SdoAbortedError(cia301.ABORT_NO_SUBINDEX)
             value = od.decode_raw(data)
             if not isinstance(value, int):
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
+                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
             with self._lock:
                 self._write(axis, index, subindex, value, self._clock())
 
@@ -1253,14 +1236,14 @@ class VirtualDriveRack:
             return
         if index == od.MODES_OF_OPERATION:
             if not cia402.is_supported_mode(value):
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
+                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
             axis.drive = replace(axis.drive, mode=value)
             return
         if index == od.MAX_TORQUE and value > axis.config.max_torque_permille:
-            raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
+            raise SdoAbortedError(cia301.ABORT_VALUE_TOO_HIGH)
         allowed = _OPTION_VALUES.get((index, subindex))
         if allowed is not None and value not in allowed:
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
+            raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
         located = self._pdo_of(axis, index)
         if located is not None:
             pdo, is_mapping = located
@@ -1350,10 +1333,12 @@ class VirtualDriveRack:
         self._connection_lost(axis, code, now)
         behaviour = axis.value(od.ERROR_BEHAVIOUR, 1)
         if behaviour == od.ERROR_BEHAVIOUR_PRE_OPERATIONAL and axis.nmt == NMT_OPERATIONAL:
-            axis.node.nmt.send_command(_NMT_PRE_OPERATIONAL)  # the heartbeat says so too
+            axis.node.nmt.send_command(
+                cia301.NMT_ENTER_PRE_OPERATIONAL
+            )  # the heartbeat says so too
             self._enter_nmt(axis, NMT_PRE_OPERATIONAL, now)
         elif behaviour == od.ERROR_BEHAVIOUR_STOPPED and axis.nmt != NMT_STOPPED:
-            axis.node.nmt.send_command(_NMT_STOP)
+            axis.node.nmt.send_command(cia301.NMT_STOP)
             self._enter_nmt(axis, NMT_STOPPED, now)
 
     def _nmt_reaction(self, axis: _Axis, now: float) -> None:
@@ -1379,9 +1364,9 @@ class VirtualDriveRack:
         """An SDO write of 0x2030: switch the fault of that sub-index on or off."""
         kind = next((k for k, sub in FAULT_KINDS.items() if sub == subindex), None)
         if kind is None:
-            raise SdoAbortedError(ABORT_NO_SUBINDEX)
+            raise SdoAbortedError(cia301.ABORT_NO_SUBINDEX)
         if kind == "heartbeat_off" and value not in (0, 1):
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
+            raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
         if kind != "bus_off":
             self._set_fault(axis, kind, value, "sdo", now)
         elif value and not axis.faults.bus_off:
@@ -1393,7 +1378,7 @@ class VirtualDriveRack:
                     axis.faults.bus_off_ms = value
                     axis.faults.bus_off_until_step = self._steps_done + self._step_of(value * 1e-3)
 
-            self._network.after_send[SDO_RESPONSE_COB_BASE + axis.config.node_id] = go_off
+            self._network.after_send[cia301.SDO_RESPONSE_COB_BASE + axis.config.node_id] = go_off
 
     def _set_fault(self, axis: _Axis, kind: str, value: int, source: str, now: float) -> None:
         """Switch one fault of one drive on (value != 0) or off (0), and log it."""
@@ -1461,10 +1446,10 @@ class VirtualDriveRack:
             return
         faults.bus_off = on
         node, network = axis.node, self._network
-        sdo_cob = SDO_REQUEST_COB_BASE + axis.config.node_id
+        sdo_cob = cia301.SDO_REQUEST_COB_BASE + axis.config.node_id
         if on:
             network.unsubscribe(sdo_cob, node.sdo.on_request)
-            network.unsubscribe(NMT_COB_ID, node.nmt.on_command)
+            network.unsubscribe(cia301.NMT_COB_ID, node.nmt.on_command)
             self._update_silence(axis)
             for pdo in axis.rpdos:
                 pdo.latched = None
@@ -1472,7 +1457,7 @@ class VirtualDriveRack:
             return
         faults.bus_off_ms, faults.bus_off_until_step = 0, None
         network.subscribe(sdo_cob, node.sdo.on_request)
-        network.subscribe(NMT_COB_ID, node.nmt.on_command)
+        network.subscribe(cia301.NMT_COB_ID, node.nmt.on_command)
         self._update_silence(axis, restart_heartbeat=False)
         self._emcy(axis, EMCY_BUS_OFF_RECOVERED)  # its first frame back, then the heartbeat
         if not faults.heartbeat_off and self._started:
@@ -1486,13 +1471,13 @@ class VirtualDriveRack:
             node_id = a.config.node_id
             if a.faults.bus_off:
                 muted |= {
-                    EMCY_COB_BASE + node_id,
-                    SDO_RESPONSE_COB_BASE + node_id,
-                    HEARTBEAT_COB_BASE + node_id,
+                    cia301.EMCY_COB_BASE + node_id,
+                    cia301.SDO_RESPONSE_COB_BASE + node_id,
+                    cia301.HEARTBEAT_COB_BASE + node_id,
                 }
             if a.faults.bus_off or a.faults.heartbeat_off:
-                periodic.add(HEARTBEAT_COB_BASE + node_id)
-        cob = HEARTBEAT_COB_BASE + axis.config.node_id
+                periodic.add(cia301.HEARTBEAT_COB_BASE + node_id)
+        cob = cia301.HEARTBEAT_COB_BASE + axis.config.node_id
         was_silent = cob in self._network.muted_periodic
         self._network.muted = frozenset(muted)
         self._network.muted_periodic = frozenset(periodic)
@@ -1530,24 +1515,24 @@ class VirtualDriveRack:
         """The object a mapping entry names, if it may be mapped in this direction."""
         entry = MappingEntry.decode(raw)
         if entry.index not in axis.od:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+            raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
         obj = axis.od[entry.index]
         if isinstance(obj, ODRecord | ODArray):
             if entry.subindex not in obj:
-                raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+                raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
             obj = obj[entry.subindex]
         elif entry.subindex != 0:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+            raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
         allowed = obj.writable if receive else obj.readable
         if not (obj.pdo_mappable and allowed and entry.bits == len(obj) and entry.bits % 8 == 0):
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+            raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
         _number_format(obj)
         return obj
 
     def _mapped_objects(self, axis: _Axis, slots: Sequence[int], receive: bool) -> list[ODVariable]:
         objects = [self._mapped_object(axis, raw, receive) for raw in slots]
         if sum(len(obj) for obj in objects) > cia402.PDO_MAX_BITS:
-            raise SdoAbortedError(ABORT_PDO_LENGTH)
+            raise SdoAbortedError(cia301.ABORT_PDO_LENGTH)
         return objects
 
     def _getters(
@@ -1581,11 +1566,13 @@ class VirtualDriveRack:
         """Apply a write to a PDO communication object; returns the value to store."""
         if subindex == 1:
             if value & cia402.PDO_COB_ID_EXTENDED or value & 0x1FFFFFFF > 0x7FF:
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
+                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
             valid = not value & cia402.PDO_COB_ID_INVALID
             cob_id = value & 0x7FF
             if pdo.valid and valid and cob_id != pdo.cob_id:
-                raise SdoAbortedError(ABORT_VALUE_RANGE)  # change the COB-ID of an invalid PDO
+                raise SdoAbortedError(
+                    cia301.ABORT_VALUE_RANGE
+                )  # change the COB-ID of an invalid PDO
             pdo.valid, pdo.cob_id = valid, cob_id
             pdo.latched, pdo.last_rx_s, pdo.last_data = None, None, None
             if pdo.receive:
@@ -1597,7 +1584,7 @@ class VirtualDriveRack:
                 value |= cia402.PDO_COB_ID_NO_RTR
         elif subindex == 2:
             if not cia402.is_valid_transmission_type(value):
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
+                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
             pdo.transmission_type, pdo.sync_count = value, 0
         elif subindex == 3:
             pdo.inhibit_100us = value
@@ -1607,17 +1594,17 @@ class VirtualDriveRack:
 
     def _write_mapping(self, axis: _Axis, pdo: _Pdo, subindex: int, value: int) -> None:
         if pdo.valid:
-            raise SdoAbortedError(ABORT_DEVICE_STATE)  # set COB-ID bit 31 first
+            raise SdoAbortedError(cia301.ABORT_DEVICE_STATE)  # set COB-ID bit 31 first
         if subindex == 0:
             if value > cia402.PDO_MAX_ENTRIES:
-                raise SdoAbortedError(ABORT_PDO_LENGTH)
+                raise SdoAbortedError(cia301.ABORT_PDO_LENGTH)
             objects = self._mapped_objects(axis, pdo.slots[:value], pdo.receive)
             pdo.map(objects, self._getters(axis, objects, pdo.receive))
             pdo.count = value
             pdo.latched, pdo.last_data = None, None
             return
         if pdo.count != 0:
-            raise SdoAbortedError(ABORT_DEVICE_STATE)  # set sub 0 to 0 first
+            raise SdoAbortedError(cia301.ABORT_DEVICE_STATE)  # set sub 0 to 0 first
         if value != 0:
             self._mapped_object(axis, value, pdo.receive)
         pdo.slots[subindex - 1] = value
@@ -1660,8 +1647,8 @@ class VirtualDriveRack:
 
     def _boot(self, axis: _Axis) -> None:
         """Boot-up message, then PRE-OPERATIONAL with the heartbeat of 0x1017 running."""
-        axis.node.nmt.send_command(_NMT_RESET_NODE)  # from INITIALISING: sends the boot-up
-        axis.node.nmt.send_command(_NMT_PRE_OPERATIONAL)  # starts the heartbeat
+        axis.node.nmt.send_command(cia301.NMT_RESET_NODE)  # from INITIALISING: sends the boot-up
+        axis.node.nmt.send_command(cia301.NMT_ENTER_PRE_OPERATIONAL)  # starts the heartbeat
         axis.nmt = NMT_PRE_OPERATIONAL
 
     def _leave_operational(self, axis: _Axis) -> None:
@@ -1675,17 +1662,17 @@ class VirtualDriveRack:
             return
         command, node_id = data[0], data[1]
         states = {
-            _NMT_START: NMT_OPERATIONAL,
-            _NMT_STOP: NMT_STOPPED,
-            _NMT_PRE_OPERATIONAL: NMT_PRE_OPERATIONAL,
+            cia301.NMT_START: NMT_OPERATIONAL,
+            cia301.NMT_STOP: NMT_STOPPED,
+            cia301.NMT_ENTER_PRE_OPERATIONAL: NMT_PRE_OPERATIONAL,
         }
         for axis in self._axes:
             if node_id not in (0, axis.config.node_id) or axis.faults.bus_off:
                 continue
             if command in states:
                 self._enter_nmt(axis, states[command], now)
-            elif command in (_NMT_RESET_NODE, _NMT_RESET_COMMUNICATION):
-                communication_only = command == _NMT_RESET_COMMUNICATION
+            elif command in (cia301.NMT_RESET_NODE, cia301.NMT_RESET_COMMUNICATION):
+                communication_only = command == cia301.NMT_RESET_COMMUNICATION
                 if communication_only:
                     self._nmt_reaction(axis, now)
                 self._reset(axis, communication_only, now)
@@ -1742,7 +1729,7 @@ class VirtualDriveRack:
                 return
         # An NMT frame of the wrong length goes to `_on_frame` (which counts it) only: canopen's
         # NMT slave would act on the first two bytes of a longer one.
-        if cob != NMT_COB_ID or len(msg.data) == 2:
+        if cob != cia301.NMT_COB_ID or len(msg.data) == 2:
             try:
                 self._network.notify(cob, msg.data, msg.timestamp)
             except Exception:
@@ -1771,18 +1758,18 @@ class VirtualDriveRack:
         data = bytes(msg.data)
         try:
             now = self._clock()
-            if cob == SYNC_COB_ID:
+            if cob == cia301.SYNC_COB_ID:
                 # The bus's reception stamp, not `now`: SYNCs queued while this process stood
                 # still keep their spacing for the SYNC rate check (`_sync_in_time`).
                 stamp_s = msg.timestamp if msg.timestamp > 0.0 else time.time()
                 with self._lock:
                     self._on_sync(data, now, stamp_s)
-            elif cob == NMT_COB_ID:
+            elif cob == cia301.NMT_COB_ID:
                 with self._lock:
                     self._on_nmt(data, now)
-            elif HEARTBEAT_COB_BASE < cob <= HEARTBEAT_COB_BASE + 0x7F:
+            elif cia301.HEARTBEAT_COB_BASE < cob <= cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX:
                 with self._lock:
-                    self._on_heartbeat(cob - HEARTBEAT_COB_BASE, data, now)
+                    self._on_heartbeat(cob - cia301.HEARTBEAT_COB_BASE, data, now)
             else:
                 targets = self._rpdo_table.get(cob)
                 if targets:
@@ -2074,17 +2061,17 @@ class VirtualDriveRack:
             try:
                 with self._lock:
                     now = time.monotonic()
-                    frozen_s = now - due
+                    freeze = self._freeze_watch.check(now - due)
                     due = now + MONITOR_PERIOD_S
-                    if frozen_s > FREEZE_THRESHOLD_S:
-                        self._discount_freeze(frozen_s, now)
+                    if freeze is not None:
+                        self._discount_freeze(freeze, now)
                     self._check_watchdogs(now)
                     self._service_event_tpdos(now)
             except Exception:
                 self._counters.handler_errors += 1
                 logger.exception("virtual drive: error in the monitor")
 
-    def _discount_freeze(self, frozen_s: float, now: float) -> None:
+    def _discount_freeze(self, freeze: Freeze, now: float) -> None:
         """Move every armed deadline on by `frozen_s`: this process, not the master, stood still.
 
         No further than `now`: a frame the receive thread took after the freeze, before this
@@ -2103,27 +2090,26 @@ class VirtualDriveRack:
         still caught on time.
         """
         self._counters.process_freezes += 1
-        self._longest_stall_s = max(self._longest_stall_s, frozen_s)
         self._warn_once(
             "freeze",
-            f"this process stood still for {frozen_s * 1e3:.0f} ms; the watchdogs do not count "
-            f"up to {self.config.max_stall_discount_s * 1e3:.0f} ms of such time against the "
-            "master (objects 0x2020 / 0x2021 count the stalls)",
+            f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms; the watchdogs do not "
+            f"count up to {self.config.max_stall_discount_s * 1e3:.0f} ms of such time against "
+            "the master (objects 0x2020 / 0x2021 count the stalls)",
         )
-        if frozen_s > self.config.max_stall_discount_s:
+        if freeze.beyond_bound:
             self._counters.stalls_beyond_discount += 1
-            stall_ms = struct.pack("<H", min(round(frozen_s * 1e3), 0xFFFF))
+            stall_ms = struct.pack("<H", min(round(freeze.frozen_s * 1e3), 0xFFFF))
             for axis in self._axes:
                 self._emcy(axis, cia402.EMCY_PROCESS_STALL, stall_ms)
-            frozen_s = self.config.max_stall_discount_s
+        skip_s = freeze.discount_s
         for axis in self._axes:
             if axis.heartbeat_last_rx_s is not None:
-                axis.heartbeat_last_rx_s = discounted(axis.heartbeat_last_rx_s, frozen_s, now)
+                axis.heartbeat_last_rx_s = discounted(axis.heartbeat_last_rx_s, skip_s, now)
             for pdo in axis.rpdos:
                 if pdo.last_rx_s is not None:
-                    pdo.last_rx_s = discounted(pdo.last_rx_s, frozen_s, now)
-            axis.sync_armed_s = discounted(axis.sync_armed_s, frozen_s, now)
-        self._last_sync_done_s = discounted(self._last_sync_done_s, frozen_s, now)
+                    pdo.last_rx_s = discounted(pdo.last_rx_s, skip_s, now)
+            axis.sync_armed_s = discounted(axis.sync_armed_s, skip_s, now)
+        self._last_sync_done_s = discounted(self._last_sync_done_s, skip_s, now)
 
     def _check_watchdogs(self, now: float) -> None:
         for axis in self._axes:

@@ -702,7 +702,8 @@ def test_only_whole_byte_numbers_map(data_type: int, mappable: bool) -> None:
     from canopen.objectdictionary import ODVariable
     from canopen.sdo.exceptions import SdoAbortedError
 
-    from lca_sim.canbus.virtual_rack import ABORT_NOT_MAPPABLE, _frame_codec
+    from lca_sim.canbus.virtual_rack import _frame_codec
+    from lca_sim.cia402.cia301 import ABORT_NOT_MAPPABLE
 
     obj = ODVariable("x", 0x2000, 0)
     obj.data_type = data_type
