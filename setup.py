@@ -101,14 +101,14 @@ setup(
             "lca-plot = lca_sim.cli.bagplot:main",
             "lca-virtual-drive = lca_sim.canbus.virtual_rack:main",
             "lca-can-bridge = lca_sim.cli.nodes:can_bridge",
-            "lca-can-server = lca_sim.canbus.remote:main",
+            "lca-can-server = lca_sim.cli.can_server:main",
             # The names `ros2 run lca_hil <exe>` expects (installed to lib/lca_hil by colcon).
             "simulator = lca_sim.cli.nodes:simulator",
             "controller = lca_sim.cli.nodes:controller",
             "record = lca_sim.cli.nodes:record",
             "virtual_drive = lca_sim.canbus.virtual_rack:main",
             "can_bridge = lca_sim.cli.nodes:can_bridge",
-            "can_server = lca_sim.canbus.remote:main",
+            "can_server = lca_sim.cli.can_server:main",
         ],
         # python-can interfaces: can.Bus(interface="lca_remote", channel="ws://127.0.0.1:54701/").
         "can.interface": ["lca_remote = lca_sim.canbus.remote:RemoteTransportBus"],
