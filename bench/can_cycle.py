@@ -54,11 +54,12 @@ import canopen
 import numpy as np
 
 from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.device import PowerState
 from lca_sim.cia402.master import bus_load_pct
 from lca_sim.cli.output import strict_json
 from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.rack import load_rack_config
 from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 
 RATES_HZ = (250, 500, 1000)
@@ -165,7 +166,7 @@ def rack_command(switch_interval_s: float | None) -> list[str]:
         return [str(BIN / "lca-virtual-drive")]
     code = (
         f"import sys; sys.setswitchinterval({switch_interval_s!r}); "
-        "from lca_sim.canbus.virtual_rack import main; sys.exit(main())"
+        "from lca_sim.cli.virtual_drive import main; sys.exit(main())"
     )
     return [sys.executable, "-c", code]
 

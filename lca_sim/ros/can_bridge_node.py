@@ -646,7 +646,8 @@ class CanBridgeNode(LifecycleNode):
     # --- set-up and tear-down ------------------------------------------------------------
 
     def _start_rack(self, p: CanBridgeNodeParams) -> None:
-        from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config  # noqa: PLC0415
+        from lca_sim.canbus.virtual_rack import VirtualDriveRack  # noqa: PLC0415
+        from lca_sim.config.rack import load_rack_config  # noqa: PLC0415
 
         config = load_rack_config(Path(p.rack_config) if p.rack_config else None)
         config = replace(config, timing_mode=p.timing_mode)  # one clock for the whole loop

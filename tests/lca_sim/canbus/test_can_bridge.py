@@ -28,10 +28,11 @@ from lca_sim.canbus.master import (
     Cia402Master,
     Snapshot,
 )
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.rack import load_rack_config
 
 EDS = config_dir() / "can" / "lca_drive.eds"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")

@@ -27,15 +27,11 @@ from support import CONFIG
 from test_virtual_drive import Probe, emcy_code, enable, nmt, remote, sync, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.virtual_rack import (
-    AxisConfig,
-    RackConfig,
-    VirtualDriveRack,
-    load_rack_config,
-)
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.cia402.sync_rate import sync_rate_params
+from lca_sim.config.rack import AxisConfig, RackConfig, load_rack_config
 from lca_sim.errors import ConfigError
 
 PIVOT = 2

@@ -30,15 +30,11 @@ from support import CONFIG, wait_until
 
 from lca_sim import RobotParams
 from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import (
-    RackConfig,
-    VirtualDriveRack,
-    eds_path,
-    load_rack_config,
-    main,
-)
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import PowerState
+from lca_sim.cli.virtual_drive import main
+from lca_sim.config.rack import RackConfig, eds_path, load_rack_config
 from lca_sim.errors import ConfigError
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")

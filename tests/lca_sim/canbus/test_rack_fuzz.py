@@ -29,8 +29,9 @@ from test_virtual_drive import Probe, wait_until
 
 from lca_sim import RobotParams
 from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, eds_path, load_rack_config
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.device import PowerState
+from lca_sim.config.rack import eds_path, load_rack_config
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)

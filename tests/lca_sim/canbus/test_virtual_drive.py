@@ -26,14 +26,10 @@ import pytest
 from support import wait_until as wait_until  # noqa: PLC0414  # re-exported to the rack tests
 
 from lca_sim import RobotParams
-from lca_sim.canbus.virtual_rack import (
-    RackConfig,
-    VirtualDriveRack,
-    eds_path,
-    load_rack_config,
-    main,
-)
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.device import PowerState
+from lca_sim.cli.virtual_drive import main
+from lca_sim.config.rack import RackConfig, eds_path, load_rack_config
 from lca_sim.errors import ConfigError
 
 EDS = str(eds_path())
@@ -673,7 +669,7 @@ def test_main_reports_a_missing_interface(capsys: pytest.CaptureFixture[str]) ->
 def test_main_runs_until_sigterm() -> None:
     """The console script serves a bus until SIGTERM, then exits 0."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "lca_sim.canbus.virtual_rack", "--interface", "virtual"],
+        [sys.executable, "-m", "lca_sim.cli.virtual_drive", "--interface", "virtual"],
         stderr=subprocess.PIPE,
         text=True,
     )
@@ -702,16 +698,16 @@ def test_only_whole_byte_numbers_map(data_type: int, mappable: bool) -> None:
     from canopen.objectdictionary import ODVariable
     from canopen.sdo.exceptions import SdoAbortedError
 
-    from lca_sim.canbus.virtual_rack import _frame_codec
+    from lca_sim.canbus.rack_state import frame_codec
     from lca_sim.cia402.cia301 import ABORT_NOT_MAPPABLE
 
     obj = ODVariable("x", 0x2000, 0)
     obj.data_type = data_type
     if mappable:
-        assert _frame_codec([obj]).size == len(obj) // 8
+        assert frame_codec([obj]).size == len(obj) // 8
     else:
         with pytest.raises(SdoAbortedError) as info:
-            _frame_codec([obj])
+            frame_codec([obj])
         assert info.value.code == ABORT_NOT_MAPPABLE
 
 
