@@ -11,7 +11,8 @@ watchdog timing. docs/can.md, "The virtual drive rack", is the contract a master
     rack = VirtualDriveRack(bus, load_rack_config(None))   # lca_sim.config.rack
     with rack: rack.power_state("pivot")                     # start() ... stop()
 
-Its parts: `rack_state` (per-drive values), `rack_network` (the bus side); the console
+Its parts: `rack_state` (per-drive values), `rack_network` (the bus side), `rack_pdo` (the
+PDOs), `rack_watchdog` (deadlines, SYNC rate, freeze discount); the console
 script `lca-virtual-drive` is `lca_sim.cli.virtual_drive`.
 """
 
@@ -19,10 +20,9 @@ from __future__ import annotations
 
 import logging
 import math
-import struct
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
 from types import TracebackType
 from typing import Any, cast
@@ -31,12 +31,12 @@ import can
 import canopen
 from can.interfaces.virtual import VirtualBus
 from canopen import SdoAbortedError
-from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from lca_control.pi import PIController, PIParams
-from lca_sim.canbus.freeze import Freeze, FreezeWatch
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_network import RackListener, RackNetwork
+from lca_sim.canbus.rack_pdo import PdoEngine
 from lca_sim.canbus.rack_state import (
     NMT_OPERATIONAL,
     NMT_PRE_OPERATIONAL,
@@ -45,14 +45,14 @@ from lca_sim.canbus.rack_state import (
     FaultEvent,
     Pdo,
     RackCounters,
-    number_format,
 )
+from lca_sim.canbus.rack_watchdog import RackWatchdogs
 from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import cia301, codec, sync_rate
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
-from lca_sim.cia402.device import Cia402AxisState, MappingEntry, PowerState
+from lca_sim.cia402.device import Cia402AxisState, PowerState
 from lca_sim.config.loader import load_robot
 from lca_sim.config.rack import (
     FAULT_KINDS,
@@ -67,7 +67,6 @@ from lca_sim.model.commanded_plant import CURRENT, CommandedPlant
 from lca_sim.model.params import RobotParams
 from lca_sim.model.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 from lca_sim.runtime import (
-    discounted,
     settle_heap,
     yield_gil,
 )
@@ -161,17 +160,19 @@ class VirtualDriveRack:
         ]
         self._axes: list[Drive] = []
         self._by_name: dict[str, Drive] = {}
-        self._rpdo_table: dict[int, list[tuple[Drive, Pdo]]] = {}
+        self._pdos = PdoEngine(self._axes, self._counters, self._send)
         self._sdo_servers: dict[int, Drive] = {}  # SDO request COB-ID (0x600 + id) -> its node
         self._last_sync_rx_s: float | None = None
-        self._last_sync_done_s = -math.inf
         self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
-        # The SYNC rate check (`_sync_in_time`): the period it runs for, its parameters for
-        # that period, and the judge's state (`lca_sim.cia402.sync_rate`).
-        self._sync_period_s = 0.0
-        self._sync_rate: sync_rate.SyncRateParams | None = None
-        self._sync_judge = sync_rate.SyncRateState()
-        self._freeze_watch = FreezeWatch(config.max_stall_discount_s)  # 0x2020, 0x2021
+        self._watchdogs = RackWatchdogs(
+            self._axes,
+            self._counters,
+            config.sync_loss_periods,
+            config.max_stall_discount_s,
+            on_expired=self._communication_error,
+            emcy=self._emcy,
+            warn_once=self._warn_once,
+        )
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
         # Fault injection: the plant steps run since start (the rack's time, which SYNCs
@@ -441,7 +442,7 @@ class VirtualDriveRack:
             (od.DRIVE_STATE, 0): lambda: int(modes[1, a]),
             (od.MOTION_STATE, 0): lambda: int(modes[0, a]),
             (od.PROCESS_STALLS, 0): lambda: min(self._counters.process_freezes, 0xFFFFFFFF),
-            (od.LONGEST_STALL, 0): lambda: encode_stall(self._freeze_watch.longest_s),
+            (od.LONGEST_STALL, 0): lambda: encode_stall(self._watchdogs.freeze_watch.longest_s),
             (od.FAULT_INJECTION, od.FAULT_LOST_TPDOS): lambda: axis.faults.lost_tpdos,
             (od.FAULT_INJECTION, od.FAULT_HEARTBEAT_OFF): lambda: int(axis.faults.heartbeat_off),
             (od.FAULT_INJECTION, od.FAULT_RAISE_EMCY): lambda: axis.faults.emcy_code,
@@ -544,28 +545,10 @@ class VirtualDriveRack:
         allowed = _OPTION_VALUES.get((index, subindex))
         if allowed is not None and value not in allowed:
             raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
-        located = self._pdo_of(axis, index)
-        if located is not None:
-            pdo, is_mapping = located
-            if is_mapping:
-                self._write_mapping(axis, pdo, subindex, value)
-            else:
-                value = self._write_communication(pdo, subindex, value)
+        value = self._pdos.write(axis, index, subindex, value)
         if index == od.HEARTBEAT_CONSUMER:
             axis.heartbeat_last_rx_s = None
         axis.values[(index, subindex)] = value
-
-    def _pdo_of(self, axis: Drive, index: int) -> tuple[Pdo, bool] | None:
-        """The PDO whose communication or mapping object `index` is, and whether it is mapping."""
-        for base, pdos, is_mapping in (
-            (od.RPDO_COMMUNICATION, axis.rpdos, False),
-            (od.RPDO_MAPPING, axis.rpdos, True),
-            (od.TPDO_COMMUNICATION, axis.tpdos, False),
-            (od.TPDO_MAPPING, axis.tpdos, True),
-        ):
-            if 0 <= index - base < len(pdos):
-                return pdos[index - base], is_mapping
-        return None
 
     # --- CiA 402 state ---------------------------------------------------------------------
 
@@ -809,114 +792,6 @@ class VirtualDriveRack:
         if axis.faults.drive_fault:
             self._drive_fault(axis, axis.faults.drive_fault, now)
 
-    # --- PDO configuration -----------------------------------------------------------------
-
-    def _mapped_object(self, axis: Drive, raw: int, receive: bool) -> ODVariable:
-        """The object a mapping entry names, if it may be mapped in this direction."""
-        entry = MappingEntry.decode(raw)
-        if entry.index not in axis.od:
-            raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
-        obj = axis.od[entry.index]
-        if isinstance(obj, ODRecord | ODArray):
-            if entry.subindex not in obj:
-                raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
-            obj = obj[entry.subindex]
-        elif entry.subindex != 0:
-            raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
-        allowed = obj.writable if receive else obj.readable
-        if not (obj.pdo_mappable and allowed and entry.bits == len(obj) and entry.bits % 8 == 0):
-            raise SdoAbortedError(cia301.ABORT_NOT_MAPPABLE)
-        number_format(obj)
-        return obj
-
-    def _mapped_objects(self, axis: Drive, slots: Sequence[int], receive: bool) -> list[ODVariable]:
-        objects = [self._mapped_object(axis, raw, receive) for raw in slots]
-        if sum(len(obj) for obj in objects) > cia402.PDO_MAX_BITS:
-            raise SdoAbortedError(cia301.ABORT_PDO_LENGTH)
-        return objects
-
-    def _getters(
-        self, axis: Drive, objects: Sequence[ODVariable], receive: bool
-    ) -> list[Callable[[], int]]:
-        """What a TPDO reads for each mapped object when it is sent (an RPDO reads nothing)."""
-        return [] if receive else [axis.getter(obj.index, obj.subindex) for obj in objects]
-
-    def _load_pdo(self, axis: Drive, number: int, receive: bool) -> Pdo:
-        com = (od.RPDO_COMMUNICATION if receive else od.TPDO_COMMUNICATION) + number - 1
-        mapping = com + (od.RPDO_MAPPING - od.RPDO_COMMUNICATION)
-        cob = axis.value(com, 1)
-        count = axis.value(mapping, 0)
-        slots = [axis.values.get((mapping, k), 0) for k in range(1, cia402.PDO_MAX_ENTRIES + 1)]
-        pdo = Pdo(
-            number=number,
-            receive=receive,
-            cob_id=cob & 0x7FF,
-            valid=not cob & cia402.PDO_COB_ID_INVALID,
-            transmission_type=axis.value(com, 2),
-            inhibit_100us=axis.values.get((com, 3), 0),
-            event_timer_ms=axis.values.get((com, 5), 0),
-            slots=slots,
-            count=count,
-        )
-        objects = self._mapped_objects(axis, slots[:count], receive)
-        pdo.map(objects, self._getters(axis, objects, receive))
-        return pdo
-
-    def _write_communication(self, pdo: Pdo, subindex: int, value: int) -> int:
-        """Apply a write to a PDO communication object; returns the value to store."""
-        if subindex == 1:
-            if value & cia402.PDO_COB_ID_EXTENDED or value & 0x1FFFFFFF > 0x7FF:
-                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
-            valid = not value & cia402.PDO_COB_ID_INVALID
-            cob_id = value & 0x7FF
-            if pdo.valid and valid and cob_id != pdo.cob_id:
-                raise SdoAbortedError(
-                    cia301.ABORT_VALUE_RANGE
-                )  # change the COB-ID of an invalid PDO
-            pdo.valid, pdo.cob_id = valid, cob_id
-            pdo.latched, pdo.last_rx_s, pdo.last_data = None, None, None
-            if pdo.receive:
-                self._rebuild_rpdo_table()
-            else:
-                # CiA 301 0x1800 sub 1 bit 30: these drives never answer a remote frame, so a
-                # TPDO's COB-ID keeps "no RTR allowed" whatever a master writes (masters that
-                # write only bit 31 and the id, as many do, are not refused for it).
-                value |= cia402.PDO_COB_ID_NO_RTR
-        elif subindex == 2:
-            if not cia402.is_valid_transmission_type(value):
-                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
-            pdo.transmission_type, pdo.sync_count = value, 0
-        elif subindex == 3:
-            pdo.inhibit_100us = value
-        elif subindex == 5:
-            pdo.event_timer_ms = value
-        return value
-
-    def _write_mapping(self, axis: Drive, pdo: Pdo, subindex: int, value: int) -> None:
-        if pdo.valid:
-            raise SdoAbortedError(cia301.ABORT_DEVICE_STATE)  # set COB-ID bit 31 first
-        if subindex == 0:
-            if value > cia402.PDO_MAX_ENTRIES:
-                raise SdoAbortedError(cia301.ABORT_PDO_LENGTH)
-            objects = self._mapped_objects(axis, pdo.slots[:value], pdo.receive)
-            pdo.map(objects, self._getters(axis, objects, pdo.receive))
-            pdo.count = value
-            pdo.latched, pdo.last_data = None, None
-            return
-        if pdo.count != 0:
-            raise SdoAbortedError(cia301.ABORT_DEVICE_STATE)  # set sub 0 to 0 first
-        if value != 0:
-            self._mapped_object(axis, value, pdo.receive)
-        pdo.slots[subindex - 1] = value
-
-    def _rebuild_rpdo_table(self) -> None:
-        table: dict[int, list[tuple[Drive, Pdo]]] = {}
-        for axis in self._axes:
-            for pdo in axis.rpdos:
-                if pdo.valid:
-                    table.setdefault(pdo.cob_id, []).append((axis, pdo))
-        self._rpdo_table = table  # replaced whole: the receive thread reads it without the lock
-
     # --- NMT -------------------------------------------------------------------------------
 
     def _reset(self, axis: Drive, communication_only: bool, now: float) -> None:
@@ -933,11 +808,7 @@ class VirtualDriveRack:
         for index in list(axis.node.data_store):
             if not communication_only or index < 0x2000:
                 del axis.node.data_store[index]
-        n_rpdo = _count_pdos(axis.od, od.RPDO_COMMUNICATION)
-        n_tpdo = _count_pdos(axis.od, od.TPDO_COMMUNICATION)
-        axis.rpdos = [self._load_pdo(axis, n, receive=True) for n in range(1, n_rpdo + 1)]
-        axis.tpdos = [self._load_pdo(axis, n, receive=False) for n in range(1, n_tpdo + 1)]
-        self._rebuild_rpdo_table()
+        self._pdos.load(axis)
         if not communication_only:
             axis.drive = Cia402AxisState(mode=axis.value(od.MODES_OF_OPERATION))
             self._set_drive(axis, axis.drive, now)
@@ -1071,7 +942,7 @@ class VirtualDriveRack:
                 with self._lock:
                     self._on_heartbeat(cob - cia301.HEARTBEAT_COB_BASE, data, now)
             else:
-                targets = self._rpdo_table.get(cob)
+                targets = self._pdos.rpdo_table.get(cob)
                 if targets:
                     with self._lock:
                         for axis, pdo in targets:
@@ -1168,18 +1039,18 @@ class VirtualDriveRack:
             self._set_drive(axis, axis.drive, now)
         done = self._clock()
         if self._lockstep:  # the monitor's work, at the rack's time after this cycle
-            self._last_sync_done_s = done
-            self._check_watchdogs(done)
+            self._watchdogs.last_sync_done_s = done
+            self._watchdogs.check(done)
             self._network.send_due(done)
-        self._service_event_tpdos(done)
-        self._last_sync_done_s = done
+        self._pdos.service_event_tpdos(done)
+        self._watchdogs.last_sync_done_s = done
 
     def _send_tpdos_of_sync(self, operational: list[Drive], now: float) -> None:
         """Every operational node's synchronous TPDOs; over lca_remote, in one write."""
         try:
             with batched_sends(self._network.bus):
                 for axis in operational:
-                    self._send_sync_tpdos(axis, now)
+                    self._pdos.send_sync_tpdos(axis, now)
         except (can.CanError, OSError) as exc:  # the batch's one write failed
             self._counters.send_errors += 1
             self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
@@ -1207,42 +1078,20 @@ class VirtualDriveRack:
                 latched, pdo.latched = pdo.latched, None
                 self._apply_rpdo(axis, pdo, latched, now)
 
-    def _send_sync_tpdos(self, axis: Drive, now: float) -> None:
-        """At a SYNC: type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
-        for pdo in axis.tpdos:
-            if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
-                continue
-            if pdo.transmission_type == 0:
-                frame = self._encode(axis, pdo)
-                if frame != pdo.last_data:
-                    self._send_tpdo(axis, pdo, frame, now)
-                continue
-            pdo.sync_count += 1
-            if pdo.sync_count >= pdo.transmission_type:
-                pdo.sync_count = 0
-                self._send_tpdo(axis, pdo, self._encode(axis, pdo), now)
-
     def _cycle_period_s(self) -> float:
         return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
 
     def _sync_in_time(self, period_s: float, stamp_s: float) -> bool:
         """Whether this SYNC may advance the plant a period (0x1006 > 0), or comes too early.
 
-        CiA 301 7.2.5 gives a network one SYNC producer, 0x1006 (7.5.2.6) its period. SYNCs
-        faster than that (a second producer, a master whose cycle does not match what it
-        wrote to 0x1006) would run the plant faster than the wall clock. The pure judge
-        (`lca_sim.cia402.sync_rate`) counts the SYNCs against the time their bus stamps say
-        passed, over a window, so jitter and stalls (up to the SYNC-loss deadline, and a
-        freeze of this process up to 0.2 s) with their catch-up bursts never count. The
-        excess SYNCs are handled as any SYNC (RPDOs applied, TPDOs sent) but do not advance
-        the plant; each is counted (`syncs_too_fast`), and every node sends EMCY 0x8100 once
-        per episode (over after a window without excess).
+        SYNCs faster than 0x1006 (a second producer, a master whose cycle does not match what
+        it wrote there) would run the plant faster than the wall clock; the watchdogs' judge
+        (`RackWatchdogs.sync_verdict`) tells them. The excess SYNCs are handled as any SYNC
+        (RPDOs applied, TPDOs sent) but do not advance the plant; each is counted
+        (`syncs_too_fast`), and every node sends EMCY 0x8100 once per episode (over after a
+        window without excess).
         """
-        if period_s != self._sync_period_s or self._sync_rate is None:
-            self._sync_period_s = period_s
-            self._sync_rate = sync_rate.sync_rate_params(period_s, self.config.sync_loss_periods)
-            self._sync_judge = sync_rate.SyncRateState()
-        self._sync_judge, verdict = sync_rate.judge_sync(self._sync_judge, stamp_s, self._sync_rate)
+        verdict = self._watchdogs.sync_verdict(period_s, stamp_s)
         if verdict is sync_rate.SyncVerdict.IN_TIME:
             return True
         self._counters.syncs_too_fast += 1
@@ -1300,9 +1149,6 @@ class VirtualDriveRack:
 
     # --- transmission ----------------------------------------------------------------------
 
-    def _encode(self, axis: Drive, pdo: Pdo) -> bytes:
-        return pdo.frame.pack(*[get() for get in pdo.getters])
-
     def _send(self, cob_id: int, data: bytes) -> bool:
         try:
             self._network.send_message(cob_id, data)
@@ -1311,16 +1157,6 @@ class VirtualDriveRack:
             self._warn_once(f"send-{type(exc).__name__}", f"send of 0x{cob_id:03X} failed: {exc}")
             return False
         return True
-
-    def _send_tpdo(self, axis: Drive, pdo: Pdo, frame: bytes, now: float) -> None:
-        faults = axis.faults
-        if faults.bus_off:
-            self._counters.frames_dropped_bus_off += 1
-        elif faults.lost_tpdos >> (pdo.number - 1) & 1:
-            self._counters.tpdos_lost += 1  # injected: lost as if sent (0x2030 sub 1)
-        elif self._send(pdo.cob_id, frame):
-            self._counters.tpdos_sent += 1
-        pdo.last_data, pdo.last_sent_s = frame, now
 
     def _emcy(self, axis: Drive, code: int, data: bytes = b"") -> None:
         """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes."""
@@ -1338,21 +1174,6 @@ class VirtualDriveRack:
             return
         self._counters.emcy_sent += 1
 
-    def _service_event_tpdos(self, now: float) -> None:
-        """Send the event-driven TPDOs whose data changed or whose event timer expired."""
-        for axis in self._axes:
-            if axis.nmt != NMT_OPERATIONAL:
-                continue
-            for pdo in axis.tpdos:
-                if not pdo.valid or pdo.transmission_type not in cia402.TRANSMISSION_EVENT_TYPES:
-                    continue
-                since_s = now - pdo.last_sent_s
-                frame = self._encode(axis, pdo)
-                changed = frame != pdo.last_data and since_s >= pdo.inhibit_100us * 1e-4
-                timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
-                if changed or timer_due:
-                    self._send_tpdo(axis, pdo, frame, now)
-
     # --- watchdogs -------------------------------------------------------------------------
 
     def _monitor(self) -> None:
@@ -1361,87 +1182,13 @@ class VirtualDriveRack:
             try:
                 with self._lock:
                     now = time.monotonic()
-                    freeze = self._freeze_watch.check(now - due)
+                    late_s = now - due
                     due = now + MONITOR_PERIOD_S
-                    if freeze is not None:
-                        self._discount_freeze(freeze, now)
-                    self._check_watchdogs(now)
-                    self._service_event_tpdos(now)
+                    self._watchdogs.tick(late_s, now)
+                    self._pdos.service_event_tpdos(now)
             except Exception:
                 self._counters.handler_errors += 1
                 logger.exception("virtual drive: error in the monitor")
-
-    def _discount_freeze(self, freeze: Freeze, now: float) -> None:
-        """Move every armed deadline on by `frozen_s`: this process, not the master, stood still.
-
-        No further than `now`: a frame the receive thread took after the freeze, before this
-        tick, has already stamped its deadline afresh. And no more than `max_stall_discount_s`
-        (rack.yaml): a longer stall is the drive standing still for longer than a master can
-        be expected to tolerate, so the rest counts against the deadlines as it would on a
-        drive that froze, and each node sends EMCY 0xFF02 with the stall in ms.
-
-        Every stall is counted (`process_freezes`, object 0x2020) and the longest is kept
-        (0x2021, ms), so a master learns that the drive stood still even when nothing faulted.
-
-        A real drive's watchdog runs on its own hardware. This one shares an interpreter with
-        its receive thread (and, with interface virtual, with the master): while the process is
-        frozen, frames wait unread in the bus queue, and judging the deadlines on waking would
-        blame the master for the freeze. A master that is silent while this process runs is
-        still caught on time.
-        """
-        self._counters.process_freezes += 1
-        self._warn_once(
-            "freeze",
-            f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms; the watchdogs do not "
-            f"count up to {self.config.max_stall_discount_s * 1e3:.0f} ms of such time against "
-            "the master (objects 0x2020 / 0x2021 count the stalls)",
-        )
-        if freeze.beyond_bound:
-            self._counters.stalls_beyond_discount += 1
-            stall_ms = struct.pack("<H", min(round(freeze.frozen_s * 1e3), 0xFFFF))
-            for axis in self._axes:
-                self._emcy(axis, cia402.EMCY_PROCESS_STALL, stall_ms)
-        skip_s = freeze.discount_s
-        for axis in self._axes:
-            if axis.heartbeat_last_rx_s is not None:
-                axis.heartbeat_last_rx_s = discounted(axis.heartbeat_last_rx_s, skip_s, now)
-            for pdo in axis.rpdos:
-                if pdo.last_rx_s is not None:
-                    pdo.last_rx_s = discounted(pdo.last_rx_s, skip_s, now)
-            axis.sync_armed_s = discounted(axis.sync_armed_s, skip_s, now)
-        self._last_sync_done_s = discounted(self._last_sync_done_s, skip_s, now)
-
-    def _check_watchdogs(self, now: float) -> None:
-        for axis in self._axes:
-            _, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
-            last = axis.heartbeat_last_rx_s
-            if time_ms and last is not None and now - last > time_ms * 1e-3:
-                axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
-                self._counters.heartbeat_losses += 1
-                self._communication_error(axis, cia402.EMCY_HEARTBEAT, now)
-            if axis.nmt != NMT_OPERATIONAL:
-                continue
-            for pdo in axis.rpdos:
-                last = pdo.last_rx_s
-                if (
-                    pdo.event_timer_ms
-                    and last is not None
-                    and now - last > pdo.event_timer_ms * 1e-3
-                ):
-                    pdo.last_rx_s = None  # re-armed by the next reception
-                    self._counters.rpdo_timeouts += 1
-                    self._communication_error(axis, cia402.EMCY_RPDO_TIMEOUT, now)
-            period_s = axis.value(od.CYCLE_PERIOD) * 1e-6
-            if (
-                period_s > 0.0
-                and axis.drive.power is PowerState.OPERATION_ENABLED
-                and not axis.sync_loss_reported
-                and now - max(self._last_sync_done_s, axis.sync_armed_s)
-                > self.config.sync_loss_periods * period_s
-            ):
-                axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
-                self._counters.sync_losses += 1
-                self._communication_error(axis, cia402.EMCY_SYNC_LOSS, now)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:
@@ -1458,15 +1205,3 @@ def _signal_getter(
         return encode(float(signals[row, column]))
 
     return get
-
-
-def _count_pdos(dictionary: ObjectDictionary, communication_base: int) -> int:
-    mapping_offset = od.RPDO_MAPPING - od.RPDO_COMMUNICATION
-    count = 0
-    while (
-        communication_base + count in dictionary
-        and communication_base + count + mapping_offset in dictionary
-        and count < 512
-    ):
-        count += 1
-    return count
