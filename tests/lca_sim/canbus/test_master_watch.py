@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import can
 import canopen
 import pytest
-from support import wait_until
+from support import bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import BridgeParams, Cia402Master
+from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import PowerState
@@ -113,24 +113,6 @@ class Rig:
         assert "not enabled" in self.bridge.enable(True)  # a latch holds until ~/recover
 
 
-def _params(robot: RobotParams) -> BridgeParams:
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=CYCLE_HZ,
-        # the drives' watchdogs with room for a shared 2-core machine (as test_rack_faults.py);
-        # the master's heartbeat consumer keeps its default, 3 x 100 ms
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-        command_timeout_s=1.0,
-    )
-
-
 @pytest.fixture
 def rig(default_robot: RobotParams) -> Iterator[Rig]:
     """The rack and the master, initialised and cycling, with a controller on a 5 ms timer."""
@@ -148,7 +130,11 @@ def rig(default_robot: RobotParams) -> Iterator[Rig]:
         network = canopen.Network(can.Bus(interface="virtual", channel=channel))
         network.connect()
         cleanups.append(network.disconnect)
-        bridge = Cia402Master(network, _params(default_robot), eds_path())
+        bridge = Cia402Master(
+            network,
+            bridge_params(default_robot, cycle_hz=CYCLE_HZ, command_timeout_s=1.0),
+            eds_path(),
+        )
         cleanups.append(bridge.stop)
         rig = Rig(rack, bridge, torques)
 

@@ -26,10 +26,10 @@ import can
 import canopen
 import pytest
 import yaml
-from support import CONFIG, wait_until
+from support import CONFIG, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master, Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import PowerState
@@ -116,22 +116,6 @@ class Rig:
         wait_until(lambda: self.rack.counters.syncs >= done, f"{count} more SYNCs", 10.0)
 
 
-def _params(robot: RobotParams) -> BridgeParams:
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=250.0,
-        # room for a shared 2-core machine's stalls (as tests/.../test_can_bridge.py)
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-    )
-
-
 @pytest.fixture
 def rig(default_robot: RobotParams) -> Iterator[Rig]:
     """The shipped rack and the bridge's master, initialised and cycling at 250 Hz."""
@@ -154,7 +138,7 @@ def rig(default_robot: RobotParams) -> Iterator[Rig]:
             holder[0].complete += 1
             holder[0].bridge.set_currents(holder[0].currents_a)  # a controller answering
 
-        bridge = Cia402Master(network, _params(default_robot), eds_path(), on_state=on_state)
+        bridge = Cia402Master(network, bridge_params(default_robot), eds_path(), on_state=on_state)
         cleanups.append(bridge.stop)
         holder.append(Rig(rack, bridge, network, recorder))
         bridge.init()

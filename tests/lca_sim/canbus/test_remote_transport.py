@@ -28,14 +28,14 @@ import canopen
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from support import wait_until
+from support import bridge_params, wait_until
 
 from lca_sim.canbus import remote, wire
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master, Snapshot
 from lca_sim.canbus.relay import RelayServer
 from lca_sim.cia402.device import PowerState
 from lca_sim.cli import can_server
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import config_dir
 
 BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
 EDS = config_dir() / "can" / "lca_drive.eds"
@@ -128,23 +128,6 @@ class Heartbeats:
         return lambda: min(self.count(since, state).values()) >= n
 
 
-def _params() -> BridgeParams:
-    robot = load_robot("default")
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=250.0,
-        # Room for a shared 2-core machine's stalls, as in test_can_bridge.
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-    )
-
-
 def test_rack_and_master_in_separate_processes(relay: str) -> None:
     """Boot, enable, move the pivot both ways, stop; heartbeats survive NMT commands."""
     monitor = can.Bus(interface="lca_remote", channel=relay)
@@ -175,7 +158,7 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
             assert bridge is not None
             bridge.set_currents(currents)
 
-        bridge = Cia402Master(network, _params(), EDS, on_state=on_state)
+        bridge = Cia402Master(network, bridge_params(), EDS, on_state=on_state)
         bridge.init()  # SDO configuration, then NMT start: every drive OPERATIONAL
         t_started = time.monotonic()
         bridge.start()

@@ -18,20 +18,19 @@ from typing import Any
 import can
 import canopen
 import pytest
-from support import wait_until
+from support import bridge_params, wait_until
 
 from lca_sim.canbus import emcy
 from lca_sim.canbus.master import (
     CAN_ERR_BUSOFF,
     BridgeError,
-    BridgeParams,
     Cia402Master,
     Snapshot,
 )
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import config_dir
 from lca_sim.config.rack import load_rack_config
 
 EDS = config_dir() / "can" / "lca_drive.eds"
@@ -63,33 +62,13 @@ class Rig:
         return all(s is state for s in self.states().values())
 
 
-def _params(**overrides: Any) -> BridgeParams:
-    robot = load_robot("default")
-    axes = {a.name: a for a in robot.axes}
-    values: dict[str, Any] = {
-        "joints": JOINTS,
-        "node_ids": NODE_IDS,
-        "torque_constants_nm_per_a": tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        "gear_ratios": tuple(axes[j].gear_ratio for j in JOINTS),
-        "drive_state_names": robot.state_machine.state_names,
-        "cycle_hz": 250.0,
-        # Watchdogs with room for a shared 2-core machine's stalls (a CI run saw a 0.3 s one);
-        # the tests of the watchdogs themselves still see them fire within their deadlines.
-        "rpdo_deadline_ms": 500,
-        "heartbeat_consumer_ms": 1000,
-        "stale_timeout_s": 0.5,
-    }
-    values.update(overrides)
-    return BridgeParams(**values)
-
-
 @pytest.fixture
 def rig_factory() -> Iterator[Callable[..., Rig]]:
     """Build rigs; everything started is stopped at the end, whatever happened."""
     cleanups: list[Callable[[], None]] = []
 
     def build(before_init: Callable[[str], None] | None = None, **overrides: Any) -> Rig:
-        channel = f"test_can_bridge_{next(_channels)}"
+        channel = f"test_master_{next(_channels)}"
         rack_bus = can.Bus(interface="virtual", channel=channel)
         cleanups.append(rack_bus.shutdown)
         rack = VirtualDriveRack(rack_bus, load_rack_config(None))
@@ -111,7 +90,7 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
                 rig.bridge.set_currents(rig.currents_a)
                 rig.last_fed_s = time.monotonic()
 
-        bridge = Cia402Master(network, _params(**overrides), EDS, on_state=on_state)
+        bridge = Cia402Master(network, bridge_params(**overrides), EDS, on_state=on_state)
         cleanups.append(bridge.stop)
         rig = Rig(rack, bridge, network, injector, channel)
         rig_holder.append(rig)
@@ -656,7 +635,7 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
     from lca_sim.cia402 import objects as od
 
     cycle_hz = 1000.0
-    every = _params(cycle_hz=cycle_hz).slow_tpdo_every
+    every = bridge_params(cycle_hz=cycle_hz).slow_tpdo_every
     assert every == 20
     axes = len(JOINTS)
 
