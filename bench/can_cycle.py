@@ -55,8 +55,8 @@ import numpy as np
 
 from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
+from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.cia402.device import PowerState
-from lca_sim.cia402.master import bus_load_pct
 from lca_sim.cli.output import strict_json
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.config.rack import load_rack_config

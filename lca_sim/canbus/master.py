@@ -7,7 +7,7 @@
   (NMT OPERATIONAL);
 * a cyclic thread of its own (default 500 Hz) sends each drive's RPDO1 (controlword, target
   torque) and then SYNC, plus the master heartbeat, and walks the CiA 402 power state machine
-  one legal step per cycle (`lca_sim.cia402.master.next_controlword`), never blocking;
+  one legal step per cycle (`lca_sim.cia402.controlword.next_controlword`), never blocking;
 * TPDOs arriving on the network's notifier thread fill a per-cycle snapshot, handed to
   `on_state` once every drive has answered the SYNC.
 
@@ -41,12 +41,12 @@ from canopen.sdo.client import SdoClient
 from lca_sim.canbus import emcy
 from lca_sim.canbus.freeze import Freeze, FreezeWatch
 from lca_sim.canbus.remote import batched_sends
-from lca_sim.cia402 import cia301, codec
-from lca_sim.cia402 import master as cm
+from lca_sim.cia402 import bus_load, cia301, codec
+from lca_sim.cia402 import controlword as ctl
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
+from lca_sim.cia402.controlword import TorqueScale, Want
 from lca_sim.cia402.device import CW_HALT, MODE_CST, MODE_CSV, PowerState
-from lca_sim.cia402.master import TorqueScale, Want
 from lca_sim.errors import LcaHilError
 from lca_sim.runtime import discounted
 
@@ -276,7 +276,7 @@ class AxisState:
     @property
     def power_state(self) -> PowerState | None:
         """The CiA 402 state of the statusword."""
-        return cm.power_state(self.statusword)
+        return ctl.power_state(self.statusword)
 
 
 @dataclass(frozen=True, slots=True)
@@ -375,8 +375,8 @@ class _BusWatch(can.Listener):
             return
         c = self._bridge.counters
         c.frames_received += 1
-        c.bits_received += cm.frame_bits(int(msg.dlc))
-        c.nominal_bits += cm.frame_bits_nominal(int(msg.dlc))
+        c.bits_received += bus_load.frame_bits(int(msg.dlc))
+        c.nominal_bits += bus_load.frame_bits_nominal(int(msg.dlc))
 
 
 class Cia402Master:
@@ -1113,7 +1113,7 @@ class Cia402Master:
     def _rpdo_frames(self, axis: _Axis, want: Want) -> list[tuple[int, bytes]]:
         """The RPDO frame(s) of one drive: the torque's, and the controlword's if due."""
         state = axis.state.power_state
-        controlword = cm.next_controlword(state, want, axis.controlword)
+        controlword = ctl.next_controlword(state, want, axis.controlword)
         target = 0
         running = want is Want.ENABLED and state is PowerState.OPERATION_ENABLED
         if running and (self._silence_halt or self._user_halt or self._failure_halt):
@@ -1149,8 +1149,8 @@ class Cia402Master:
             return
         self._send_failures_in_row = 0
         self.counters.frames_sent += 1
-        self.counters.bits_sent += cm.frame_bits(len(data))
-        self.counters.nominal_bits += cm.frame_bits_nominal(len(data))
+        self.counters.bits_sent += bus_load.frame_bits(len(data))
+        self.counters.nominal_bits += bus_load.frame_bits_nominal(len(data))
 
     def _send_failed(self, exc: can.CanError) -> None:
         """Count a failed send; `max_send_failures` of them in a row halt the axes."""

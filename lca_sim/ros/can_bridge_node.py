@@ -64,8 +64,8 @@ from lca_sim.canbus.master import (
     Snapshot,
 )
 from lca_sim.cia402 import objects as od
+from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.cia402.device import MODE_CST, PowerState
-from lca_sim.cia402.master import bus_load_pct
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.errors import FILE_NOT_FOUND, USER_ERRORS, ConfigError
 from lca_sim.ros.can_bridge_params import (

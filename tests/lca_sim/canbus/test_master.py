@@ -631,7 +631,7 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
     1 Mbit/s: 989 bits per 1 ms cycle. The old layout (13 frames a cycle) needed 1401.
     """
     from lca_sim.canbus.master import CONTROLWORD_REFRESH_CYCLES, EVENT_INHIBIT_100US
-    from lca_sim.cia402 import master as cm
+    from lca_sim.cia402 import bus_load
     from lca_sim.cia402 import objects as od
 
     cycle_hz = 1000.0
@@ -656,8 +656,8 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
             + bits(1) * heartbeats_per_cycle
         )
 
-    worst = cm.bus_load_pct(per_cycle(cm.frame_bits) * cycle_hz, 1e6)
-    nominal = cm.bus_load_pct(per_cycle(cm.frame_bits_nominal) * cycle_hz, 1e6)
+    worst = bus_load.bus_load_pct(per_cycle(bus_load.frame_bits) * cycle_hz, 1e6)
+    nominal = bus_load.bus_load_pct(per_cycle(bus_load.frame_bits_nominal) * cycle_hz, 1e6)
     assert worst == pytest.approx(98.925)
     assert worst < 100.0
     assert nominal == pytest.approx(82.107)
