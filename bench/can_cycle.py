@@ -53,7 +53,9 @@ import can
 import canopen
 import numpy as np
 
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_params import BridgeParams
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.cia402.device import PowerState

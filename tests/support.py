@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
-    from lca_sim.canbus.master import BridgeParams
+    from lca_sim.canbus.master_params import BridgeParams
     from lca_sim.canbus.virtual_rack import VirtualDriveRack
     from lca_sim.model.params import RobotParams
     from lca_sim.ros.simulator_node import SimulatorNode
@@ -364,7 +364,7 @@ def bridge_params(robot: RobotParams | None = None, **overrides: Any) -> BridgeP
         robot: the robot whose motors and gears the drives have; None: the shipped default.
         overrides: BridgeParams fields to set otherwise.
     """
-    from lca_sim.canbus.master import BridgeParams
+    from lca_sim.canbus.master_params import BridgeParams
     from lca_sim.config.loader import load_robot
 
     robot = load_robot("default") if robot is None else robot

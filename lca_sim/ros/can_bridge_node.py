@@ -56,13 +56,9 @@ from lca_control.parameters import ParameterError
 from lca_sim.canbus import emcy
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
-from lca_sim.canbus.master import (
-    AxisState,
-    BridgeError,
-    BridgeParams,
-    Cia402Master,
-    Snapshot,
-)
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_params import BridgeError, BridgeParams
+from lca_sim.canbus.master_state import AxisState, Snapshot
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.cia402.device import MODE_CST, PowerState

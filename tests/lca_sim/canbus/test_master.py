@@ -21,12 +21,9 @@ import pytest
 from support import bridge_params, wait_until
 
 from lca_sim.canbus import emcy
-from lca_sim.canbus.master import (
-    CAN_ERR_BUSOFF,
-    BridgeError,
-    Cia402Master,
-    Snapshot,
-)
+from lca_sim.canbus.master import CAN_ERR_BUSOFF, Cia402Master
+from lca_sim.canbus.master_params import BridgeError
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
@@ -451,19 +448,20 @@ def test_compiled_tpdo_decoder_agrees_with_the_codec() -> None:
     """The bridge's per-mapping decoder gives the codec's values, NaN for 0xFFFF, skips bytes."""
     import struct
 
-    from lca_sim.canbus.master import AxisState, _compile_apply, _Target
+    from lca_sim.canbus.master_pdo import Target, compile_apply
+    from lca_sim.canbus.master_state import AxisState
     from lca_sim.cia402 import codec
 
     units = codec.DriveUnits(rated_torque_nm=1.2, rated_current_a=10.0, increments_per_rev=65536)
     targets = [
-        _Target(("statusword",)),
-        _Target(("motor_position_rad", "position"), codec.position(units).decoder()),
-        _Target(("eta_m",), codec.EFFICIENCY.decoder()),
-        _Target(("voltage_v",), codec.VOLTAGE.decoder()),
+        Target(("statusword",)),
+        Target(("motor_position_rad", "position"), codec.position(units).decoder()),
+        Target(("eta_m",), codec.EFFICIENCY.decoder()),
+        Target(("voltage_v",), codec.VOLTAGE.decoder()),
     ]
     # statusword, position, 2 bytes of an object the bridge skips, eta_m, voltage
     frame = struct.pack("<Hi2xHh", 0x0237, -3823151, 0xFFFF, -1234)
-    apply = _compile_apply(targets, struct.Struct("<Hi2xHh").unpack_from, 600.0)
+    apply = compile_apply(targets, struct.Struct("<Hi2xHh").unpack_from, 600.0)
     state = AxisState()
     apply(state, bytearray(frame))
     assert state.statusword == 0x0237
@@ -473,7 +471,7 @@ def test_compiled_tpdo_decoder_agrees_with_the_codec() -> None:
     assert state.voltage_v == pytest.approx(-12.34)
     assert math.isnan(state.load_torque_nm)  # not mapped: unknown
     with pytest.raises(ValueError, match="not AxisState fields"):
-        _compile_apply([_Target(("__class__",))], struct.Struct("<H").unpack_from, 1.0)
+        compile_apply([Target(("__class__",))], struct.Struct("<H").unpack_from, 1.0)
 
 
 def test_an_advisory_emcy_is_reported_with_its_text_and_the_axes_go_on(
@@ -630,7 +628,7 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
     stuffing (CAN 2.0A: 47 + 8 DLC + floor((34 + 8 DLC - 1) / 4) bits per frame) stays under
     1 Mbit/s: 989 bits per 1 ms cycle. The old layout (13 frames a cycle) needed 1401.
     """
-    from lca_sim.canbus.master import CONTROLWORD_REFRESH_CYCLES, EVENT_INHIBIT_100US
+    from lca_sim.canbus.master_pdo import CONTROLWORD_REFRESH_CYCLES, EVENT_INHIBIT_100US
     from lca_sim.cia402 import bus_load
     from lca_sim.cia402 import objects as od
 

@@ -29,7 +29,8 @@ import yaml
 from support import CONFIG, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import PowerState

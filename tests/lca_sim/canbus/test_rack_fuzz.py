@@ -24,7 +24,8 @@ from hypothesis import strategies as st
 from support import Probe, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.rack import eds_path

@@ -31,7 +31,8 @@ from hypothesis import strategies as st
 from support import bridge_params, wait_until
 
 from lca_sim.canbus import remote, wire
-from lca_sim.canbus.master import Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.relay import RelayServer
 from lca_sim.cia402.device import PowerState
 from lca_sim.cli import can_server
