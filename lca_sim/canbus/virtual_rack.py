@@ -12,7 +12,8 @@ watchdog timing. docs/can.md, "The virtual drive rack", is the contract a master
     with rack: rack.power_state("pivot")                     # start() ... stop()
 
 Its parts: `rack_state` (per-drive values), `rack_network` (the bus side), `rack_pdo` (the
-PDOs), `rack_watchdog` (deadlines, SYNC rate, freeze discount); the console
+PDOs), `rack_watchdog` (deadlines, SYNC rate, freeze discount), `rack_faults` (fault
+injection); the console
 script `lca-virtual-drive` is `lca_sim.cli.virtual_drive`.
 """
 
@@ -35,6 +36,7 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from lca_control.pi import PIController, PIParams
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
+from lca_sim.canbus.rack_faults import RackFaults
 from lca_sim.canbus.rack_network import RackListener, RackNetwork
 from lca_sim.canbus.rack_pdo import PdoEngine
 from lca_sim.canbus.rack_state import (
@@ -73,9 +75,6 @@ from lca_sim.runtime import (
 
 logger = logging.getLogger(__name__)
 
-# CiA 301 EMCY 0x8140 "recovered from bus off": sent when a node is back on the bus, and the
-# 0x603F code of the bus-off while it lasts (as CANopenNode's CO_EM_CAN_TX_BUS_OFF reports it).
-EMCY_BUS_OFF_RECOVERED = 0x8140
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
@@ -175,17 +174,22 @@ class VirtualDriveRack:
         )
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
-        # Fault injection: the plant steps run since start (the rack's time, which SYNCs
-        # advance), the schedule as (entry, first step on, first step off), which entries are
-        # on, and every fault going on or off.
-        self._steps_done = 0
-        self._schedule = [
-            (f, self._step_of(f.start_s), None if f.end_s is None else self._step_of(f.end_s))
-            for f in config.faults
-        ]
-        self._schedule_on = [False] * len(config.faults)
-        self._fault_log: list[FaultEvent] = []
-        self._network.on_dropped = self._dropped_bus_off
+        self._steps_done = 0  # plant steps run since start: the rack's time, SYNCs advance it
+        self._started = False
+        self._faults = RackFaults(
+            self._axes,
+            self._network,
+            self._counters,
+            config.faults,
+            self._sim.dt_s,
+            steps=lambda: self._steps_done,
+            started=lambda: self._started,
+            lock=self._lock,
+            clock=self._clock,
+            emcy=self._emcy,
+            communication_error=self._communication_error,
+            set_drive=self._set_drive,
+        )
         eds = config.eds_path or str(eds_path())
         for joint_index, axis_config in enumerate(config.axes):
             plant_index = self._sim.axis_names.index(axis_config.name)
@@ -221,7 +225,6 @@ class VirtualDriveRack:
             self._sdo_servers[cia301.SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
         self._stop_event = threading.Event()
         self._monitor_thread: threading.Thread | None = None
-        self._started = False
         self._stopped = False
 
     # --- lifecycle -------------------------------------------------------------------------
@@ -252,7 +255,7 @@ class VirtualDriveRack:
             for axis in self._axes:
                 self._reset(axis, communication_only=False, now=now)
                 self._boot(axis)
-                self._reassert_faults(axis, now)
+                self._faults.reassert(axis, now)
         if self._lockstep:
             return  # the SYNCs run the watchdogs and timers (`_on_sync`)
         self._monitor_thread = threading.Thread(
@@ -351,7 +354,7 @@ class VirtualDriveRack:
     def fault_log(self) -> tuple[FaultEvent, ...]:
         """Every injected fault going on (value != 0) or off (0), in order."""
         with self._lock:
-            return tuple(self._fault_log)
+            return tuple(self._faults.log)
 
     def set_fault(self, axis_name: str, kind: str, value: int) -> None:
         """Switch a fault on (value != 0) or off (0) at once, as a write of 0x2030 would.
@@ -373,7 +376,7 @@ class VirtualDriveRack:
         if isinstance(value, bool) or not 0 <= value <= high:
             raise ValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
         with self._lock:
-            self._set_fault(axis, kind, value, "api", self._clock())
+            self._faults.set(axis, kind, value, "api", self._clock())
 
     def _axis(self, name: str) -> Drive:
         try:
@@ -530,7 +533,7 @@ class VirtualDriveRack:
     def _write(self, axis: Drive, index: int, subindex: int, value: int, now: float) -> None:
         """Validate and apply a write (SDO or RPDO); SdoAbortedError refuses it."""
         if index == od.FAULT_INJECTION:
-            self._write_fault(axis, subindex, value, now)
+            self._faults.write(axis, subindex, value, now)
             return
         if index == od.CONTROLWORD:
             self._apply_controlword(axis, value, now)
@@ -575,7 +578,7 @@ class VirtualDriveRack:
         if cia402.is_fault_reset_edge(controlword, axis.drive.controlword) and not persisting:
             self._clear_errors(axis)
             if axis.faults.emcy_code:  # the raised EMCY is reset with the other errors
-                self._set_fault(axis, "emcy", 0, "fault reset", now)
+                self._faults.set(axis, "emcy", 0, "fault reset", now)
         state = cia402.apply_controlword(axis.drive, controlword, self._quick_stop_option(axis))
         if persisting:
             # CiA 402-2: a fault reset leaves FAULT only once the fault's cause is gone.
@@ -637,161 +640,6 @@ class VirtualDriveRack:
         if axis.drive.power is not before:
             self._set_error(axis, cia402.EMCY_LEFT_OPERATIONAL)
 
-    # --- fault injection (object 0x2030, the `faults:` schedule) ----------------------------
-
-    def _step_of(self, time_s: float) -> int:
-        """The first plant step count at which the rack's time is >= `time_s`."""
-        return math.ceil(time_s / self._sim.dt_s - 1e-9)
-
-    def _write_fault(self, axis: Drive, subindex: int, value: int, now: float) -> None:
-        """An SDO write of 0x2030: switch the fault of that sub-index on or off."""
-        kind = next((k for k, sub in FAULT_KINDS.items() if sub == subindex), None)
-        if kind is None:
-            raise SdoAbortedError(cia301.ABORT_NO_SUBINDEX)
-        if kind == "heartbeat_off" and value not in (0, 1):
-            raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
-        if kind != "bus_off":
-            self._set_fault(axis, kind, value, "sdo", now)
-        elif value and not axis.faults.bus_off:
-            # Off the bus after this write's SDO answer, the node's last frame (the master
-            # sees the write succeed), for `value` ms of the rack's time.
-            def go_off() -> None:
-                with self._lock:
-                    self._set_fault(axis, "bus_off", 1, "sdo", self._clock())
-                    axis.faults.bus_off_ms = value
-                    axis.faults.bus_off_until_step = self._steps_done + self._step_of(value * 1e-3)
-
-            self._network.after_send[cia301.SDO_RESPONSE_COB_BASE + axis.config.node_id] = go_off
-
-    def _set_fault(self, axis: Drive, kind: str, value: int, source: str, now: float) -> None:
-        """Switch one fault of one drive on (value != 0) or off (0), and log it."""
-        if kind == "lost_tpdo":
-            axis.faults.lost_tpdos = value
-        elif kind == "heartbeat_off":
-            axis.faults.heartbeat_off = bool(value)
-            self._update_silence(axis)
-        elif kind == "emcy":
-            self._raise_emcy(axis, value)
-        elif kind == "drive_fault":
-            self._drive_fault(axis, value, now)
-        else:
-            self._bus_off(axis, bool(value), now)
-        self._fault_log.append(
-            FaultEvent(self._steps_done * self._sim.dt_s, axis.config.name, kind, value, source)
-        )
-
-    def _raise_emcy(self, axis: Drive, code: int) -> None:
-        """Send EMCY `code` with its 0x1001 bits set (CiA 301 7.2.7, 7.5.2.2); 0 clears them.
-
-        The drive's CiA 402 state and 0x603F do not change: an EMCY that is not a drive fault
-        (`_drive_fault` is). Clearing leaves 0x1001 as a drive error (0x603F) needs it, and
-        sends EMCY 0x0000 "error reset" when no error is left (CiA 301 7.2.7.1).
-        """
-        axis.faults.emcy_code = code
-        register = axis.value(od.ERROR_REGISTER)
-        if code:
-            axis.values[(od.ERROR_REGISTER, 0)] = register | od.error_register_for(code)
-            self._emcy(axis, code)
-        elif register and not axis.value(od.ERROR_CODE):
-            axis.values[(od.ERROR_REGISTER, 0)] = 0
-            self._emcy(axis, cia402.EMCY_ERROR_RESET)
-
-    def _drive_fault(self, axis: Drive, code: int, now: float) -> None:
-        """A drive fault (CiA 402-2 transition 13): 0x603F = code, 0x1001, EMCY, FAULT.
-
-        The power stage goes off (no torque: a self-locking axis holds, a reversible one
-        moves under its load). 0 removes the fault's cause; the drive stays in FAULT until the
-        master's fault reset (controlword bit 7), which is refused while the cause lasts.
-        """
-        axis.faults.drive_fault = code
-        if not code:
-            return
-        axis.values[(od.ERROR_CODE, 0)] = code
-        axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | od.error_register_for(
-            code
-        )
-        self._emcy(axis, code)
-        self._set_drive(axis, cia402.fault(axis.drive), now)
-
-    def _bus_off(self, axis: Drive, on: bool, now: float) -> None:
-        """A node's CAN controller goes bus-off (on) or recovers (off).
-
-        In bus-off a node takes no part in the bus (ISO 11898-1): it sends nothing (TPDO,
-        EMCY, SDO answer, heartbeat) and takes nothing (SDO, NMT, SYNC, RPDO, heartbeat).
-        Bus-off is a communication error: 0x603F = 0x8140, 0x1001, the CiA 402-2 0x6007
-        reaction and the CiA 301 0x1029 sub 1 NMT change (7.5.2.32 lists bus-off among the
-        communication errors) apply at once. On recovery the node resumes in the NMT state
-        that left it, with its configuration (no reset, no boot-up: CiA 301 asks none), and
-        sends EMCY 0x8140 "recovered from bus off" with 0x1001.
-        """
-        faults = axis.faults
-        if on == faults.bus_off:
-            return
-        faults.bus_off = on
-        node, network = axis.node, self._network
-        sdo_cob = cia301.SDO_REQUEST_COB_BASE + axis.config.node_id
-        if on:
-            network.unsubscribe(sdo_cob, node.sdo.on_request)
-            network.unsubscribe(cia301.NMT_COB_ID, node.nmt.on_command)
-            self._update_silence(axis)
-            for pdo in axis.rpdos:
-                pdo.latched = None
-            self._communication_error(axis, EMCY_BUS_OFF_RECOVERED, now)
-            return
-        faults.bus_off_ms, faults.bus_off_until_step = 0, None
-        network.subscribe(sdo_cob, node.sdo.on_request)
-        network.subscribe(cia301.NMT_COB_ID, node.nmt.on_command)
-        self._update_silence(axis, restart_heartbeat=False)
-        self._emcy(axis, EMCY_BUS_OFF_RECOVERED)  # its first frame back, then the heartbeat
-        if not faults.heartbeat_off and self._started:
-            node.nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
-
-    def _update_silence(self, axis: Drive, restart_heartbeat: bool = True) -> None:
-        """Mute the frames of bus-off nodes, stop or restart `axis`'s heartbeat producer."""
-        muted: set[int] = set()
-        periodic: set[int] = set()
-        for a in self._axes:
-            node_id = a.config.node_id
-            if a.faults.bus_off:
-                muted |= {
-                    cia301.EMCY_COB_BASE + node_id,
-                    cia301.SDO_RESPONSE_COB_BASE + node_id,
-                    cia301.HEARTBEAT_COB_BASE + node_id,
-                }
-            if a.faults.bus_off or a.faults.heartbeat_off:
-                periodic.add(cia301.HEARTBEAT_COB_BASE + node_id)
-        cob = cia301.HEARTBEAT_COB_BASE + axis.config.node_id
-        was_silent = cob in self._network.muted_periodic
-        self._network.muted = frozenset(muted)
-        self._network.muted_periodic = frozenset(periodic)
-        nmt = axis.node.nmt
-        if cob in periodic and not was_silent:
-            nmt.stop_heartbeat()  # type: ignore[no-untyped-call]
-        elif was_silent and cob not in periodic and self._started and restart_heartbeat:
-            nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
-
-    def _dropped_bus_off(self, cob_id: int) -> None:
-        self._counters.frames_dropped_bus_off += 1
-
-    def _run_fault_clock(self, now: float) -> None:
-        """At a SYNC: the schedule's faults that start or end now, and timed bus-offs' ends."""
-        step = self._steps_done
-        for k, (entry, start, end) in enumerate(self._schedule):
-            on = step >= start and (end is None or step < end)
-            if on != self._schedule_on[k]:
-                self._schedule_on[k] = on
-                axis = self._by_name[entry.joint]
-                self._set_fault(axis, entry.kind, entry.value if on else 0, "schedule", now)
-        for axis in self._axes:
-            until = axis.faults.bus_off_until_step
-            if until is not None and step >= until:
-                self._set_fault(axis, "bus_off", 0, "sdo", now)
-
-    def _reassert_faults(self, axis: Drive, now: float) -> None:
-        """After a reset node: a drive fault whose cause lasts faults the drive again."""
-        if axis.faults.drive_fault:
-            self._drive_fault(axis, axis.faults.drive_fault, now)
-
     # --- NMT -------------------------------------------------------------------------------
 
     def _reset(self, axis: Drive, communication_only: bool, now: float) -> None:
@@ -848,7 +696,7 @@ class VirtualDriveRack:
                     self._nmt_reaction(axis, now)
                 self._reset(axis, communication_only, now)
                 self._boot(axis)
-                self._reassert_faults(axis, now)
+                self._faults.reassert(axis, now)
 
     def _enter_nmt(self, axis: Drive, state: str, now: float) -> None:
         """Move a node to an NMT state (its canopen NmtSlave is set by the caller).
@@ -1018,8 +866,8 @@ class VirtualDriveRack:
         if not self._sync_length_ok(data):
             return
         self._counters.syncs += 1
-        if self._schedule or self._fault_log:
-            self._run_fault_clock(now)
+        if not self._faults.idle:
+            self._faults.run_clock(now)
         operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL and not a.faults.bus_off]
         for axis in operational:
             self._apply_latched_rpdos(axis, now)
