@@ -1,21 +1,14 @@
 """The CANopen master of the CAN bridge: configuration, the cyclic thread, safety (no ROS).
 
-`Cia402Master` drives CiA 402 drives in cyclic synchronous torque mode over a `canopen.Network`:
+`Cia402Master` drives CiA 402 drives in cyclic synchronous torque (or velocity) mode over a
+`canopen.Network`: `init()` configures every drive over SDO in PRE-OPERATIONAL and starts it;
+a cyclic thread of its own sends each drive's RPDOs, SYNC and the master heartbeat, walking
+the power state machine one legal step per cycle (`lca_sim.cia402.controlword`), never
+blocking; TPDOs on the network's notifier thread fill a per-cycle snapshot, handed to
+`on_state` once every drive has answered the SYNC. Safety is here, whatever the controller
+does: command silence, stale drives, lost heartbeats, stalls, EMCYs, error frames and bus-off
+(docs/can.md, "Watchdogs and safety").
 
-* `init()` configures every drive over SDO in PRE-OPERATIONAL (mode 10, cycle period, heartbeat
-  producer and consumer, RPDO deadline), reads its rated values and PDO mapping, and starts it
-  (NMT OPERATIONAL);
-* a cyclic thread of its own (default 500 Hz) sends each drive's RPDO1 (controlword, target
-  torque) and then SYNC, plus the master heartbeat, and walks the CiA 402 power state machine
-  one legal step per cycle (`lca_sim.cia402.controlword.next_controlword`), never blocking;
-* TPDOs arriving on the network's notifier thread fill a per-cycle snapshot, handed to
-  `on_state` once every drive has answered the SYNC.
-
-Safety is here, whatever the controller does (docs/can.md): command silence halts with zero
-torque, then quick-stops; a stale drive, a drive whose heartbeat stopped (the master's heartbeat
-consumer) and, while enabled, a stall of complete cycles stop every axis; an EMCY latches a
-fault until `recover()`; error frames and bus-off stop the cyclic transmission; repeated send
-failures halt.
 Its parameters are `master_params`, its snapshot types `master_state`, its PDO layout and
 TPDO decoding `master_pdo`. The ROS shell is `lca_sim.ros.can_bridge_node`.
 """

@@ -1,20 +1,18 @@
 """The virtual drive rack: one CiA 402 CANopen node per axis over one coupled lca_sim plant (shell).
 
-Four `canopen.LocalNode`s (SDO server, NMT slave with boot-up and heartbeat, EMCY producer) on one
-python-can bus, all backed by ONE `CommandedPlant(interface="current")` of one `Simulator`, so the
-axes stay coupled through the Pinocchio gantry model. The drive logic is the pure
-`lca_sim.cia402.device`, the objects `lca_sim.cia402.objects`, their scaling
-`lca_sim.cia402.codec`; this module does the bus I/O, the object storage, the PDOs and the
-watchdog timing. docs/can.md, "The virtual drive rack", is the contract a master relies on
-(boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and 0, watchdogs, fault injection, remapping).
+Four `canopen.LocalNode`s (SDO server, NMT slave, EMCY producer) on one python-can bus, all
+backed by ONE `CommandedPlant(interface="current")` of one `Simulator`, so the axes stay coupled
+through the gantry model. The drive logic is `lca_sim.cia402.device`, the objects
+`lca_sim.cia402.objects`, their scaling `lca_sim.cia402.codec`. docs/can.md, "The virtual drive
+rack", is the contract a master relies on (boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and
+0, watchdogs, fault injection, remapping).
 
     rack = VirtualDriveRack(bus, load_rack_config(None))   # lca_sim.config.rack
     with rack: rack.power_state("pivot")                     # start() ... stop()
 
-Its parts: `rack_state` (per-drive values), `rack_network` (the bus side), `rack_pdo` (the
-PDOs), `rack_watchdog` (deadlines, SYNC rate, freeze discount), `rack_faults` (fault
-injection); the console
-script `lca-virtual-drive` is `lca_sim.cli.virtual_drive`.
+Its parts: `rack_state` (per-drive values), `rack_network` (the bus side), `rack_pdo` (PDOs),
+`rack_watchdog` (deadlines, SYNC rate, freeze discount), `rack_faults` (fault injection). The
+console script `lca-virtual-drive` is `lca_sim.cli.virtual_drive`.
 """
 
 from __future__ import annotations
