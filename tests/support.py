@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
+    from lca_sim.canbus.master import Cia402Master
     from lca_sim.canbus.master_params import BridgeParams
     from lca_sim.canbus.virtual_rack import VirtualDriveRack
     from lca_sim.model.params import RobotParams
@@ -420,6 +421,16 @@ class Probe:
         """Stop recording and close the bus."""
         self._notifier.stop()
         self.bus.shutdown()
+
+
+@dataclass
+class RackAndMaster:
+    """The shipped rack and the bridge's master (built, not initialised) on one channel."""
+
+    channel: str
+    rack: VirtualDriveRack
+    network: canopen.Network
+    bridge: Cia402Master
 
 
 def remote_node(network: canopen.Network, node_id: int) -> canopen.RemoteNode:

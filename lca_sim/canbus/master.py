@@ -896,13 +896,14 @@ class Cia402Master:
 
     def _send_failed(self, exc: can.CanError) -> None:
         """Count a failed send; `max_send_failures` of them in a row halt the axes."""
-        self.counters.send_failures += 1
         self._send_failures_in_row += 1
         in_row = self._send_failures_in_row
+        halting = in_row >= self.params.max_send_failures and not self._failure_halt
         if in_row >= self.params.max_send_failures:
-            if not self._failure_halt:
-                log.error("%d failed sends in a row: halt (%s)", in_row, exc)
-            self._failure_halt = True
+            self._failure_halt = True  # before the count: whoever sees the count sees the halt
+        self.counters.send_failures += 1
+        if halting:
+            log.error("%d failed sends in a row: halt (%s)", in_row, exc)
 
     # --- inspection ----------------------------------------------------------------------
 

@@ -18,17 +18,15 @@ from typing import Any
 import can
 import canopen
 import pytest
-from support import bridge_params, wait_until
+from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim.canbus import emcy
-from lca_sim.canbus.master import CAN_ERR_BUSOFF, Cia402Master
+from lca_sim.canbus.master import CAN_ERR_BUSOFF
 from lca_sim.canbus.master_params import BridgeError
 from lca_sim.canbus.master_state import Snapshot
-from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir
-from lca_sim.config.rack import load_rack_config
 
 EDS = config_dir() / "can" / "lca_drive.eds"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -37,14 +35,10 @@ _channels = itertools.count()
 
 
 @dataclass
-class Rig:
+class Rig(RackAndMaster):
     """A rack, a bridge on the same virtual channel, and a spare bus for injected frames."""
 
-    rack: Any
-    bridge: Cia402Master
-    network: canopen.Network
     injector: can.BusABC
-    channel: str
     snapshots: list[Snapshot] = field(default_factory=list)
     feeding: threading.Event = field(default_factory=threading.Event)
     currents_a: list[float] = field(default_factory=lambda: [0.0] * 4)
@@ -60,24 +54,13 @@ class Rig:
 
 
 @pytest.fixture
-def rig_factory() -> Iterator[Callable[..., Rig]]:
+def rig_factory(
+    rack_and_master: Callable[..., RackAndMaster],
+) -> Iterator[Callable[..., Rig]]:
     """Build rigs; everything started is stopped at the end, whatever happened."""
-    cleanups: list[Callable[[], None]] = []
+    injectors: list[can.BusABC] = []
 
     def build(before_init: Callable[[str], None] | None = None, **overrides: Any) -> Rig:
-        channel = f"test_master_{next(_channels)}"
-        rack_bus = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(rack_bus.shutdown)
-        rack = VirtualDriveRack(rack_bus, load_rack_config(None))
-        rack.start()
-        cleanups.append(rack.stop)
-        if before_init is not None:  # e.g. remap the drives as a real one is mapped
-            before_init(channel)
-        injector = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(injector.shutdown)
-        network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-        network.connect()
-        cleanups.append(network.disconnect)
         rig_holder: list[Rig] = []
 
         def on_state(snapshot: Snapshot) -> None:
@@ -87,17 +70,26 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
                 rig.bridge.set_currents(rig.currents_a)
                 rig.last_fed_s = time.monotonic()
 
-        bridge = Cia402Master(network, bridge_params(**overrides), EDS, on_state=on_state)
-        cleanups.append(bridge.stop)
-        rig = Rig(rack, bridge, network, injector, channel)
+        built = rack_and_master(
+            f"test_master_{next(_channels)}",
+            bridge_params(**overrides),
+            on_state=on_state,
+            settle=True,
+            before_master=before_init,  # e.g. remap the drives as a real one is mapped
+        )
+        injector = can.Bus(interface="virtual", channel=built.channel)
+        injectors.append(injector)
+        rig = Rig(built.channel, built.rack, built.network, built.bridge, injector)
         rig_holder.append(rig)
-        bridge.init()
-        bridge.start()
+        built.bridge.init()
+        built.bridge.start()
         return rig
 
-    yield build
-    for cleanup in reversed(cleanups):
-        cleanup()
+    try:
+        yield build
+    finally:
+        for injector in injectors:
+            injector.shutdown()
 
 
 def _enabled(rig: Rig, feed: bool = True) -> Rig:
@@ -673,8 +665,8 @@ def test_csv_the_drive_closes_the_velocity_loop_on_the_target_velocity(
     """
     rig = rig_factory(modes=("cst", "csv", "cst", "cst"))
     assert rig.bridge.velocity_axes == ("pivot",)
-    assert rig.rack.node("pivot").sdo[0x6060].raw == 9
-    assert rig.rack.node("l_arm").sdo[0x6060].raw == 10
+    assert rig.rack.node("pivot").sdo[0x6060].raw == 9  # type: ignore[union-attr]
+    assert rig.rack.node("l_arm").sdo[0x6060].raw == 10  # type: ignore[union-attr]
     target_rad_s = 0.02
     assert rig.bridge.set_velocities([0.0, target_rad_s, 0.0, 0.0]) is None
     _enabled(rig)

@@ -19,16 +19,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import can
-import canopen
 import pytest
-from support import bridge_params, wait_until
+from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import Cia402Master
-from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import PowerState
-from lca_sim.config.rack import eds_path, load_rack_config
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)
@@ -42,6 +38,7 @@ class TargetTorques(can.Listener):
     """The target torques (RPDO1 of the compact layout, per mille) the master sends, per node."""
 
     def __init__(self, channel: str) -> None:
+        self.channel = channel
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.sent: dict[int, list[int]] = {n: [] for n in NODE_IDS}
         self._lock = threading.Lock()
@@ -71,11 +68,9 @@ class TargetTorques(can.Listener):
 
 
 @dataclass
-class Rig:
+class Rig(RackAndMaster):
     """The shipped rack, the bridge's master cycling at 250 Hz, a timer-driven controller."""
 
-    rack: VirtualDriveRack
-    bridge: Cia402Master
     torques: TargetTorques
     currents_a: tuple[float, ...] = (0.0, PIVOT_A, 0.0, 0.0)
 
@@ -114,29 +109,17 @@ class Rig:
 
 
 @pytest.fixture
-def rig(default_robot: RobotParams) -> Iterator[Rig]:
+def rig(default_robot: RobotParams, rack_and_master: Callable[..., RackAndMaster]) -> Iterator[Rig]:
     """The rack and the master, initialised and cycling, with a controller on a 5 ms timer."""
-    channel = f"test_master_watch_{os.getpid()}_{next(_channels)}"
-    cleanups: list[Callable[[], None]] = []
+    torques = TargetTorques(f"test_master_watch_{os.getpid()}_{next(_channels)}")
     stop = threading.Event()
+    feeder: threading.Thread | None = None
     try:
-        torques = TargetTorques(channel)
-        cleanups.append(torques.close)
-        rack_bus = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(rack_bus.shutdown)
-        rack = VirtualDriveRack(rack_bus, load_rack_config(None), robot=default_robot)
-        rack.start(settle=False)
-        cleanups.append(rack.stop)
-        network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-        network.connect()
-        cleanups.append(network.disconnect)
-        bridge = Cia402Master(
-            network,
-            bridge_params(default_robot, cycle_hz=CYCLE_HZ, command_timeout_s=1.0),
-            eds_path(),
-        )
-        cleanups.append(bridge.stop)
-        rig = Rig(rack, bridge, torques)
+        # the master's heartbeat consumer keeps its default, 3 x 100 ms
+        params = bridge_params(default_robot, cycle_hz=CYCLE_HZ, command_timeout_s=1.0)
+        built = rack_and_master(torques.channel, params, robot=default_robot)
+        bridge = built.bridge
+        rig = Rig(built.channel, built.rack, built.network, bridge, torques)
 
         def controller() -> None:  # commands whether states come or not, as a timer would
             while not stop.wait(0.005):
@@ -147,12 +130,12 @@ def rig(default_robot: RobotParams) -> Iterator[Rig]:
         bridge.set_currents(rig.currents_a)
         bridge.start()
         feeder.start()
-        cleanups.append(feeder.join)
-        cleanups.append(stop.set)
         yield rig
     finally:
-        for cleanup in reversed(cleanups):
-            cleanup()
+        stop.set()
+        if feeder is not None and feeder.is_alive():
+            feeder.join()
+        torques.close()
 
 
 def _latched_within(rig: Rig, text: str, bound_s: float) -> float:
