@@ -432,6 +432,20 @@ class RackAndMaster:
     network: canopen.Network
     bridge: Cia402Master
 
+    def enable_all(self, timeout_s: float = 10.0) -> None:
+        """Ask the master to enable; wait until every drive reports OPERATION ENABLED."""
+        from lca_sim.cia402.device import PowerState
+
+        assert self.bridge.enable(True) == "enabling"
+        wait_until(
+            lambda: all(
+                self.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
+                for j in self.bridge.joints
+            ),
+            "every drive enabled",
+            timeout_s,
+        )
+
 
 def remote_node(network: canopen.Network, node_id: int) -> canopen.RemoteNode:
     """A remote node of a canopen master, with the drive's EDS and a patient SDO client."""

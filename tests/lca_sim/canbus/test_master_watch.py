@@ -24,7 +24,6 @@ from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.device import PowerState
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)
@@ -76,15 +75,7 @@ class Rig(RackAndMaster):
 
     def enable(self) -> None:
         """Every drive to operation enabled, the pivot at its 2 A."""
-        assert self.bridge.enable(True) == "enabling"
-        wait_until(
-            lambda: all(
-                self.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
-                for j in JOINTS
-            ),
-            "every drive enabled",
-            10.0,
-        )
+        self.enable_all()
         wait_until(lambda: abs(self.current_a(1) - PIVOT_A) < 0.05, "pivot at 2 A", 10.0)
 
     def current_a(self, k: int) -> float:

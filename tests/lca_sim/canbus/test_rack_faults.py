@@ -98,15 +98,7 @@ class Rig(RackAndMaster):
     def enable(self) -> None:
         """Every drive to operation enabled, the controller's currents answering each state."""
         self.bridge.set_currents(self.currents_a)
-        assert self.bridge.enable(True) == "enabling"
-        wait_until(
-            lambda: all(
-                self.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
-                for j in JOINTS
-            ),
-            "every drive enabled",
-            10.0,
-        )
+        self.enable_all()
 
     def after_syncs(self, count: int) -> None:
         """Wait until the rack has processed `count` more SYNCs."""
