@@ -20,7 +20,7 @@ Over a window of `--window-s` (10 s by default) it reports:
 * the latency from SYNC to the last TPDO of the cycle, p50 and p99;
 * the bridge thread's period jitter (p50 and p99 of |period - 1/rate|);
 * frames per second on the bus (both directions), and the load those frames would put on a
-  1 Mbit/s classical CAN bus (worst-case bit stuffing, `lca_sim.cia402.master.frame_bits`).
+  1 Mbit/s classical CAN bus (worst-case bit stuffing, `lca_sim.cia402.bus_load.frame_bits`).
 
 Targets: at least 99 % of cycles on time at 500 Hz (both modes), and cross-process at least 95 %
 at 1000 Hz. The script ends with one JSON line holding both modes.
@@ -53,11 +53,14 @@ import can
 import canopen
 import numpy as np
 
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_params import BridgeParams
+from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
+from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.cia402.device import PowerState
-from lca_sim.cia402.master import bus_load_pct
 from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.rack import load_rack_config
 from lca_sim.output import strict_json
 from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap
 
@@ -165,7 +168,7 @@ def rack_command(switch_interval_s: float | None) -> list[str]:
         return [str(BIN / "lca-virtual-drive")]
     code = (
         f"import sys; sys.setswitchinterval({switch_interval_s!r}); "
-        "from lca_sim.canbus.virtual_rack import main; sys.exit(main())"
+        "from lca_sim.cli.virtual_drive import main; sys.exit(main())"
     )
     return [sys.executable, "-c", code]
 

@@ -96,8 +96,8 @@ LOG_TAIL_LINES = 8
 ENTRY_POINTS = {
     "lca-can-bridge": ("lca_sim.cli.nodes", "can_bridge"),
     "lca-controller": ("lca_sim.cli.nodes", "controller"),
-    "lca-virtual-drive": ("lca_sim.canbus.virtual_rack", "main"),
-    "lca-can-server": ("lca_sim.canbus.remote", "main"),
+    "lca-virtual-drive": ("lca_sim.cli.virtual_drive", "main"),
+    "lca-can-server": ("lca_sim.cli.can_server", "main"),
 }
 # The child's first lines: die with this script (parent-death signal), say where lca_sim came
 # from, then run the console script's function as the installed wrapper does.

@@ -11,15 +11,20 @@ import json
 import math
 import os
 import signal
+import struct
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
+import can
+import canopen
 import pytest
 
 from lca_control.contract import JOINT_STATE_TYPE, JOINT_STATES
@@ -31,6 +36,10 @@ if TYPE_CHECKING:
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
+    from lca_sim.canbus.master import Cia402Master
+    from lca_sim.canbus.master_params import BridgeParams
+    from lca_sim.canbus.virtual_rack import VirtualDriveRack
+    from lca_sim.model.params import RobotParams
     from lca_sim.ros.simulator_node import SimulatorNode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -335,3 +344,140 @@ def start_shipped(script: str, params: str, domain_id: int, out: Path) -> NodePr
         start_new_session=True,
     )
     return NodeProcess(script, proc, log)
+
+
+# --- CAN rigs: the shipped rack's drives, a frame probe, the bridge's parameters ---------------
+
+CAN_JOINTS = ("l_arm", "pivot", "c_arc", "lift")
+CAN_NODE_IDS = (1, 2, 3, 4)  # the shipped config/can/rack.yaml
+# The bridge's watchdogs with room for a shared 2-core machine's stalls (a CI run saw a 0.3 s
+# one): the drive-side watchdogs are not what most tests are about, and the tests of the
+# watchdogs themselves still see them fire within their deadlines.
+ROOMY_WATCHDOGS: Mapping[str, Any] = MappingProxyType(
+    {"rpdo_deadline_ms": 500, "heartbeat_consumer_ms": 1000, "stale_timeout_s": 0.5}
+)
+
+
+def bridge_params(robot: RobotParams | None = None, **overrides: Any) -> BridgeParams:
+    """The bridge's parameters for the shipped rack at 250 Hz, roomy watchdogs; `overrides` win.
+
+    Args:
+        robot: the robot whose motors and gears the drives have; None: the shipped default.
+        overrides: BridgeParams fields to set otherwise.
+    """
+    from lca_sim.canbus.master_params import BridgeParams
+    from lca_sim.config.loader import load_robot
+
+    robot = load_robot("default") if robot is None else robot
+    axes = {a.name: a for a in robot.axes}
+    values: dict[str, Any] = {
+        "joints": CAN_JOINTS,
+        "node_ids": CAN_NODE_IDS,
+        "torque_constants_nm_per_a": tuple(
+            axes[j].motor.torque_constant_nm_per_a for j in CAN_JOINTS
+        ),
+        "gear_ratios": tuple(axes[j].gear_ratio for j in CAN_JOINTS),
+        "drive_state_names": robot.state_machine.state_names,
+        "cycle_hz": 250.0,
+        **ROOMY_WATCHDOGS,
+    }
+    values.update(overrides)
+    return BridgeParams(**values)
+
+
+class Probe:
+    """A raw bus on a virtual channel that records every frame and sends raw frames."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.frames: list[can.Message] = []
+        self._lock = threading.Lock()
+        self._notifier = can.Notifier(self.bus, [self._record], timeout=0.05)
+
+    def _record(self, msg: can.Message) -> None:
+        with self._lock:
+            self.frames.append(msg)
+
+    def mark(self) -> int:
+        """The position of the next frame to arrive (for `wait` and `seen`)."""
+        with self._lock:
+            return len(self.frames)
+
+    def seen(self, cob_id: int, since: int = 0) -> list[bytes]:
+        """Data of the frames with this COB-ID received since `since`."""
+        with self._lock:
+            return [bytes(m.data) for m in self.frames[since:] if m.arbitration_id == cob_id]
+
+    def wait(self, cob_id: int, since: int = 0, timeout_s: float = 5.0) -> bytes:
+        """Wait for a frame with this COB-ID after `since`; return its data."""
+        wait_until(lambda: bool(self.seen(cob_id, since)), f"a frame 0x{cob_id:03X}", timeout_s)
+        return self.seen(cob_id, since)[0]
+
+    def send(self, cob_id: int, data: bytes = b"") -> None:
+        """Send one standard frame."""
+        self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+
+    def close(self) -> None:
+        """Stop recording and close the bus."""
+        self._notifier.stop()
+        self.bus.shutdown()
+
+
+@dataclass
+class RackAndMaster:
+    """The shipped rack and the bridge's master (built, not initialised) on one channel."""
+
+    channel: str
+    rack: VirtualDriveRack
+    network: canopen.Network
+    bridge: Cia402Master
+
+    def enable_all(self, timeout_s: float = 10.0) -> None:
+        """Ask the master to enable; wait until every drive reports OPERATION ENABLED."""
+        from lca_sim.cia402.device import PowerState
+
+        assert self.bridge.enable(True) == "enabling"
+        wait_until(
+            lambda: all(
+                self.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
+                for j in self.bridge.joints
+            ),
+            "every drive enabled",
+            timeout_s,
+        )
+
+
+def remote_node(network: canopen.Network, node_id: int) -> canopen.RemoteNode:
+    """A remote node of a canopen master, with the drive's EDS and a patient SDO client."""
+    node = canopen.RemoteNode(node_id, str(CONFIG / "can" / "lca_drive.eds"))
+    network.add_node(node)
+    node.sdo.RESPONSE_TIMEOUT = 2.0
+    return node
+
+
+def rack_sync(rack: VirtualDriveRack, probe: Probe, count: int = 1) -> None:
+    """Send `count` SYNCs and wait until the rack has processed them all."""
+    done = rack.counters.syncs + count
+    for _ in range(count):
+        probe.send(0x080)
+    wait_until(lambda: rack.counters.syncs >= done, f"{count} SYNC(s) processed")
+
+
+def rack_nmt(rack: VirtualDriveRack, probe: Probe, command: int, node_id: int, state: str) -> None:
+    """Send an NMT command and wait for the node's NMT state."""
+    probe.send(0x000, bytes([command, node_id]))
+    name = dict(zip(CAN_NODE_IDS, CAN_JOINTS, strict=True))[node_id]
+    wait_until(lambda: rack.nmt_state(name) == state, f"node {node_id} in {state}")
+
+
+def sdo_enable(node: canopen.RemoteNode) -> None:
+    """Walk a drive to OPERATION ENABLED over SDO."""
+    for controlword in (0x06, 0x07, 0x0F):
+        node.sdo[0x6040].raw = controlword
+    assert node.sdo[0x6041].raw & 0x6F == 0x27
+
+
+def emcy_code(data: bytes) -> tuple[int, int]:
+    """(error code, error register) of an EMCY frame."""
+    code, register = struct.unpack_from("<HB", data)
+    return code, register

@@ -510,7 +510,10 @@ def _loaded_after(modules: list[str], tmp_path: Path) -> set[str]:
     [
         pytest.param(["lca_sim"], id="lca_sim"),
         pytest.param(["lca_control"], id="lca_control"),
-        pytest.param(["lca_sim.cia402.device", "lca_sim.cia402.master"], id="cia402"),
+        pytest.param(
+            ["lca_sim.cia402.device", "lca_sim.cia402.controlword", "lca_sim.cia402.bus_load"],
+            id="cia402",
+        ),
         # lca-plot reads bags: no model, no JIT (matplotlib only once it plots).
         pytest.param(["lca_sim.cli.bagplot"], id="lca-plot"),
     ],

@@ -1,22 +1,16 @@
 """The CANopen master of the CAN bridge: configuration, the cyclic thread, safety (no ROS).
 
-`Cia402Master` drives CiA 402 drives in cyclic synchronous torque mode over a `canopen.Network`:
+`Cia402Master` drives CiA 402 drives in cyclic synchronous torque (or velocity) mode over a
+`canopen.Network`: `init()` configures every drive over SDO in PRE-OPERATIONAL and starts it;
+a cyclic thread of its own sends each drive's RPDOs, SYNC and the master heartbeat, walking
+the power state machine one legal step per cycle (`lca_sim.cia402.controlword`), never
+blocking; TPDOs on the network's notifier thread fill a per-cycle snapshot, handed to
+`on_state` once every drive has answered the SYNC. Safety is here, whatever the controller
+does: command silence, stale drives, lost heartbeats, stalls, EMCYs, error frames and bus-off
+(docs/can.md, "Watchdogs and safety").
 
-* `init()` configures every drive over SDO in PRE-OPERATIONAL (mode 10, cycle period, heartbeat
-  producer and consumer, RPDO deadline), reads its rated values and PDO mapping, and starts it
-  (NMT OPERATIONAL);
-* a cyclic thread of its own (default 500 Hz) sends each drive's RPDO1 (controlword, target
-  torque) and then SYNC, plus the master heartbeat, and walks the CiA 402 power state machine
-  one legal step per cycle (`lca_sim.cia402.master.next_controlword`), never blocking;
-* TPDOs arriving on the network's notifier thread fill a per-cycle snapshot, handed to
-  `on_state` once every drive has answered the SYNC.
-
-Safety is here, whatever the controller does (docs/can.md): command silence halts with zero
-torque, then quick-stops; a stale drive, a drive whose heartbeat stopped (the master's heartbeat
-consumer) and, while enabled, a stall of complete cycles stop every axis; an EMCY latches a
-fault until `recover()`; error frames and bus-off stop the cyclic transmission; repeated send
-failures halt.
-The ROS shell is `lca_sim.ros.can_bridge_node`.
+Its parameters are `master_params`, its snapshot types `master_state`, its PDO layout and
+TPDO decoding `master_pdo`. The ROS shell is `lca_sim.ros.can_bridge_node`.
 """
 
 from __future__ import annotations
@@ -39,285 +33,35 @@ from canopen.sdo.base import SdoArray, SdoRecord
 from canopen.sdo.client import SdoClient
 
 from lca_sim.canbus import emcy
+from lca_sim.canbus.freeze import Freeze, FreezeWatch
+from lca_sim.canbus.master_params import MODE_TARGETS, BridgeError, BridgeParams
+from lca_sim.canbus.master_pdo import (
+    CONTROLWORD_REFRESH_CYCLES,
+    CYCLIC_TPDO_OBJECTS,
+    EVERY_SYNC,
+    REQUIRED_TPDO_OBJECTS,
+    TARGETS,
+    RpdoPacker,
+    Target,
+    compile_apply,
+    configure_compact_pdos,
+)
+from lca_sim.canbus.master_state import AxisState, Counters, Snapshot, copied
 from lca_sim.canbus.remote import batched_sends
-from lca_sim.cia402 import codec
-from lca_sim.cia402 import master as cm
+from lca_sim.cia402 import bus_load, cia301, codec
+from lca_sim.cia402 import controlword as ctl
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
+from lca_sim.cia402.controlword import TorqueScale, Want
 from lca_sim.cia402.device import CW_HALT, MODE_CST, MODE_CSV, PowerState
-from lca_sim.cia402.master import TorqueScale, Want
-from lca_sim.runtime import FREEZE_THRESHOLD_S, discounted
+from lca_sim.runtime import discounted
 
 log = logging.getLogger(__name__)
 
-SYNC_COB_ID = 0x80
-HEARTBEAT_BASE = 0x700
-NMT_OPERATIONAL_CODE = 0x05
 CAN_ERR_BUSOFF = 0x00000040  # SocketCAN error class bit in an error frame's identifier
 CAN_ERR_CRTL = 0x00000004
-
-# TPDO objects a drive must map: what joint_states needs (CiA 402-2 0x6041, 0x6064, 0x606C,
-# 0x6078). Everything else a TPDO maps is decoded if the object table knows it.
-REQUIRED_TPDO_OBJECTS = frozenset(
-    {od.STATUSWORD, od.POSITION_ACTUAL, od.VELOCITY_ACTUAL, od.CURRENT_ACTUAL}
-)
-# What a complete cycle needs from every drive: the velocity loop's input, sent each SYNC.
-CYCLIC_TPDO_OBJECTS = frozenset({od.POSITION_ACTUAL, od.VELOCITY_ACTUAL})
-# CiA 301 0x1800 sub 2, transmission type 1: the TPDO goes out after every SYNC. Types 2..240
-# go out after every n-th SYNC, 254/255 on an event; they are decoded, but a cycle is complete
-# without them.
-EVERY_SYNC = 1
-PDO_LAYOUTS = ("compact", "drive")
-# CiA 402-2 cyclic synchronous modes the bridge runs an axis in: 0x6060 value, target object.
-MODES = {"cst": MODE_CST, "csv": MODE_CSV}
-MODE_TARGETS = {MODE_CST: od.TARGET_TORQUE, MODE_CSV: od.TARGET_VELOCITY}
-SYNC_TRANSMISSION_MAX = 240  # CiA 301: types 1-240 go after every n-th SYNC
-EVENT_TRANSMISSION_TYPES = (254, 255)  # CiA 301: event-driven (manufacturer / profile event)
-# Compact layout: an event TPDO that has none gets this inhibit time (100 us units, CiA 301
-# 0x1800 sub 3), so a state that flickers cannot fill the bus: 10 ms, 100 frames/s at most.
-EVENT_INHIBIT_100US = 100
-# A controlword in an RPDO of its own is sent when it changes and at least this often, so a
-# drive that restarted (or a frame lost on a real bus) has it again within 0.1 s at 1 kHz.
-CONTROLWORD_REFRESH_CYCLES = 100
 # The most SYNC -> command latencies kept between two `take_command_latencies` (8 s at 500 Hz).
 LATENCY_RECORDS = 4096
-
-
-def configure_compact_pdos(node: Any, slow_every: int, target: int = od.TARGET_TORQUE) -> None:
-    """Map a drive's PDOs for a fast cycle over SDO, as a master configures them at boot.
-
-    CiA 301 7.5.2.35-38: each PDO is disabled, remapped and enabled again (canopen's
-    `PdoMap.save`). The layout (docs/can.md, "PDO layout"):
-
-    * RPDO1: the mode's target (target torque 0x6071 in CST, 2 bytes; target velocity 0x60FF
-      in CSV, 4 bytes), applied at the next SYNC (type 1); RPDO2: controlword 0x6040, applied
-      on reception (type 255), sent by the master when it changes;
-    * TPDO1: position 0x6064 and velocity 0x606C after every SYNC (type 1): what the
-      controller's loops need each cycle, 8 bytes;
-    * TPDO2: statusword 0x6041 and current 0x6078 after every `slow_every`-th SYNC;
-    * the drive's other TPDOs keep their mapping: a synchronous one goes every `slow_every`-th
-      SYNC, an event-driven one without an inhibit time gets `EVENT_INHIBIT_100US`.
-
-    Args:
-        node: the drive's canopen RemoteNode, its PDOs read (`node.tpdo.read()`).
-        slow_every: the transmission type of the slow TPDOs (1-240).
-        target: the object RPDO1 carries (`MODE_TARGETS` of the axis's mode).
-    """
-    rpdo1, rpdo2 = node.rpdo[1], node.rpdo[2]
-    for pdo, index, trans_type in ((rpdo1, target, 1), (rpdo2, od.CONTROLWORD, 255)):
-        pdo.clear()
-        pdo.add_variable(index)
-        pdo.trans_type = trans_type
-        pdo.enabled = True
-    tpdo1, tpdo2 = node.tpdo[1], node.tpdo[2]
-    for pdo, indices, trans_type in (
-        (tpdo1, (od.POSITION_ACTUAL, od.VELOCITY_ACTUAL), 1),
-        (tpdo2, (od.STATUSWORD, od.CURRENT_ACTUAL), slow_every),
-    ):
-        pdo.clear()
-        for index in indices:
-            pdo.add_variable(index)
-        pdo.trans_type = trans_type
-        pdo.inhibit_time = 0
-        pdo.event_timer = 0
-        pdo.enabled = True
-    for number in node.tpdo:
-        pdo = node.tpdo[number]
-        if number <= 2 or not pdo.enabled:
-            continue
-        if 2 <= pdo.trans_type <= SYNC_TRANSMISSION_MAX:
-            pdo.trans_type = slow_every
-        elif pdo.trans_type in EVENT_TRANSMISSION_TYPES and not pdo.inhibit_time:
-            pdo.inhibit_time = EVENT_INHIBIT_100US
-    node.rpdo.save()
-    node.tpdo.save()
-
-
-class BridgeError(RuntimeError):
-    """A drive could not be configured or started (one line, with the drive and the object)."""
-
-
-@dataclass(frozen=True, slots=True)
-class BridgeParams:
-    """What the bridge needs to know of the robot and the bus.
-
-    Attributes:
-        joints: joint names, in the order of command arrays and published states.
-        node_ids: the CANopen node id of each joint's drive.
-        torque_constants_nm_per_a, gear_ratios: per joint, from the robot config.
-        drive_state_names: names of the drive-chain state codes (0x2010), if known.
-        master_node_id: the bridge's heartbeat id.
-        cycle_hz: SYNC rate.
-        bitrate_bit_s: for the bus-load figure.
-        command_timeout_s: controller silence beyond this: zero torque with halt.
-        quick_stop_after_s: silence beyond command_timeout_s + this: quick stop.
-        stale_timeout_s: a drive without TPDO for this long while running is stale.
-        heartbeat_producer_ms: written to each drive's 0x1017.
-        heartbeat_consumer_ms: written to each drive's 0x1016 (watching the master).
-        heartbeat_loss_periods: the master's own consumer time of each drive's heartbeat
-            (CiA 301 7.2.8.3.2.2; 0x1016 on a consumer), in the drives' producer periods
-            (`heartbeat_producer_ms`): a drive silent that long has lost its heartbeat.
-        rpdo_deadline_ms: written to each drive's 0x1400 sub 5.
-        max_send_failures: consecutive failed sends after which the axes halt.
-        pdo_layout: "compact": `init()` maps every drive's PDOs for this cycle
-            (`configure_compact_pdos`: a 4-axis 1 kHz cycle fits 1 Mbit/s); "drive": use the
-            mapping the drive has (it must map what `_bind_pdos` needs).
-        modes: per joint, "cst" (cyclic synchronous torque: the current command becomes the
-            target torque) or "csv" (cyclic synchronous velocity: the velocity command becomes
-            the target velocity 0x60FF and the drive closes the velocity loop); empty: all CST.
-        slow_tpdo_rate_hz: compact layout: the rate of the TPDOs that are not needed every
-            cycle (statusword and current, the drive-chain extras): every n-th SYNC with
-            n = round(cycle_hz / this), at least 1.
-    """
-
-    joints: tuple[str, ...]
-    node_ids: tuple[int, ...]
-    torque_constants_nm_per_a: tuple[float, ...]
-    gear_ratios: tuple[float, ...]
-    drive_state_names: tuple[str, ...] = ()
-    master_node_id: int = 127
-    cycle_hz: float = 500.0
-    bitrate_bit_s: float = 1_000_000.0
-    command_timeout_s: float = 0.1
-    quick_stop_after_s: float = 0.5
-    stale_timeout_s: float = 0.1
-    heartbeat_producer_ms: int = 100
-    heartbeat_consumer_ms: int = 300
-    heartbeat_loss_periods: float = 3.0
-    rpdo_deadline_ms: int = 100
-    max_send_failures: int = 10
-    pdo_layout: str = "compact"
-    slow_tpdo_rate_hz: float = 50.0
-    modes: tuple[str, ...] = ()
-
-    def mode_of(self, k: int) -> int:
-        """The 0x6060 value of joint k."""
-        return MODES[self.modes[k]] if self.modes else MODE_CST
-
-    @property
-    def drive_heartbeat_timeout_s(self) -> float:
-        """The master's heartbeat consumer time of every drive, s (0: 0x1017 = 0, not watched)."""
-        return self.heartbeat_loss_periods * self.heartbeat_producer_ms * 1e-3
-
-    @property
-    def stall_cycles(self) -> int:
-        """SYNCs without a complete cycle that make a stall: `stale_timeout_s` in SYNCs, >= 3."""
-        return max(3, math.ceil(self.stale_timeout_s * self.cycle_hz))
-
-    @property
-    def slow_tpdo_every(self) -> int:
-        """The transmission type (every n-th SYNC) of the compact layout's slow TPDOs."""
-        return max(1, min(SYNC_TRANSMISSION_MAX, round(self.cycle_hz / self.slow_tpdo_rate_hz)))
-
-    def __post_init__(self) -> None:
-        n = len(self.joints)
-        if n == 0 or len(set(self.joints)) != n:
-            raise ValueError(f"joints must be distinct and not empty, got {list(self.joints)}")
-        for name, values in (
-            ("node_ids", self.node_ids),
-            ("torque_constants_nm_per_a", self.torque_constants_nm_per_a),
-            ("gear_ratios", self.gear_ratios),
-        ):
-            if len(values) != n:
-                raise ValueError(f"{name} needs {n} values (one per joint), got {len(values)}")
-        ids = [*self.node_ids, self.master_node_id]
-        if any(not 1 <= i <= 127 for i in ids) or len(set(ids)) != len(ids):
-            raise ValueError(f"node ids must be distinct, in 1..127, got {ids}")
-        if not 1.0 <= self.cycle_hz <= 2000.0:
-            raise ValueError(f"cycle_hz must be in 1..2000, got {self.cycle_hz!r}")
-        for name in ("command_timeout_s", "quick_stop_after_s", "stale_timeout_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} must be > 0, got {value!r}")
-        if self.max_send_failures < 1:
-            raise ValueError("max_send_failures must be >= 1")
-        if not (math.isfinite(self.heartbeat_loss_periods) and self.heartbeat_loss_periods > 1.0):
-            # CiA 301 7.2.8.3.2.2: the consumer time must exceed the producer time
-            raise ValueError(
-                f"heartbeat_loss_periods must be > 1, got {self.heartbeat_loss_periods!r}"
-            )
-        self._check_pdo_layout()
-
-    def _check_pdo_layout(self) -> None:
-        if self.modes and (
-            len(self.modes) != len(self.joints) or not set(self.modes) <= set(MODES)
-        ):
-            raise ValueError(
-                f"modes must give one of {sorted(MODES)} per joint, got {list(self.modes)}"
-            )
-        if self.pdo_layout not in PDO_LAYOUTS:
-            raise ValueError(f"pdo_layout must be one of {PDO_LAYOUTS}, got {self.pdo_layout!r}")
-        if not (math.isfinite(self.slow_tpdo_rate_hz) and self.slow_tpdo_rate_hz > 0.0):
-            raise ValueError(f"slow_tpdo_rate_hz must be > 0, got {self.slow_tpdo_rate_hz!r}")
-
-
-@dataclass(slots=True)
-class AxisState:
-    """What one drive last reported, in SI units (joint side unless named motor)."""
-
-    statusword: int = 0
-    position: float = 0.0
-    velocity: float = 0.0
-    motor_position_rad: float = 0.0
-    motor_velocity_rad_s: float = 0.0
-    current_a: float = 0.0
-    drive_state: int = -1
-    motion_state: int = 0
-    eta_m: float = math.nan
-    eta_l: float = math.nan
-    # Drive-chain extras a real CiA 402 drive does not report: NaN means "this backend cannot
-    # know" (only the virtual rack maps them, on manufacturer-specific objects).
-    load_torque_nm: float = math.nan
-    friction_torque_nm: float = math.nan
-    voltage_v: float = math.nan
-
-    @property
-    def power_state(self) -> PowerState | None:
-        """The CiA 402 state of the statusword."""
-        return cm.power_state(self.statusword)
-
-
-@dataclass(frozen=True, slots=True)
-class Snapshot:
-    """Every axis at one SYNC: states in joint order, the SYNC's wall time (time.time)."""
-
-    sync_wall_s: float
-    cycle: int
-    axes: tuple[AxisState, ...]
-
-
-@dataclass(slots=True)
-class Counters:
-    """Events counted for diagnostics."""
-
-    cycles: int = 0
-    complete_cycles: int = 0
-    late_cycles: int = 0
-    commands_accepted: int = 0
-    commands_rejected: int = 0
-    commands_clamped: int = 0
-    send_failures: int = 0
-    error_frames: int = 0
-    emcy_received: int = 0
-    bad_pdos: int = 0
-    silence_halts: int = 0
-    drive_restarts: int = 0
-    frames_sent: int = 0
-    frames_received: int = 0
-    bits_sent: int = 0  # worst-case stuffing (`frame_bits`)
-    bits_received: int = 0
-    nominal_bits: int = 0  # both directions, without stuffing (`frame_bits_nominal`)
-    process_freezes: int = 0
-    heartbeats_lost: int = 0  # a drive's heartbeat silent beyond its consumer time, per loss
-    cycle_stalls: int = 0  # runs of `BridgeParams.stall_cycles` SYNCs without a complete cycle
-    # Cycles (once commands flow) that sent a command newer than the previous cycle, and those
-    # that had to send the previous one again: the controller's answer to the last states came
-    # after this SYNC, so it acts a cycle later (a loop delay of two periods instead of one).
-    commands_in_time: int = 0
-    commands_late: int = 0
-    # Complete sets of TPDOs after a SYNC whose state had gone out already (late TPDOs of the
-    # SYNC before): not handed on.
-    extra_complete_sets: int = 0
 
 
 @dataclass(slots=True)
@@ -353,7 +97,7 @@ class _Axis:
     cw_age: int = 0  # cycles since `cw_rpdo` was last sent
     cw_var: Any = None
     target_var: Any = None  # the mode's target in `rpdo`: 0x6071 (CST) or 0x60FF (CSV)
-    packer: _RpdoPacker | None = None  # packs both RPDOs per cycle (None: canopen does)
+    packer: RpdoPacker | None = None  # packs both RPDOs per cycle (None: canopen does)
     rpdo_cob_id: int = 0
     cw_cob_id: int = 0
     boot_watch: Any = None  # its boot-up callback on the network, once subscribed
@@ -373,8 +117,8 @@ class _BusWatch(can.Listener):
             return
         c = self._bridge.counters
         c.frames_received += 1
-        c.bits_received += cm.frame_bits(int(msg.dlc))
-        c.nominal_bits += cm.frame_bits_nominal(int(msg.dlc))
+        c.bits_received += bus_load.frame_bits(int(msg.dlc))
+        c.nominal_bits += bus_load.frame_bits_nominal(int(msg.dlc))
 
 
 class Cia402Master:
@@ -448,6 +192,7 @@ class Cia402Master:
         self._initialized = False
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._freeze_watch = FreezeWatch()  # the cycle thread forgives every freeze in full
         self._next_heartbeat_t = 0.0
         # Timing records for benchmarks, kept only while keep_latencies is set.
         self.latencies_s: list[float] = []  # SYNC -> last TPDO of a complete cycle
@@ -516,7 +261,9 @@ class Cia402Master:
             node.emcy.add_callback(self._emcy_callback(axis))
             if axis.boot_watch is None:  # once: init() may run again
                 axis.boot_watch = self._heartbeat_callback(axis)
-                self.network.subscribe(HEARTBEAT_BASE + self.params.node_ids[k], axis.boot_watch)
+                self.network.subscribe(
+                    cia301.HEARTBEAT_COB_BASE + self.params.node_ids[k], axis.boot_watch
+                )
         for axis in self._axes:
             _forget_invalid_nmt_state(axis.node)
             axis.node.nmt.state = "OPERATIONAL"
@@ -558,7 +305,7 @@ class Cia402Master:
         axis.cw_sent, axis.cw_age = -1, 0
         axis.rpdo_cob_id = int(target.cob_id)
         axis.cw_cob_id = int(cw.cob_id)
-        axis.packer = _RpdoPacker.of(axis.cw_var, axis.target_var)
+        axis.packer = RpdoPacker.of(axis.cw_var, axis.target_var)
 
     def _bind_tpdos(self, axis: _Axis) -> None:
         mapped: set[int] = set()
@@ -602,7 +349,7 @@ class Cia402Master:
 
         The frame is unpacked by one struct that skips the bytes of objects the bridge does not
         use, and each value goes through its codec's decoder into `AxisState`
-        (`_compile_apply`): no lookups per frame. At 500 Hz x 8 TPDOs this runs on the notifier
+        (`compile_apply`): no lookups per frame. At 500 Hz x 8 TPDOs this runs on the notifier
         thread that every frame of the bus shares.
 
         Args:
@@ -614,7 +361,7 @@ class Cia402Master:
             The callback, and the `AxisState` fields it fills.
         """
         fmt, end = "<", 0
-        targets: list[_Target] = []
+        targets: list[Target] = []
         for var in tpdo:
             if var.offset % 8 or var.length % 8:
                 raise BridgeError(
@@ -628,7 +375,7 @@ class Cia402Master:
                 continue  # an object the bridge has no use for: its bytes are skipped
             fmt += f"{offset - struct.calcsize(fmt)}x" + od.DataType(var.od.data_type).struct_format
             targets.append(target)
-        apply = _compile_apply(targets, struct.Struct(fmt).unpack_from, axis.gear)
+        apply = compile_apply(targets, struct.Struct(fmt).unpack_from, axis.gear)
         size = end  # the whole mapping: a shorter frame is not this PDO
         carries_statusword = any(int(var.index) == od.STATUSWORD for var in tpdo)
 
@@ -645,7 +392,7 @@ class Cia402Master:
 
         return on_tpdo, frozenset(name for t in targets for name in t.fields)
 
-    def _target(self, axis: _Axis, obj: Any) -> _Target | None:
+    def _target(self, axis: _Axis, obj: Any) -> Target | None:
         """Where one mapped object goes in `AxisState` and how it is decoded; None: skip it.
 
         Objects the table does not know are skipped. A standard object whose EDS type differs
@@ -665,11 +412,11 @@ class Cia402Master:
             )
         units = axis.units
         assert units is not None  # init() reads them before it binds the PDOs
-        make = _TARGETS.get(known.index)
+        make = TARGETS.get(known.index)
         if make is not None:
             return make(units)
         if known.signal:  # eta_m, eta_l, load/friction torque, voltage: AxisState fields
-            return _Target((known.signal,), codec.codec_for(known, units).decoder())
+            return Target((known.signal,), codec.codec_for(known, units).decoder())
         return None
 
     def _mark_fresh(self, axis: _Axis, bit: int, now: float) -> None:
@@ -699,7 +446,7 @@ class Cia402Master:
                 snapshot = Snapshot(
                     self._sync_wall_s,
                     self._cycle,
-                    tuple(AxisState(**_fields(a.state)) for a in self._axes),
+                    tuple(copied(a.state) for a in self._axes),
                 )
         if stalled_for:
             log.warning("complete cycles again after %d SYNCs without one", stalled_for)
@@ -924,9 +671,9 @@ class Cia402Master:
         previous_start = math.nan
         while not self._stop.is_set():
             now = time.monotonic()
-            frozen_s = now - previous_start - period
-            if frozen_s > FREEZE_THRESHOLD_S:
-                self._discount_freeze(frozen_s, now)
+            freeze = self._freeze_watch.check(now - previous_start - period)
+            if freeze is not None:
+                self._discount_freeze(freeze, now)
             previous_start = now
             self.cycle(now)
             next_t += period
@@ -977,14 +724,17 @@ class Cia402Master:
             with batched_sends(self.network.bus):  # over lca_remote: one write for the cycle
                 for cob_id, data in frames:
                     self._send(cob_id, data)
-                self._send(SYNC_COB_ID, b"")
+                self._send(cia301.SYNC_COB_ID, b"")
                 if now >= self._next_heartbeat_t:
                     self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
-                    self._send(HEARTBEAT_BASE + p.master_node_id, bytes([NMT_OPERATIONAL_CODE]))
+                    self._send(
+                        cia301.HEARTBEAT_COB_BASE + p.master_node_id,
+                        bytes([cia301.NMT_STATE_OPERATIONAL]),
+                    )
         except can.CanError as exc:  # the batch's one write failed
             self._send_failed(exc)
 
-    def _discount_freeze(self, frozen_s: float, now: float) -> None:
+    def _discount_freeze(self, freeze: Freeze, now: float) -> None:
         """Move the silence deadlines on by `frozen_s`: this process stood still, not the others.
 
         Two cycle starts further apart than a period plus `FREEZE_THRESHOLD_S` mean the cycle
@@ -995,15 +745,16 @@ class Cia402Master:
         """
         with self._lock:
             self.counters.process_freezes += 1
-            self._last_command_t = discounted(self._last_command_t, frozen_s, now)
+            skip_s = freeze.discount_s
+            self._last_command_t = discounted(self._last_command_t, skip_s, now)
             for axis in self._axes:
-                axis.last_tpdo_t = discounted(axis.last_tpdo_t, frozen_s, now)
-                axis.last_heartbeat_t = discounted(axis.last_heartbeat_t, frozen_s, now)
+                axis.last_tpdo_t = discounted(axis.last_tpdo_t, skip_s, now)
+                axis.last_heartbeat_t = discounted(axis.last_heartbeat_t, skip_s, now)
         if self.counters.process_freezes == 1:
             log.warning(
                 "the cycle thread stood still for %.0f ms; silence deadlines do not count it "
                 "(further freezes are only counted)",
-                frozen_s * 1e3,
+                freeze.frozen_s * 1e3,
             )
 
     def _check_safety(self, now: float) -> None:
@@ -1104,7 +855,7 @@ class Cia402Master:
     def _rpdo_frames(self, axis: _Axis, want: Want) -> list[tuple[int, bytes]]:
         """The RPDO frame(s) of one drive: the torque's, and the controlword's if due."""
         state = axis.state.power_state
-        controlword = cm.next_controlword(state, want, axis.controlword)
+        controlword = ctl.next_controlword(state, want, axis.controlword)
         target = 0
         running = want is Want.ENABLED and state is PowerState.OPERATION_ENABLED
         if running and (self._silence_halt or self._user_halt or self._failure_halt):
@@ -1140,18 +891,19 @@ class Cia402Master:
             return
         self._send_failures_in_row = 0
         self.counters.frames_sent += 1
-        self.counters.bits_sent += cm.frame_bits(len(data))
-        self.counters.nominal_bits += cm.frame_bits_nominal(len(data))
+        self.counters.bits_sent += bus_load.frame_bits(len(data))
+        self.counters.nominal_bits += bus_load.frame_bits_nominal(len(data))
 
     def _send_failed(self, exc: can.CanError) -> None:
         """Count a failed send; `max_send_failures` of them in a row halt the axes."""
-        self.counters.send_failures += 1
         self._send_failures_in_row += 1
         in_row = self._send_failures_in_row
+        halting = in_row >= self.params.max_send_failures and not self._failure_halt
         if in_row >= self.params.max_send_failures:
-            if not self._failure_halt:
-                log.error("%d failed sends in a row: halt (%s)", in_row, exc)
-            self._failure_halt = True
+            self._failure_halt = True  # before the count: whoever sees the count sees the halt
+        self.counters.send_failures += 1
+        if halting:
+            log.error("%d failed sends in a row: halt (%s)", in_row, exc)
 
     # --- inspection ----------------------------------------------------------------------
 
@@ -1164,7 +916,7 @@ class Cia402Master:
         """The last reported state of one drive (a copy)."""
         axis = self._axis(joint)
         with self._lock:
-            return AxisState(**_fields(axis.state))
+            return copied(axis.state)
 
     def has_drive_state(self) -> bool:
         """True when every drive maps the lca_hil drive-chain objects (the virtual drive)."""
@@ -1264,130 +1016,6 @@ class Cia402Master:
         raise KeyError(f"unknown joint {joint!r}; joints are {list(self.params.joints)}")
 
 
-# --- TPDO decoding: how each object the bridge uses lands in AxisState ------------------------
-
-
-class _RpdoPacker:
-    """The cycle's RPDO frames packed with one struct each, from their mapping.
-
-    canopen's way (set each mapped variable's `raw`, then read the PDO's `data`) goes through
-    its object-dictionary encoders for every value: a fifth of the master's cycle at 500 Hz.
-    The mapping is read from the drive at `init()`, so each frame's layout is known: a template
-    of the PDO's bytes (objects the cycle does not write keep their value) and the byte offset
-    and struct code of the controlword and the target. Objects at bit offsets are left to
-    canopen (`of` returns None).
-    """
-
-    __slots__ = (
-        "_cw_format",
-        "_cw_offset",
-        "_cw_template",
-        "_shared",
-        "_t_format",
-        "_t_offset",
-        "_target_template",
-    )
-
-    def __init__(self, cw_var: Any, target_var: Any) -> None:
-        self._shared = cw_var.pdo_parent is target_var.pdo_parent
-        self._cw_template = bytes(cw_var.pdo_parent.data)
-        self._cw_offset = cw_var.offset // 8
-        self._cw_format = "<" + od.DataType(cw_var.od.data_type).struct_format
-        self._t_offset = target_var.offset // 8
-        self._t_format = "<" + od.DataType(target_var.od.data_type).struct_format
-        self._target_template = bytes(target_var.pdo_parent.data)
-
-    @classmethod
-    def of(cls, cw_var: Any, target_var: Any) -> _RpdoPacker | None:
-        """A packer for these two mapped objects, or None if either is not byte-aligned."""
-        for var in (cw_var, target_var):
-            if var.offset % 8 or var.length % 8:
-                return None
-        return cls(cw_var, target_var)
-
-    def pack(self, controlword: int, target: int) -> tuple[bytes, bytes]:
-        """The controlword's RPDO and the target's (the same frame when they share one)."""
-        target_frame = bytearray(self._target_template)
-        struct.pack_into(self._t_format, target_frame, self._t_offset, target)
-        if self._shared:
-            struct.pack_into(self._cw_format, target_frame, self._cw_offset, controlword)
-            return bytes(target_frame), bytes(target_frame)
-        cw_frame = bytearray(self._cw_template)
-        struct.pack_into(self._cw_format, cw_frame, self._cw_offset, controlword)
-        return bytes(cw_frame), bytes(target_frame)
-
-
-@dataclass(frozen=True, slots=True)
-class _Target:
-    """The `AxisState` field(s) one mapped object fills.
-
-    Attributes:
-        fields: one field, or (motor-side field, joint-side field): the joint side is the
-            motor side divided by the gear ratio.
-        decode: the object's codec decoder (`Codec.decoder`); None stores the raw value (codes
-            and bit fields).
-    """
-
-    fields: tuple[str, ...]
-    decode: Callable[[int], float] | None = None
-
-
-# Objects with a target of their own (the signal objects 0x2012-0x2016 go by their name).
-_TARGETS: dict[int, Callable[[DriveUnits], _Target]] = {
-    od.STATUSWORD: lambda units: _Target(("statusword",)),
-    od.POSITION_ACTUAL: lambda units: _Target(
-        ("motor_position_rad", "position"), codec.position(units).decoder()
-    ),
-    od.VELOCITY_ACTUAL: lambda units: _Target(
-        ("motor_velocity_rad_s", "velocity"), codec.velocity(units).decoder()
-    ),
-    od.CURRENT_ACTUAL: lambda units: _Target(("current_a",), codec.current(units).decoder()),
-    od.DRIVE_STATE: lambda units: _Target(("drive_state",)),
-    od.MOTION_STATE: lambda units: _Target(("motion_state",)),
-}
-
-
-def _compile_apply(
-    targets: Sequence[_Target], unpack_from: Callable[[bytearray], tuple[Any, ...]], gear: float
-) -> Callable[[AxisState, bytearray], None]:
-    """One TPDO's frame -> AxisState, as straight-line code compiled once per mapping.
-
-    For statusword + position it is::
-
-        def apply(s, data):
-            v0, v1, = unpack_from(data)
-            s.statusword = v0
-            v1 = decode1(v1)
-            s.motor_position_rad = v1
-            s.position = v1 / gear
-
-    A loop over per-field closures did the same in 0.9 us a frame against 0.35 us for this
-    (and 0.45 us for the if-chain on the object index it replaces), on the notifier thread every
-    frame of the bus shares. The source is built from `AxisState` field names only, checked
-    here, the way `dataclasses` builds its `__init__`.
-    """
-    namespace: dict[str, Any] = {"unpack_from": unpack_from, "gear": gear}
-    lines = ["def apply(s, data):"]
-    if targets:
-        lines.append(
-            "    " + "".join(f"v{i}, " for i in range(len(targets))) + "= unpack_from(data)"
-        )
-    for i, target in enumerate(targets):
-        if not (1 <= len(target.fields) <= 2) or not set(target.fields) <= _AXIS_FIELDS:
-            raise ValueError(f"not AxisState fields: {target.fields}")
-        if target.decode is not None:
-            namespace[f"decode{i}"] = target.decode
-            lines.append(f"    v{i} = decode{i}(v{i})")
-        lines.append(f"    s.{target.fields[0]} = v{i}")
-        if len(target.fields) == 2:
-            lines.append(f"    s.{target.fields[1]} = v{i} / gear")
-    if not targets:
-        lines.append("    pass")
-    exec("\n".join(lines), namespace)  # fixed field names and decoders, see above
-    apply: Callable[[AxisState, bytearray], None] = namespace["apply"]
-    return apply
-
-
 def _forget_invalid_nmt_state(node: canopen.RemoteNode) -> None:
     """Forget a drive's NMT state byte that CiA 301 does not define, before commanding it.
 
@@ -1415,10 +1043,3 @@ def _drop_unasked_sdo_responses(sdo: SdoClient) -> None:
             sdo.responses.get_nowait()
         except queue.Empty:
             return
-
-
-_AXIS_FIELDS = frozenset(AxisState.__slots__)
-
-
-def _fields(state: AxisState) -> dict[str, Any]:
-    return {name: getattr(state, name) for name in AxisState.__slots__}

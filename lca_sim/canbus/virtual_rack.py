@@ -1,810 +1,87 @@
 """The virtual drive rack: one CiA 402 CANopen node per axis over one coupled lca_sim plant (shell).
 
-Four `canopen.LocalNode`s (SDO server, NMT slave with boot-up and heartbeat, EMCY producer) on one
-python-can bus, all backed by ONE `CommandedPlant(interface="current")` of one `Simulator`, so the
-axes stay coupled through the Pinocchio gantry model. The drive logic (state machine, statusword,
-torque demand, units) is the pure `lca_sim.cia402.device`; this module does the bus I/O, the object
-storage, the PDOs and the watchdog timing (`time.monotonic`, here only). The objects, their
-types and defaults are `lca_sim.cia402.objects` (the EDS agrees with it), and every scaled value
-is encoded with `lca_sim.cia402.codec`. docs/can.md is the contract: objects, default PDO
-mapping, units.
+Four `canopen.LocalNode`s (SDO server, NMT slave, EMCY producer) on one python-can bus, all
+backed by ONE `CommandedPlant(interface="current")` of one `Simulator`, so the axes stay coupled
+through the gantry model. The drive logic is `lca_sim.cia402.device`, the objects
+`lca_sim.cia402.objects`, their scaling `lca_sim.cia402.codec`. docs/can.md, "The virtual drive
+rack", is the contract a master relies on (boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and
+0, watchdogs, fault injection, remapping).
 
-Public API::
+    rack = VirtualDriveRack(bus, load_rack_config(None))   # lca_sim.config.rack
+    with rack: rack.power_state("pivot")                     # start() ... stop()
 
-    from lca_sim.canbus.virtual_rack import RackConfig, VirtualDriveRack, load_rack_config
-
-    config = load_rack_config(None)           # None: the shipped config/can/rack.yaml
-    rack = VirtualDriveRack(bus, config)      # any python-can BusABC; nothing runs yet
-    rack.start()                              # settle the heap (gc.freeze), boot, listen
-    rack.power_state("pivot")                 # cia402.PowerState
-    rack.stop()                               # idempotent; stops the threads, not the bus
-    with VirtualDriveRack(bus, config) as rack: ...   # start() / stop()
-
-plus `rack.node(axis)` (the `canopen.LocalNode`), `rack.nmt_state(axis)`, `rack.faults`
-(0x603F per axis, 0 = none), `rack.counters`, `rack.plant_state()`, `rack.simulator`,
-`rack.plant`, and fault injection: `rack.set_fault(axis, kind, value)`, `rack.active_faults`,
-`rack.fault_log`, `rack.time_s`. The console script `lca-virtual-drive` (`main`) runs a rack on
-a real interface (`--faults FILE`: a fault schedule).
-
-What a master must know (CiA 301 / 402 behaviour of these drives):
-
-* Boot: each node sends its boot-up message (0x700 + id, data 00) and enters PRE-OPERATIONAL,
-  then sends its heartbeat every 0x1017 ms. NMT reset node / reset communication boot it again
-  with the objects (all of them / 0x1000-0x1FFF) back at their defaults.
-* PDOs are processed only in NMT OPERATIONAL; RPDOs received in another state are counted and
-  dropped. An RPDO whose length differs from its mapping is counted and dropped, with EMCY
-  0x8210 (short) / 0x8220 (long) once per run (CiA 301). SDO is not answered in STOPPED.
-  29-bit, CAN FD, remote and error frames are counted and ignored (classical 11-bit nodes).
-* Time is SYNC driven. On each SYNC (COB-ID 0x80), in this order: (1) every synchronous RPDO
-  (transmission type 0-240) received since the previous SYNC is applied, the latest frame of
-  each RPDO winning; (2) the synchronous TPDOs are sent, carrying the state at the SYNC (the
-  statusword after step 1, the plant state before step 3); (3) the plant advances one cycle
-  period 0x1006 (us), or, while 0x1006 is 0, by the wall time since the previous SYNC (at most
-  `MAX_WALL_ADVANCE_S`). So a torque sent before SYNC k acts during the cycle after SYNC k and
-  shows in the TPDOs of SYNC k+1. The four nodes share one plant and one time base: the
-  largest 0x1006 of the four sets the step (a master writes the same value to all). Without
-  SYNC the plant does not move. Event-driven RPDOs (type 254/255) are applied on reception.
-  SYNCs faster than 0x1006 allows (a second producer) do not advance the plant: counted, EMCY
-  0x8100 once per episode (`lca_sim.cia402.sync_rate`).
-* TPDOs: type 0 at a SYNC when their data changed, 1-240 every n-th SYNC, 254/255 when their
-  data changed (checked after every SYNC and every `MONITOR_PERIOD_S`; inhibit time sub 3) and
-  at least every event timer (sub 5) ms. TPDO3 (0x2010-0x2013) is type 254 with 100 ms;
-  TPDO4 (0x2014-0x2016: motor-side load and friction torque, voltage) type 10.
-* CST: target torque (per mille of 0x6076) -> current setpoint = permille / 1000 x rated current
-  (0x6075), clamped to +-0x6072 (statusword bit 11 while clamped); the in-drive current PI
-  (`CommandedPlant`) follows it at the plant rate. Zero current unless OPERATION ENABLED in mode 10
-  without halt (bit 8). 0x6060 accepts 10 (CST, the default) and 0 (no mode); others abort.
-* Watchdogs (checked every `MONITOR_PERIOD_S`): heartbeat consumer 0x1016 (armed by the first
-  heartbeat of the producer), RPDO deadline 0x1400/0x1401 sub 5 (armed by the first reception
-  in OPERATIONAL; 0 = off), SYNC loss (no SYNC processed for `sync_loss_periods` x 0x1006 while
-  OPERATIONAL and OPERATION ENABLED; 0x1006 = 0: off). Each sets 0x603F and 0x1001, sends an
-  EMCY (0x8130, 0x8250, 0x8700) and applies the 0x6007 reaction (default 1: fault) if the drive
-  can produce torque (OPERATION ENABLED, QUICK STOP ACTIVE), then move the NMT state as 0x1029
-  sub 1 says (default 1: no change). Leaving OPERATIONAL, NMT stop and reset communication
-  apply the 0x6007 reaction too (0x603F = 0xFF01 where it acted; no EMCY in STOPPED). A rising
-  edge of controlword bit 7 clears 0x603F / 0x1001 (with an EMCY "error reset", code 0) and
-  leaves FAULT. Time this process stands still (a monitor tick later than
-  `FREEZE_THRESHOLD_S`: the GIL held, the host paused) is not counted against the master, up
-  to `max_stall_discount_s`: the armed deadlines move on by it; every stall is counted
-  (`process_freezes`, 0x2020, longest in 0x2021) and one beyond the bound sends EMCY 0xFF02.
-* Fault injection (lca_hil object 0x2030, SDO-writable, or rack.yaml's `faults:` schedule
-  timed by the rack's plant time): lost TPDOs (sub 1, bit mask), heartbeat off (sub 2), an
-  EMCY with any code (sub 3), a drive fault (sub 4: CiA 402 FAULT, 0x603F), bus-off (sub 5,
-  ms: no frame sent or taken; 0x1029 / 0x6007 apply; EMCY 0x8140 on recovery). Everything
-  goes through the drive logic and the plant as a real fault would; with none configured the
-  rack's frames are what they were without it (docs/can.md, "Fault injection").
-* PDO remapping over SDO, the standard way: set COB-ID bit 31, mapping sub 0 = 0, write the
-  entries, sub 0 = their number, clear bit 31. Mapping writes while the PDO is valid, entries
-  while sub 0 != 0, unmappable objects and more than 64 bits are refused with an SDO abort.
+Its parts: `rack_state` (per-drive values), `rack_network` (the bus side), `rack_pdo` (PDOs),
+`rack_watchdog` (deadlines, SYNC rate, freeze discount), `rack_faults` (fault injection). The
+console script `lca-virtual-drive` is `lca_sim.cli.virtual_drive`.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
-import signal
-import struct
-import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
-from pathlib import Path
-from types import FrameType, TracebackType
+from collections.abc import Callable
+from dataclasses import replace
+from types import TracebackType
 from typing import Any, cast
 
 import can
 import canopen
 from can.interfaces.virtual import VirtualBus
 from canopen import SdoAbortedError
-from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
-from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
 from lca_control.pi import PIController, PIParams
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
+from lca_sim.canbus.rack_faults import RackFaults
+from lca_sim.canbus.rack_network import RackListener, RackNetwork
+from lca_sim.canbus.rack_pdo import PdoEngine
+from lca_sim.canbus.rack_state import (
+    NMT_OPERATIONAL,
+    NMT_PRE_OPERATIONAL,
+    NMT_STOPPED,
+    Drive,
+    FaultEvent,
+    Pdo,
+    RackCounters,
+)
+from lca_sim.canbus.rack_watchdog import RackWatchdogs
 from lca_sim.canbus.remote import batched_sends
-from lca_sim.cia402 import codec, sync_rate
+from lca_sim.cia402 import cia301, codec, sync_rate
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
-from lca_sim.cia402.device import Cia402AxisState, MappingEntry, PowerState
-from lca_sim.config.loader import config_dir, load_robot, read_yaml
-from lca_sim.errors import EXIT_BAD_INPUT, USER_ERRORS, ConfigError, UnknownNameError
+from lca_sim.cia402.codec import CodecError, DriveUnits
+from lca_sim.cia402.device import Cia402AxisState, PowerState
+from lca_sim.config.loader import load_robot
+from lca_sim.config.rack import (
+    FAULT_KINDS,
+    FAULT_VALUE_RANGE,
+    LOCKSTEP,
+    AxisConfig,
+    RackConfig,
+    eds_path,
+)
+from lca_sim.errors import ConfigError, UnknownNameError
 from lca_sim.model.commanded_plant import CURRENT, CommandedPlant
-from lca_sim.model.params import AXIS_NAMES, RobotParams
-from lca_sim.model.schema import MappingReader
+from lca_sim.model.params import RobotParams
 from lca_sim.model.simulator import SIGNAL_NAMES, InputError, PlantState, Simulator
 from lca_sim.runtime import (
-    FREEZE_THRESHOLD_S,
-    GIL_SWITCH_INTERVAL_S,
-    discounted,
     settle_heap,
     yield_gil,
 )
 
 logger = logging.getLogger(__name__)
 
-SYNC_COB_ID = 0x080
-NMT_COB_ID = 0x000
-EMCY_COB_BASE = 0x080  # + node id (0x1014, read-only here)
-HEARTBEAT_COB_BASE = 0x700
-SDO_REQUEST_COB_BASE = 0x600  # CiA 301 pre-defined connection set: client -> server
-SDO_RESPONSE_COB_BASE = 0x580  # server -> client
-# CiA 301 EMCY 0x8140 "recovered from bus off": sent when a node is back on the bus, and the
-# 0x603F code of the bus-off while it lasts (as CANopenNode's CO_EM_CAN_TX_BUS_OFF reports it).
-EMCY_BUS_OFF_RECOVERED = 0x8140
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
-REALTIME, LOCKSTEP = "realtime", "lockstep"
-# The simulator node's default (config/ros/simulator.yaml): the two plants hold eq. (2)'s terms
-# alike, and the rack's cycle pays one compiled call per millisecond instead of one per step.
-DEFAULT_RIGID_BODY_PERIOD_S = 1e-3
-TIMING_MODES = (REALTIME, LOCKSTEP)
-# The most of one stall of this process the watchdogs discount (rack.yaml
-# max_stall_discount_s): above the 0.3 s stalls a shared CI machine showed, and short enough
-# that a master silent for longer than it plus a deadline is still caught.
-DEFAULT_MAX_STALL_DISCOUNT_S = 0.5
-
-NMT_OPERATIONAL = "OPERATIONAL"
-NMT_PRE_OPERATIONAL = "PRE-OPERATIONAL"
-NMT_STOPPED = "STOPPED"
-_NMT_START, _NMT_STOP, _NMT_PRE_OPERATIONAL = 0x01, 0x02, 0x80
-_NMT_RESET_NODE, _NMT_RESET_COMMUNICATION = 0x81, 0x82
-
-# SDO abort codes (CiA 301) the drive answers with.
-ABORT_NO_SUBINDEX = 0x06090011
-ABORT_VALUE_RANGE = 0x06090030
-ABORT_VALUE_TOO_HIGH = 0x06090031
-ABORT_NOT_MAPPABLE = 0x06040041
-ABORT_PDO_LENGTH = 0x06040042
-ABORT_DEVICE_STATE = 0x08000022
-
-
 # Option codes: the values a write may set (others are refused with ABORT_VALUE_RANGE).
 _OPTION_VALUES: dict[tuple[int, int], frozenset[int]] = {
     (od.ABORT_CONNECTION_OPTION, 0): cia402.ABORT_OPTIONS,
     (od.QUICK_STOP_OPTION, 0): cia402.QUICK_STOP_OPTIONS,
     (od.ERROR_BEHAVIOUR, 1): od.ERROR_BEHAVIOURS,
 }
-
-
-def eds_path() -> Path:
-    """The shipped electronic data sheet of the drive (config/can/lca_drive.eds)."""
-    return config_dir() / "can" / "lca_drive.eds"
-
-
-def default_rack_path() -> Path:
-    """The shipped rack config (config/can/rack.yaml)."""
-    return config_dir() / "can" / "rack.yaml"
-
-
-# --- configuration -------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class AxisConfig:
-    """One drive of the rack.
-
-    Attributes:
-        name: the robot axis it drives.
-        node_id: its CANopen node id, 1-127.
-        rated_current_a: motor rated current (0x6075, in mA on the bus).
-        max_torque_permille: 0x6072 after boot, and the most a master may write there.
-        initial_position: the axis's position when the rack is built, rad (m for the lift).
-    """
-
-    name: str
-    node_id: int
-    rated_current_a: float
-    max_torque_permille: int
-    initial_position: float
-
-
-# Fault kinds of the `faults:` schedule and of `VirtualDriveRack.set_fault`, each the sub-index
-# of the fault injection object 0x2030 it writes (docs/can.md, "Fault injection").
-FAULT_KINDS: dict[str, int] = {
-    "lost_tpdo": od.FAULT_LOST_TPDOS,
-    "heartbeat_off": od.FAULT_HEARTBEAT_OFF,
-    "emcy": od.FAULT_RAISE_EMCY,
-    "drive_fault": od.FAULT_DRIVE_FAULT,
-    "bus_off": od.FAULT_BUS_OFF,
-}
-# The value each kind may take while on (0 is "off" for every kind).
-_FAULT_VALUE_RANGE: dict[str, tuple[int, int]] = {
-    "lost_tpdo": (1, 0xFF),  # the TPDO bit mask
-    "heartbeat_off": (1, 1),
-    "emcy": (1, 0xFFFF),  # the EMCY code
-    "drive_fault": (1, 0xFFFF),  # the error code (0x603F)
-    "bus_off": (1, 1),  # on; the schedule's end_s (or `set_fault(..., 0)`) ends it
-}
-_FAULT_DEFAULT_VALUE = {"lost_tpdo": 0x0F, "heartbeat_off": 1, "bus_off": 1}
-
-
-@dataclass(frozen=True, slots=True)
-class FaultEntry:
-    """One scheduled fault (rack.yaml `faults:`), timed by the rack's plant time.
-
-    Attributes:
-        joint: the axis whose drive has it.
-        kind: one of `FAULT_KINDS`.
-        value: the TPDO mask (lost_tpdo), the code (emcy, drive_fault), 1 (the others).
-        start_s: it goes on at the first SYNC at which the plant's time is >= this.
-        end_s: it goes off likewise; None: it stays on.
-    """
-
-    joint: str
-    kind: str
-    value: int
-    start_s: float
-    end_s: float | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class RackConfig:
-    """A validated rack config (config/can/rack.yaml).
-
-    Attributes:
-        robot: robot config, a shipped name or a path.
-        dt_s: plant integration step.
-        rigid_body_period_s: eq. (2)'s A(q) and C qdot + Q evaluated this often and held between
-            (a whole multiple of dt_s; the simulator node's `rigid_body_period_s` too).
-        current_kp_v_per_a, current_ti_s: the in-drive current PI.
-        velocity_kp_a_per_rad_s, velocity_ti_s: the in-drive velocity PI of CSV (mode 9), on
-            the joint's velocity, the paper's section 6 gains by default (lca_control's).
-        heartbeat_producer_ms: 0x1017 after boot-up.
-        encoder_increments_per_rev: 0x608F sub 1, motor side.
-        sync_loss_periods: SYNC loss after this many 0x1006 periods without a SYNC.
-        max_stall_discount_s: the most of one stall of this process the watchdogs discount.
-        eds_path: the EDS the nodes' object dictionaries are read from ("" = the shipped
-            config/can/lca_drive.eds); it must declare the objects of `lca_sim.cia402.objects`.
-        axes: the drives, in the robot's axis order.
-        faults: the fault schedule (none by default: the rack then behaves exactly as without
-            fault injection).
-        timing_mode: "realtime" (watchdogs, heartbeats and event TPDOs on the wall clock) or
-            "lockstep" (the rack's time is its plant's, 0x1006 per SYNC: every watchdog, heartbeat
-            and event timer runs on it, so the master is the clock; docs/can.md, "Lockstep").
-        source: the file it came from (for messages).
-    """
-
-    robot: str
-    dt_s: float
-    current_kp_v_per_a: float
-    current_ti_s: float
-    heartbeat_producer_ms: int
-    encoder_increments_per_rev: int
-    sync_loss_periods: float
-    axes: tuple[AxisConfig, ...]
-    max_stall_discount_s: float = DEFAULT_MAX_STALL_DISCOUNT_S
-    eds_path: str = ""
-    velocity_kp_a_per_rad_s: float = PAPER_VELOCITY_KP_A_PER_RAD_S
-    velocity_ti_s: float = PAPER_VELOCITY_TI_S
-    faults: tuple[FaultEntry, ...] = ()
-    timing_mode: str = "realtime"
-    rigid_body_period_s: float = DEFAULT_RIGID_BODY_PERIOD_S
-    source: str = ""
-
-    @property
-    def rigid_body_update_steps(self) -> int:
-        """Model steps per evaluation of the rigid-body terms."""
-        return max(1, round(self.rigid_body_period_s / self.dt_s))
-
-    @property
-    def axis_names(self) -> tuple[str, ...]:
-        """The axes of the rack, in order."""
-        return tuple(a.name for a in self.axes)
-
-
-def _integer(
-    reader: MappingReader, key: str, min_value: int, max_value: int, default: int | None = None
-) -> int:
-    if default is not None and not reader.has(key):
-        return default
-    value = reader.raw(key)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(
-            reader.source, reader.key_path(key), f"expected an integer, got {value!r}"
-        )
-    if not min_value <= value <= max_value:
-        raise ConfigError(
-            reader.source,
-            reader.key_path(key),
-            f"expected an integer in [{min_value}, {max_value}], got {value}",
-        )
-    return value
-
-
-def _fault_entry(item: object, source: str, path: str, joints: Sequence[str]) -> FaultEntry:
-    """One entry of a `faults:` list; ConfigError names the bad key."""
-    reader = MappingReader(item, source, path)
-    joint = reader.string("joint", choices=tuple(joints))
-    kind = reader.string("kind", choices=tuple(FAULT_KINDS))
-    low, high = _FAULT_VALUE_RANGE[kind]
-    default = _FAULT_DEFAULT_VALUE.get(kind)
-    value = _integer(reader, "value", low, high, default)
-    start_s = reader.number("start_s", min_value=0.0)
-    end_s = None
-    if reader.has("end_s"):
-        end_s = reader.number("end_s", min_value=start_s, min_exclusive=True)
-    reader.finish()
-    return FaultEntry(joint, kind, value, start_s, end_s)
-
-
-def parse_faults(
-    data: object, source: str, path: str, joints: Sequence[str]
-) -> tuple[FaultEntry, ...]:
-    """Validate a `faults:` list (rack.yaml, or the file of `lca-virtual-drive --faults`).
-
-    Args:
-        data: the parsed list.
-        source: its file, for messages.
-        path: the key it sits at ("faults").
-        joints: the rack's axes (an entry must name one).
-
-    Raises:
-        ConfigError: one line naming the file, the entry's key and what was expected; also
-            two entries of one joint and kind whose times overlap.
-    """
-    if not isinstance(data, list):
-        raise ConfigError(source, path, f"expected a list of faults, got {type(data).__name__}")
-    entries = [_fault_entry(item, source, f"{path}[{k}]", joints) for k, item in enumerate(data)]
-    for k, a in enumerate(entries):
-        for b in entries[k + 1 :]:
-            if (a.joint, a.kind) != (b.joint, b.kind):
-                continue
-            a_end = math.inf if a.end_s is None else a.end_s
-            b_end = math.inf if b.end_s is None else b.end_s
-            if a.start_s < b_end and b.start_s < a_end:
-                raise ConfigError(
-                    source,
-                    f"{path}[{entries.index(b)}]",
-                    f"overlaps an earlier {b.kind} fault of {b.joint} ({a.start_s:g}-{a_end:g} s)",
-                )
-    return tuple(entries)
-
-
-def _timing(top: MappingReader, dt_s: float, source: str) -> tuple[float, str]:
-    """The rack's `rigid_body_period_s` (a whole multiple of dt_s) and `timing_mode`."""
-    rigid_body_period_s = top.number(
-        "rigid_body_period_s",
-        default=DEFAULT_RIGID_BODY_PERIOD_S,
-        min_value=0.0,
-        max_value=0.01,
-        min_exclusive=True,
-    )
-    steps = rigid_body_period_s / dt_s
-    if abs(steps - round(steps)) > 1e-6 * steps or round(steps) < 1:
-        raise ConfigError(
-            source,
-            "rigid_body_period_s",
-            f"expected a whole multiple of dt_s = {dt_s:g}, got {rigid_body_period_s:g}",
-        )
-    timing_mode = top.string("timing_mode") if top.has("timing_mode") else REALTIME
-    if timing_mode not in TIMING_MODES:
-        raise ConfigError(
-            source, "timing_mode", f"expected one of {', '.join(TIMING_MODES)}, got {timing_mode!r}"
-        )
-    return rigid_body_period_s, timing_mode
-
-
-def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -> RackConfig:
-    """Validate a parsed rack YAML document.
-
-    Args:
-        data: the parsed document.
-        source: its file name, for messages.
-        base_dir: where a relative robot path is resolved (the rack file's folder).
-
-    Raises:
-        ConfigError: one line naming the file, the key and what was expected.
-    """
-    top = MappingReader(data, source)
-    robot = top.string("robot")
-    if ("/" in robot or robot.endswith((".yaml", ".yml"))) and base_dir is not None:
-        robot = str((base_dir / robot).resolve()) if not Path(robot).is_absolute() else robot
-    dt_s = top.number("dt_s", min_value=0.0, max_value=0.01, min_exclusive=True)
-    rigid_body_period_s, timing_mode = _timing(top, dt_s, source)
-    kp = top.number("current_kp_v_per_a", min_value=0.0)
-    ti_s = top.number("current_ti_s", min_value=0.0, min_exclusive=True)
-    velocity_kp = top.number(
-        "velocity_kp_a_per_rad_s", default=PAPER_VELOCITY_KP_A_PER_RAD_S, min_value=0.0
-    )
-    velocity_ti_s = top.number(
-        "velocity_ti_s", default=PAPER_VELOCITY_TI_S, min_value=0.0, min_exclusive=True
-    )
-    heartbeat_ms = _integer(top, "heartbeat_producer_ms", 0, 0xFFFF)
-    increments = _integer(top, "encoder_increments_per_rev", 1, 0xFFFFFFFF)
-    sync_loss = top.number("sync_loss_periods", default=3.0, min_value=1.0)
-    max_stall_discount_s = top.number(
-        "max_stall_discount_s", default=DEFAULT_MAX_STALL_DISCOUNT_S, min_value=0.0, max_value=60.0
-    )
-    eds = top.string("eds_path") if top.has("eds_path") else ""
-    if eds:
-        eds_file = Path(eds) if Path(eds).is_absolute() or base_dir is None else base_dir / eds
-        if not eds_file.is_file():
-            raise ConfigError(source, "eds_path", f"expected an EDS file, {eds_file} is none")
-        eds = str(eds_file.resolve())
-    axes_reader = top.sub("axes")
-    axes: list[AxisConfig] = []
-    names = axes_reader.key_names()
-    if not names:
-        raise ConfigError(source, "axes", "expected at least one axis")
-    for name in names:
-        if name not in AXIS_NAMES:
-            raise ConfigError(
-                source, f"axes.{name}", f"unknown axis (valid: {', '.join(AXIS_NAMES)})"
-            )
-        axis = axes_reader.sub(name)
-        axes.append(
-            AxisConfig(
-                name=name,
-                node_id=_integer(axis, "node_id", 1, 127),
-                rated_current_a=axis.number(
-                    "rated_current_a", min_value=0.0, max_value=1e6, min_exclusive=True
-                ),
-                max_torque_permille=_integer(axis, "max_torque_permille", 1, 0x7FFF),
-                initial_position=axis.number("initial_position"),
-            )
-        )
-        axis.finish()
-    axes_reader.finish()
-    faults: tuple[FaultEntry, ...] = ()
-    if top.has("faults"):
-        faults = parse_faults(top.raw("faults"), source, "faults", [a.name for a in axes])
-    top.finish()
-    ids = [a.node_id for a in axes]
-    duplicate = next((i for i in ids if ids.count(i) > 1), None)
-    if duplicate is not None:
-        raise ConfigError(source, "axes", f"expected distinct node ids, {duplicate} is repeated")
-    order = sorted(axes, key=lambda a: AXIS_NAMES.index(a.name))
-    return RackConfig(
-        robot=robot,
-        dt_s=dt_s,
-        current_kp_v_per_a=kp,
-        current_ti_s=ti_s,
-        heartbeat_producer_ms=heartbeat_ms,
-        encoder_increments_per_rev=increments,
-        sync_loss_periods=sync_loss,
-        axes=tuple(order),
-        max_stall_discount_s=max_stall_discount_s,
-        eds_path=eds,
-        velocity_kp_a_per_rad_s=velocity_kp,
-        velocity_ti_s=velocity_ti_s,
-        faults=faults,
-        timing_mode=timing_mode,
-        rigid_body_period_s=rigid_body_period_s,
-        source=source,
-    )
-
-
-def load_faults(path: str | Path, config: RackConfig) -> RackConfig:
-    """`config` with the schedule of a faults file (a YAML mapping with one key, `faults:`).
-
-    Raises:
-        ConfigError: the file, the key and what was expected, in one line.
-    """
-    file = Path(path)
-    if not file.is_file():
-        raise ConfigError(str(file), "", "file not found")
-    top = MappingReader(read_yaml(file), str(file))
-    faults = parse_faults(top.raw("faults"), str(file), "faults", config.axis_names)
-    top.finish()
-    return replace(config, faults=faults)
-
-
-def load_rack_config(path: str | Path | None = None) -> RackConfig:
-    """Load and validate a rack config; None loads the shipped config/can/rack.yaml.
-
-    Raises:
-        ConfigError: the file, the key and what was expected, in one line.
-    """
-    file = default_rack_path() if path is None else Path(path)
-    if not file.is_file():
-        raise ConfigError(str(file), "", "file not found")
-    return parse_rack_config(read_yaml(file), str(file), file.parent)
-
-
-# --- runtime state of the shell --------------------------------------------------------------
-
-
-@dataclass
-class RackCounters:
-    """What the rack received, sent, refused and detected (for diagnostics and tests)."""
-
-    syncs: int = 0
-    syncs_too_fast: int = 0  # SYNCs beyond 0x1006's rate: not advancing the plant (EMCY 0x8100)
-    rpdos_received: int = 0
-    rpdos_applied: int = 0
-    pdos_ignored_not_operational: int = 0
-    sdo_ignored_stopped: int = 0  # SDO requests to a node in NMT STOPPED (not answered)
-    rpdo_values_rejected: int = 0
-    tpdos_sent: int = 0
-    bad_frames: int = 0
-    extended_frames: int = 0  # 29-bit identifiers: not for these 11-bit nodes, ignored
-    fd_frames: int = 0  # CAN FD frames: ignored likewise
-    remote_frames: int = 0  # RTR frames: no object of these nodes answers one
-    error_frames: int = 0
-    emcy_sent: int = 0
-    heartbeat_losses: int = 0
-    rpdo_timeouts: int = 0
-    sync_losses: int = 0
-    send_errors: int = 0
-    bus_errors: int = 0  # exceptions of the bus layer's receive (python-can Notifier)
-    handler_errors: int = 0
-    process_freezes: int = 0  # stalls of this process (also 0x2020), each discounted ...
-    stalls_beyond_discount: int = 0  # ... up to max_stall_discount_s; these longer (EMCY 0xFF02)
-    tpdos_lost: int = 0  # TPDOs not sent: fault injection 0x2030 sub 1
-    frames_dropped_bus_off: int = 0  # frames a node in (injected) bus-off did not send
-
-    def as_dict(self) -> dict[str, int]:
-        """The counters by name."""
-        return {name: getattr(self, name) for name in self.__dataclass_fields__}
-
-
-@dataclass
-class _Pdo:
-    """One PDO of one node: its communication and mapping parameters, and its traffic state."""
-
-    number: int  # 1-based
-    receive: bool
-    cob_id: int
-    valid: bool
-    transmission_type: int
-    inhibit_100us: int
-    event_timer_ms: int
-    slots: list[int]  # the raw mapping entries, sub 1..8
-    count: int  # mapping sub 0
-    objects: list[ODVariable] = field(default_factory=list)
-    frame: struct.Struct = field(default_factory=lambda: struct.Struct("<"))  # the whole frame
-    # TPDO: the current raw value of each mapped object, read when the frame is sent.
-    getters: list[Callable[[], int]] = field(default_factory=list)
-    latched: bytes | None = None  # a synchronous RPDO waiting for the next SYNC
-    last_rx_s: float | None = None  # arms the RPDO deadline
-    last_data: bytes | None = None  # the TPDO last sent
-    last_sent_s: float = -math.inf
-    sync_count: int = 0
-    length_error: int = 0  # RPDO: the EMCY code of the current run of wrong-length frames
-
-    @property
-    def size_bytes(self) -> int:
-        """Length of the PDO's frame."""
-        return self.frame.size
-
-    def map(self, objects: list[ODVariable], getters: list[Callable[[], int]]) -> None:
-        """Map `objects`, and pack and unpack the frame in one step from now on."""
-        self.objects = objects
-        self.frame = _frame_codec(objects)
-        self.getters = getters
-
-
-def _frame_codec(objects: Sequence[ODVariable]) -> struct.Struct:
-    """One little-endian struct for a PDO's mapped objects (mappable objects are numbers).
-
-    Packing a whole frame at once instead of object by object (`ODVariable.encode_raw`) is
-    most of what keeps the rack's SYNC handling inside a 2 ms cycle (bench/can_cycle.py).
-    """
-    return struct.Struct("<" + "".join(_number_format(obj) for obj in objects))
-
-
-def _number_format(obj: ODVariable) -> str:
-    """The struct format of a number object; a string or domain cannot be mapped.
-
-    Neither can a 24-, 40-, 48- or 56-bit number: canopen packs those with the next wider
-    format, which would code the whole frame at the wrong length.
-    """
-    packer = None if obj.data_type is None else ODVariable.STRUCT_TYPES.get(obj.data_type)
-    if packer is None or packer.size != struct.calcsize(packer.format):
-        raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-    return packer.format.lstrip("<")
-
-
-@dataclass
-class _AxisFaults:
-    """The faults injected into one drive (object 0x2030; docs/can.md "Fault injection")."""
-
-    lost_tpdos: int = 0  # bit n - 1: TPDO n is not sent
-    heartbeat_off: bool = False
-    emcy_code: int = 0  # the EMCY raised last (0: none)
-    drive_fault: int = 0  # a drive fault's code while its cause lasts (0: none)
-    bus_off: bool = False
-    bus_off_ms: int = 0  # 0x2030 sub 5 as written (0 while the schedule or the API set it)
-    bus_off_until_step: int | None = None  # plant step at which a timed bus-off ends
-
-    def active(self) -> dict[str, int]:
-        """The faults that are on, by kind (`FAULT_KINDS`), with their values."""
-        values = {
-            "lost_tpdo": self.lost_tpdos,
-            "heartbeat_off": int(self.heartbeat_off),
-            "emcy": self.emcy_code,
-            "drive_fault": self.drive_fault,
-            "bus_off": int(self.bus_off),
-        }
-        return {kind: value for kind, value in values.items() if value}
-
-
-@dataclass(frozen=True, slots=True)
-class FaultEvent:
-    """A fault going on (value != 0) or off (0) in one drive, at the rack's plant time."""
-
-    time_s: float
-    joint: str
-    kind: str
-    value: int
-    source: str  # "schedule", "sdo" or "api"
-
-
-class _NullTask:
-    """The heartbeat task of a node whose heartbeat is injected off: sends nothing."""
-
-    def stop(self) -> None:
-        """Nothing runs."""
-
-    def update(self, data: bytes) -> None:
-        """Nothing is sent."""
-
-
-class _CycleTask:
-    """A periodic send (a heartbeat) of a lockstep rack, timed by the rack's plant time.
-
-    canopen's NMT slave starts its heartbeat with `send_periodic`, a wall-clock thread; in
-    lockstep the rack sends it from its SYNC handling instead (`_RackNetwork.send_due`), every
-    `period_s` of simulated time, the first at the next SYNC, so the bus carries the same
-    frames whatever the host's speed.
-    """
-
-    def __init__(self, network: _RackNetwork, can_id: int, data: bytes, period_s: float) -> None:
-        self._network = network
-        self.can_id = can_id
-        self.data = bytes(data)
-        self.period_s = period_s
-        self.next_s: float | None = None  # None: at the next service
-
-    def stop(self) -> None:
-        """No further sends."""
-        if self in self._network.cycle_tasks:
-            self._network.cycle_tasks.remove(self)
-
-    def update(self, data: bytes) -> None:
-        """The frame's new data (canopen: the NMT state byte)."""
-        self.data = bytes(data)
-
-
-@dataclass
-class _Axis:
-    """One drive: its node, its object values and its CiA 402 state."""
-
-    config: AxisConfig
-    plant_index: int  # column in the simulator's arrays
-    joint_index: int  # position in the CommandedPlant command array
-    gear_ratio: float
-    torque_constant_nm_per_a: float
-    node: canopen.LocalNode
-    od: ObjectDictionary
-    units: DriveUnits  # what 0x6075, 0x6076 and 0x608F say (read-only objects)
-    defaults: dict[tuple[int, int], int]
-    values: dict[tuple[int, int], int] = field(default_factory=dict)
-    # Objects whose value is computed when read, from the CiA 402 state or the plant.
-    live: dict[tuple[int, int], Callable[[], int]] = field(default_factory=dict)
-    drive: Cia402AxisState = field(default_factory=Cia402AxisState)
-    nmt: str = NMT_PRE_OPERATIONAL
-    rpdos: list[_Pdo] = field(default_factory=list)
-    tpdos: list[_Pdo] = field(default_factory=list)
-    heartbeat_last_rx_s: float | None = None
-    sync_armed_s: float = -math.inf
-    sync_loss_reported: bool = False
-    torque: Codec = field(init=False)  # N m <-> per mille of 0x6076 (0x6071, 0x6077)
-    current: Codec = field(init=False)  # A <-> per mille of 0x6075 (0x6078)
-    velocity: Codec = field(init=False)  # motor rad/s <-> increments/s (0x606C, 0x60FF)
-    velocity_loop: PIController | None = None  # CSV: target velocity -> current setpoint
-    csv_permille: int = 0  # CSV: the velocity loop's output, per mille of 0x6075
-    faults: _AxisFaults = field(default_factory=_AxisFaults)
-
-    def __post_init__(self) -> None:
-        self.torque = codec.torque(self.units)
-        self.current = codec.current(self.units)
-        self.velocity = codec.velocity(self.units)
-
-    def value(self, index: int, subindex: int = 0) -> int:
-        """A stored (non-dynamic) object value."""
-        return self.values[(index, subindex)]
-
-    def getter(self, index: int, subindex: int) -> Callable[[], int]:
-        """A callable returning the object's current value (live, or stored; 0 if unset)."""
-        live = self.live.get((index, subindex))
-        if live is not None:
-            return live
-        values, key = self.values, (index, subindex)
-
-        def stored() -> int:
-            return values.get(key, 0)
-
-        return stored
-
-
-class _Listener(can.Listener):
-    """The rack's only listener: filters every frame, then feeds canopen's services and the rack.
-
-    It replaces canopen's own `MessageListener`, which hands any frame to the SDO server and
-    the NMT slave, 29-bit and CAN FD ones included (`VirtualDriveRack._on_message`).
-    """
-
-    def __init__(self, rack: VirtualDriveRack) -> None:
-        self._rack = rack
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self._rack._on_message(msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self._rack._on_bus_error(exc)
-
-    def stop(self) -> None:
-        """Nothing to release."""
-
-
-class _RackNetwork(canopen.Network):
-    """canopen's Network, minus one trap: a bus error must not poison every later send.
-
-    python-can's Notifier keeps the last exception of its receive thread in
-    `notifier.exception` even when a listener handled it, and `canopen.Network.check()`, called
-    after every send, re-raises it: one malformed datagram from the bus layer would make every
-    later SDO answer, heartbeat and TPDO fail until a restart. The rack's listener counts the
-    error and clears it (`VirtualDriveRack._on_bus_error`); this check only clears one that a
-    send saw before the listener did (both run on different threads).
-    """
-
-    def check(self) -> None:
-        """Never raise: bus errors are counted by the rack's listener, not re-raised here."""
-        if self.notifier is not None:
-            self.notifier.exception = None
-
-    def __init__(self, bus: can.BusABC) -> None:
-        super().__init__(bus)
-        # Fault injection (0x2030): the COB-IDs of frames that must not go out (a node in
-        # bus-off: its EMCY, SDO answers, boot-up and heartbeat) and of periodic ones that must
-        # not start (a heartbeat injected off). Replaced whole, so the sending threads read
-        # them without a lock.
-        self.muted: frozenset[int] = frozenset()
-        self.muted_periodic: frozenset[int] = frozenset()
-        self.on_dropped: Callable[[int], None] | None = None
-        # After the frame with this COB-ID goes out, call this once (bus-off set over SDO
-        # takes effect after its SDO answer, which is the node's last frame).
-        self.after_send: dict[int, Callable[[], None]] = {}
-        # Lockstep: periodic sends are `_CycleTask`s sent by `send_due`, not threads.
-        self.lockstep = False
-        self.cycle_tasks: list[_CycleTask] = []
-
-    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        """Send as canopen does, except the frames of a node that fault injection silenced."""
-        if can_id in self.muted:
-            if self.on_dropped is not None:
-                self.on_dropped(can_id)
-            return
-        super().send_message(can_id, data, remote)
-        then = self.after_send.pop(can_id, None) if self.after_send else None
-        if then is not None:
-            then()
-
-    def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
-        """Send periodically (the heartbeat) as canopen does, except a heartbeat injected off."""
-        if can_id in self.muted_periodic:
-            return _NullTask()
-        if self.lockstep:
-            task = _CycleTask(self, can_id, bytes(data), period)
-            self.cycle_tasks.append(task)
-            return task
-        return super().send_periodic(can_id, data, period, remote)
-
-    def send_due(self, now_s: float) -> None:
-        """Lockstep: send every periodic frame that is due at the rack's time `now_s`."""
-        for task in list(self.cycle_tasks):
-            if task.next_s is None or now_s >= task.next_s - 1e-9:
-                base = now_s if task.next_s is None else task.next_s
-                task.next_s = base + task.period_s
-                self.send_message(task.can_id, task.data)
-
-
-# --- the rack --------------------------------------------------------------------------------
 
 
 class VirtualDriveRack:
@@ -863,7 +140,7 @@ class VirtualDriveRack:
         self._signals = self._sim.signal_array
         self._lock = threading.RLock()
         self._counters = RackCounters()
-        self._network = _RackNetwork(bus)
+        self._network = RackNetwork(bus)
         self._network.NOTIFIER_CYCLE = NOTIFIER_TIMEOUT_S
         # Lockstep: the rack's time is its plant's (0x1006 per SYNC), and every deadline,
         # heartbeat and event timer runs on it; realtime: the wall clock.
@@ -875,33 +152,42 @@ class VirtualDriveRack:
             (lambda: self._lockstep_time_s) if self._lockstep else time.monotonic
         )
         # canopen types its listener list narrowly; any can.Listener works there.
-        cast("list[can.Listener]", self._network.listeners)[:] = [_Listener(self)]
-        self._axes: list[_Axis] = []
-        self._by_name: dict[str, _Axis] = {}
-        self._rpdo_table: dict[int, list[tuple[_Axis, _Pdo]]] = {}
-        self._sdo_servers: dict[int, _Axis] = {}  # SDO request COB-ID (0x600 + id) -> its node
+        cast("list[can.Listener]", self._network.listeners)[:] = [
+            RackListener(self._on_message, self._on_bus_error)
+        ]
+        self._axes: list[Drive] = []
+        self._by_name: dict[str, Drive] = {}
+        self._pdos = PdoEngine(self._axes, self._counters, self._send)
+        self._sdo_servers: dict[int, Drive] = {}  # SDO request COB-ID (0x600 + id) -> its node
         self._last_sync_rx_s: float | None = None
-        self._last_sync_done_s = -math.inf
         self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
-        # The SYNC rate check (`_sync_in_time`): the period it runs for, its parameters for
-        # that period, and the judge's state (`lca_sim.cia402.sync_rate`).
-        self._sync_period_s = 0.0
-        self._sync_rate: sync_rate.SyncRateParams | None = None
-        self._sync_judge = sync_rate.SyncRateState()
-        self._longest_stall_s = 0.0  # 0x2021
+        self._watchdogs = RackWatchdogs(
+            self._axes,
+            self._counters,
+            config.sync_loss_periods,
+            config.max_stall_discount_s,
+            on_expired=self._communication_error,
+            emcy=self._emcy,
+            warn_once=self._warn_once,
+        )
         self._step_budget_s = 0.0
         self._warned: set[str] = set()
-        # Fault injection: the plant steps run since start (the rack's time, which SYNCs
-        # advance), the schedule as (entry, first step on, first step off), which entries are
-        # on, and every fault going on or off.
-        self._steps_done = 0
-        self._schedule = [
-            (f, self._step_of(f.start_s), None if f.end_s is None else self._step_of(f.end_s))
-            for f in config.faults
-        ]
-        self._schedule_on = [False] * len(config.faults)
-        self._fault_log: list[FaultEvent] = []
-        self._network.on_dropped = self._dropped_bus_off
+        self._steps_done = 0  # plant steps run since start: the rack's time, SYNCs advance it
+        self._started = False
+        self._faults = RackFaults(
+            self._axes,
+            self._network,
+            self._counters,
+            config.faults,
+            self._sim.dt_s,
+            steps=lambda: self._steps_done,
+            started=lambda: self._started,
+            lock=self._lock,
+            clock=self._clock,
+            emcy=self._emcy,
+            communication_error=self._communication_error,
+            set_drive=self._set_drive,
+        )
         eds = config.eds_path or str(eds_path())
         for joint_index, axis_config in enumerate(config.axes):
             plant_index = self._sim.axis_names.index(axis_config.name)
@@ -911,7 +197,7 @@ class VirtualDriveRack:
             # packed then: a segment request before any transfer raised instead of being
             # answered with an abort (CiA 301 7.2.4.3.17), found by tests/.../test_rack_fuzz.py.
             node.sdo._index, node.sdo._subindex = 0, 0
-            axis = _Axis(
+            axis = Drive(
                 config=axis_config,
                 plant_index=plant_index,
                 joint_index=joint_index,
@@ -934,10 +220,9 @@ class VirtualDriveRack:
             self._network.add_node(node)
             self._axes.append(axis)
             self._by_name[axis_config.name] = axis
-            self._sdo_servers[SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
+            self._sdo_servers[cia301.SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
         self._stop_event = threading.Event()
         self._monitor_thread: threading.Thread | None = None
-        self._started = False
         self._stopped = False
 
     # --- lifecycle -------------------------------------------------------------------------
@@ -968,7 +253,7 @@ class VirtualDriveRack:
             for axis in self._axes:
                 self._reset(axis, communication_only=False, now=now)
                 self._boot(axis)
-                self._reassert_faults(axis, now)
+                self._faults.reassert(axis, now)
         if self._lockstep:
             return  # the SYNCs run the watchdogs and timers (`_on_sync`)
         self._monitor_thread = threading.Thread(
@@ -1067,7 +352,7 @@ class VirtualDriveRack:
     def fault_log(self) -> tuple[FaultEvent, ...]:
         """Every injected fault going on (value != 0) or off (0), in order."""
         with self._lock:
-            return tuple(self._fault_log)
+            return tuple(self._faults.log)
 
     def set_fault(self, axis_name: str, kind: str, value: int) -> None:
         """Switch a fault on (value != 0) or off (0) at once, as a write of 0x2030 would.
@@ -1085,13 +370,13 @@ class VirtualDriveRack:
         axis = self._axis(axis_name)
         if kind not in FAULT_KINDS:
             raise UnknownNameError("fault kind", kind, tuple(FAULT_KINDS))
-        high = _FAULT_VALUE_RANGE[kind][1]
+        high = FAULT_VALUE_RANGE[kind][1]
         if isinstance(value, bool) or not 0 <= value <= high:
             raise ValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
         with self._lock:
-            self._set_fault(axis, kind, value, "api", self._clock())
+            self._faults.set(axis, kind, value, "api", self._clock())
 
-    def _axis(self, name: str) -> _Axis:
+    def _axis(self, name: str) -> Drive:
         try:
             return self._by_name[name]
         except KeyError:
@@ -1113,7 +398,7 @@ class VirtualDriveRack:
                 self.config.source, f"axes.{axis_config.name}.rated_current_a", str(exc)
             ) from exc
 
-    def _defaults(self, axis: _Axis) -> dict[tuple[int, int], int]:
+    def _defaults(self, axis: Drive) -> dict[tuple[int, int], int]:
         values: dict[tuple[int, int], int] = {}
         for index in axis.od:
             entry = axis.od[index]
@@ -1134,7 +419,7 @@ class VirtualDriveRack:
         values[(od.SUPPORTED_DRIVE_MODES, 0)] = cia402.SUPPORTED_DRIVE_MODES_BITS
         return values
 
-    def _live_objects(self, axis: _Axis) -> dict[tuple[int, int], Callable[[], int]]:
+    def _live_objects(self, axis: Drive) -> dict[tuple[int, int], Callable[[], int]]:
         """A getter per computed object, its codec bound once (TPDOs call these every SYNC).
 
         The plant's arrays are read-only views the simulator updates in place, so the getters
@@ -1158,7 +443,7 @@ class VirtualDriveRack:
             (od.DRIVE_STATE, 0): lambda: int(modes[1, a]),
             (od.MOTION_STATE, 0): lambda: int(modes[0, a]),
             (od.PROCESS_STALLS, 0): lambda: min(self._counters.process_freezes, 0xFFFFFFFF),
-            (od.LONGEST_STALL, 0): lambda: encode_stall(self._longest_stall_s),
+            (od.LONGEST_STALL, 0): lambda: encode_stall(self._watchdogs.freeze_watch.longest_s),
             (od.FAULT_INJECTION, od.FAULT_LOST_TPDOS): lambda: axis.faults.lost_tpdos,
             (od.FAULT_INJECTION, od.FAULT_HEARTBEAT_OFF): lambda: int(axis.faults.heartbeat_off),
             (od.FAULT_INJECTION, od.FAULT_RAISE_EMCY): lambda: axis.faults.emcy_code,
@@ -1173,16 +458,16 @@ class VirtualDriveRack:
             )
         return live
 
-    def _value(self, axis: _Axis, index: int, subindex: int) -> int | None:
+    def _value(self, axis: Drive, index: int, subindex: int) -> int | None:
         """The value of an object: live for process data, stored for the rest."""
         live = axis.live.get((index, subindex))
         return live() if live is not None else axis.values.get((index, subindex))
 
-    def _torque_actual_permille(self, axis: _Axis) -> int:
+    def _torque_actual_permille(self, axis: Drive) -> int:
         current_a = float(self._state[2, axis.plant_index])
         return axis.torque.encode(axis.torque_constant_nm_per_a * current_a)
 
-    def _demand(self, axis: _Axis) -> cia402.TorqueDemand:
+    def _demand(self, axis: Drive) -> cia402.TorqueDemand:
         target = axis.csv_permille if axis.drive.mode == cia402.MODE_CSV else None
         return cia402.torque_demand(
             axis.drive,
@@ -1190,7 +475,7 @@ class VirtualDriveRack:
             axis.value(od.MAX_TORQUE),
         )
 
-    def _velocity_loop(self, axis: _Axis, dt_s: float) -> None:
+    def _velocity_loop(self, axis: Drive, dt_s: float) -> None:
         """CSV (CiA 402-2 mode 9): the drive's velocity PI turns 0x60FF into its torque demand.
 
         Runs once per SYNC that advances the plant, over that period, on the joint velocity
@@ -1213,7 +498,7 @@ class VirtualDriveRack:
         current_a = loop.update(target_rad_s, float(self._state[1, axis.plant_index]), dt_s)
         axis.csv_permille = axis.current.encode(current_a)
 
-    def _statusword(self, axis: _Axis) -> int:
+    def _statusword(self, axis: Drive) -> int:
         demand = self._demand(axis)
         reached = (
             axis.drive.power is PowerState.OPERATION_ENABLED
@@ -1222,77 +507,59 @@ class VirtualDriveRack:
         )
         return cia402.statusword(axis.drive, target_reached=reached, internal_limit=demand.limited)
 
-    def _read_callback(self, axis: _Axis) -> Callable[..., int | None]:
+    def _read_callback(self, axis: Drive) -> Callable[..., int | None]:
         def on_read(*, index: int, subindex: int, od: ODVariable, **_: Any) -> int | None:
             if od.subindex != subindex:
-                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+                raise SdoAbortedError(cia301.ABORT_NO_SUBINDEX)
             with self._lock:
                 return self._value(axis, index, subindex)
 
         return on_read
 
-    def _write_callback(self, axis: _Axis) -> Callable[..., None]:
+    def _write_callback(self, axis: Drive) -> Callable[..., None]:
         def on_write(*, index: int, subindex: int, od: ODVariable, data: bytes, **_: Any) -> None:
             if od.subindex != subindex:
-                raise SdoAbortedError(ABORT_NO_SUBINDEX)
+                raise SdoAbortedError(cia301.ABORT_NO_SUBINDEX)
             value = od.decode_raw(data)
             if not isinstance(value, int):
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
+                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
             with self._lock:
                 self._write(axis, index, subindex, value, self._clock())
 
         return on_write
 
-    def _write(self, axis: _Axis, index: int, subindex: int, value: int, now: float) -> None:
+    def _write(self, axis: Drive, index: int, subindex: int, value: int, now: float) -> None:
         """Validate and apply a write (SDO or RPDO); SdoAbortedError refuses it."""
         if index == od.FAULT_INJECTION:
-            self._write_fault(axis, subindex, value, now)
+            self._faults.write(axis, subindex, value, now)
             return
         if index == od.CONTROLWORD:
             self._apply_controlword(axis, value, now)
             return
         if index == od.MODES_OF_OPERATION:
             if not cia402.is_supported_mode(value):
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
+                raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
             axis.drive = replace(axis.drive, mode=value)
             return
         if index == od.MAX_TORQUE and value > axis.config.max_torque_permille:
-            raise SdoAbortedError(ABORT_VALUE_TOO_HIGH)
+            raise SdoAbortedError(cia301.ABORT_VALUE_TOO_HIGH)
         allowed = _OPTION_VALUES.get((index, subindex))
         if allowed is not None and value not in allowed:
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
-        located = self._pdo_of(axis, index)
-        if located is not None:
-            pdo, is_mapping = located
-            if is_mapping:
-                self._write_mapping(axis, pdo, subindex, value)
-            else:
-                value = self._write_communication(pdo, subindex, value)
+            raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
+        value = self._pdos.write(axis, index, subindex, value)
         if index == od.HEARTBEAT_CONSUMER:
             axis.heartbeat_last_rx_s = None
         axis.values[(index, subindex)] = value
 
-    def _pdo_of(self, axis: _Axis, index: int) -> tuple[_Pdo, bool] | None:
-        """The PDO whose communication or mapping object `index` is, and whether it is mapping."""
-        for base, pdos, is_mapping in (
-            (od.RPDO_COMMUNICATION, axis.rpdos, False),
-            (od.RPDO_MAPPING, axis.rpdos, True),
-            (od.TPDO_COMMUNICATION, axis.tpdos, False),
-            (od.TPDO_MAPPING, axis.tpdos, True),
-        ):
-            if 0 <= index - base < len(pdos):
-                return pdos[index - base], is_mapping
-        return None
-
     # --- CiA 402 state ---------------------------------------------------------------------
 
-    def _quick_stop_option(self, axis: _Axis) -> int:
+    def _quick_stop_option(self, axis: Drive) -> int:
         return axis.value(od.QUICK_STOP_OPTION)
 
-    def _standstill(self, axis: _Axis) -> bool:
+    def _standstill(self, axis: Drive) -> bool:
         return bool(self._modes[0, axis.plant_index] == 0.0)
 
-    def _set_drive(self, axis: _Axis, state: Cia402AxisState, now: float) -> None:
+    def _set_drive(self, axis: Drive, state: Cia402AxisState, now: float) -> None:
         state = cia402.settle(
             state,
             standstill=self._standstill(axis),
@@ -1304,25 +571,25 @@ class VirtualDriveRack:
             axis.sync_loss_reported = False
         axis.drive = state
 
-    def _apply_controlword(self, axis: _Axis, controlword: int, now: float) -> None:
+    def _apply_controlword(self, axis: Drive, controlword: int, now: float) -> None:
         persisting = axis.faults.drive_fault  # an injected drive fault whose cause lasts
         if cia402.is_fault_reset_edge(controlword, axis.drive.controlword) and not persisting:
             self._clear_errors(axis)
             if axis.faults.emcy_code:  # the raised EMCY is reset with the other errors
-                self._set_fault(axis, "emcy", 0, "fault reset", now)
+                self._faults.set(axis, "emcy", 0, "fault reset", now)
         state = cia402.apply_controlword(axis.drive, controlword, self._quick_stop_option(axis))
         if persisting:
             # CiA 402-2: a fault reset leaves FAULT only once the fault's cause is gone.
             state = cia402.fault(state)
         self._set_drive(axis, state, now)
 
-    def _clear_errors(self, axis: _Axis) -> None:
+    def _clear_errors(self, axis: Drive) -> None:
         if axis.value(od.ERROR_REGISTER) or axis.value(od.ERROR_CODE):
             axis.values[(od.ERROR_REGISTER, 0)] = 0
             axis.values[(od.ERROR_CODE, 0)] = 0
             self._emcy(axis, cia402.EMCY_ERROR_RESET)
 
-    def _set_error(self, axis: _Axis, code: int) -> None:
+    def _set_error(self, axis: Drive, code: int) -> None:
         """A communication error: 0x603F, 0x1001 (generic + communication), then its EMCY."""
         axis.values[(od.ERROR_CODE, 0)] = code
         axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | (
@@ -1330,7 +597,7 @@ class VirtualDriveRack:
         )
         self._emcy(axis, code)  # not in STOPPED
 
-    def _connection_lost(self, axis: _Axis, code: int | None, now: float) -> None:
+    def _connection_lost(self, axis: Drive, code: int | None, now: float) -> None:
         """A watchdog fired (or NMT stop): error code, EMCY, then the 0x6007 reaction."""
         if code is not None:
             self._set_error(axis, code)
@@ -1341,7 +608,7 @@ class VirtualDriveRack:
         )
         self._set_drive(axis, state, now)
 
-    def _communication_error(self, axis: _Axis, code: int, now: float) -> None:
+    def _communication_error(self, axis: Drive, code: int, now: float) -> None:
         """A watchdog fired: 0x603F, 0x1001, EMCY, the 0x6007 reaction, then 0x1029's NMT change.
 
         CiA 301 7.5.2.32 (0x1029 error behaviour, sub 1 communication error): 0 to
@@ -1350,13 +617,15 @@ class VirtualDriveRack:
         self._connection_lost(axis, code, now)
         behaviour = axis.value(od.ERROR_BEHAVIOUR, 1)
         if behaviour == od.ERROR_BEHAVIOUR_PRE_OPERATIONAL and axis.nmt == NMT_OPERATIONAL:
-            axis.node.nmt.send_command(_NMT_PRE_OPERATIONAL)  # the heartbeat says so too
+            axis.node.nmt.send_command(
+                cia301.NMT_ENTER_PRE_OPERATIONAL
+            )  # the heartbeat says so too
             self._enter_nmt(axis, NMT_PRE_OPERATIONAL, now)
         elif behaviour == od.ERROR_BEHAVIOUR_STOPPED and axis.nmt != NMT_STOPPED:
-            axis.node.nmt.send_command(_NMT_STOP)
+            axis.node.nmt.send_command(cia301.NMT_STOP)
             self._enter_nmt(axis, NMT_STOPPED, now)
 
-    def _nmt_reaction(self, axis: _Axis, now: float) -> None:
+    def _nmt_reaction(self, axis: Drive, now: float) -> None:
         """The master took the node out of OPERATIONAL, stopped or reset it: the 0x6007 reaction.
 
         CiA 402-2 0x6007 (abort connection option code) covers the NMT master stopping the
@@ -1369,270 +638,9 @@ class VirtualDriveRack:
         if axis.drive.power is not before:
             self._set_error(axis, cia402.EMCY_LEFT_OPERATIONAL)
 
-    # --- fault injection (object 0x2030, the `faults:` schedule) ----------------------------
-
-    def _step_of(self, time_s: float) -> int:
-        """The first plant step count at which the rack's time is >= `time_s`."""
-        return math.ceil(time_s / self._sim.dt_s - 1e-9)
-
-    def _write_fault(self, axis: _Axis, subindex: int, value: int, now: float) -> None:
-        """An SDO write of 0x2030: switch the fault of that sub-index on or off."""
-        kind = next((k for k, sub in FAULT_KINDS.items() if sub == subindex), None)
-        if kind is None:
-            raise SdoAbortedError(ABORT_NO_SUBINDEX)
-        if kind == "heartbeat_off" and value not in (0, 1):
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
-        if kind != "bus_off":
-            self._set_fault(axis, kind, value, "sdo", now)
-        elif value and not axis.faults.bus_off:
-            # Off the bus after this write's SDO answer, the node's last frame (the master
-            # sees the write succeed), for `value` ms of the rack's time.
-            def go_off() -> None:
-                with self._lock:
-                    self._set_fault(axis, "bus_off", 1, "sdo", self._clock())
-                    axis.faults.bus_off_ms = value
-                    axis.faults.bus_off_until_step = self._steps_done + self._step_of(value * 1e-3)
-
-            self._network.after_send[SDO_RESPONSE_COB_BASE + axis.config.node_id] = go_off
-
-    def _set_fault(self, axis: _Axis, kind: str, value: int, source: str, now: float) -> None:
-        """Switch one fault of one drive on (value != 0) or off (0), and log it."""
-        if kind == "lost_tpdo":
-            axis.faults.lost_tpdos = value
-        elif kind == "heartbeat_off":
-            axis.faults.heartbeat_off = bool(value)
-            self._update_silence(axis)
-        elif kind == "emcy":
-            self._raise_emcy(axis, value)
-        elif kind == "drive_fault":
-            self._drive_fault(axis, value, now)
-        else:
-            self._bus_off(axis, bool(value), now)
-        self._fault_log.append(
-            FaultEvent(self._steps_done * self._sim.dt_s, axis.config.name, kind, value, source)
-        )
-
-    def _raise_emcy(self, axis: _Axis, code: int) -> None:
-        """Send EMCY `code` with its 0x1001 bits set (CiA 301 7.2.7, 7.5.2.2); 0 clears them.
-
-        The drive's CiA 402 state and 0x603F do not change: an EMCY that is not a drive fault
-        (`_drive_fault` is). Clearing leaves 0x1001 as a drive error (0x603F) needs it, and
-        sends EMCY 0x0000 "error reset" when no error is left (CiA 301 7.2.7.1).
-        """
-        axis.faults.emcy_code = code
-        register = axis.value(od.ERROR_REGISTER)
-        if code:
-            axis.values[(od.ERROR_REGISTER, 0)] = register | od.error_register_for(code)
-            self._emcy(axis, code)
-        elif register and not axis.value(od.ERROR_CODE):
-            axis.values[(od.ERROR_REGISTER, 0)] = 0
-            self._emcy(axis, cia402.EMCY_ERROR_RESET)
-
-    def _drive_fault(self, axis: _Axis, code: int, now: float) -> None:
-        """A drive fault (CiA 402-2 transition 13): 0x603F = code, 0x1001, EMCY, FAULT.
-
-        The power stage goes off (no torque: a self-locking axis holds, a reversible one
-        moves under its load). 0 removes the fault's cause; the drive stays in FAULT until the
-        master's fault reset (controlword bit 7), which is refused while the cause lasts.
-        """
-        axis.faults.drive_fault = code
-        if not code:
-            return
-        axis.values[(od.ERROR_CODE, 0)] = code
-        axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | od.error_register_for(
-            code
-        )
-        self._emcy(axis, code)
-        self._set_drive(axis, cia402.fault(axis.drive), now)
-
-    def _bus_off(self, axis: _Axis, on: bool, now: float) -> None:
-        """A node's CAN controller goes bus-off (on) or recovers (off).
-
-        In bus-off a node takes no part in the bus (ISO 11898-1): it sends nothing (TPDO,
-        EMCY, SDO answer, heartbeat) and takes nothing (SDO, NMT, SYNC, RPDO, heartbeat).
-        Bus-off is a communication error: 0x603F = 0x8140, 0x1001, the CiA 402-2 0x6007
-        reaction and the CiA 301 0x1029 sub 1 NMT change (7.5.2.32 lists bus-off among the
-        communication errors) apply at once. On recovery the node resumes in the NMT state
-        that left it, with its configuration (no reset, no boot-up: CiA 301 asks none), and
-        sends EMCY 0x8140 "recovered from bus off" with 0x1001.
-        """
-        faults = axis.faults
-        if on == faults.bus_off:
-            return
-        faults.bus_off = on
-        node, network = axis.node, self._network
-        sdo_cob = SDO_REQUEST_COB_BASE + axis.config.node_id
-        if on:
-            network.unsubscribe(sdo_cob, node.sdo.on_request)
-            network.unsubscribe(NMT_COB_ID, node.nmt.on_command)
-            self._update_silence(axis)
-            for pdo in axis.rpdos:
-                pdo.latched = None
-            self._communication_error(axis, EMCY_BUS_OFF_RECOVERED, now)
-            return
-        faults.bus_off_ms, faults.bus_off_until_step = 0, None
-        network.subscribe(sdo_cob, node.sdo.on_request)
-        network.subscribe(NMT_COB_ID, node.nmt.on_command)
-        self._update_silence(axis, restart_heartbeat=False)
-        self._emcy(axis, EMCY_BUS_OFF_RECOVERED)  # its first frame back, then the heartbeat
-        if not faults.heartbeat_off and self._started:
-            node.nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
-
-    def _update_silence(self, axis: _Axis, restart_heartbeat: bool = True) -> None:
-        """Mute the frames of bus-off nodes, stop or restart `axis`'s heartbeat producer."""
-        muted: set[int] = set()
-        periodic: set[int] = set()
-        for a in self._axes:
-            node_id = a.config.node_id
-            if a.faults.bus_off:
-                muted |= {
-                    EMCY_COB_BASE + node_id,
-                    SDO_RESPONSE_COB_BASE + node_id,
-                    HEARTBEAT_COB_BASE + node_id,
-                }
-            if a.faults.bus_off or a.faults.heartbeat_off:
-                periodic.add(HEARTBEAT_COB_BASE + node_id)
-        cob = HEARTBEAT_COB_BASE + axis.config.node_id
-        was_silent = cob in self._network.muted_periodic
-        self._network.muted = frozenset(muted)
-        self._network.muted_periodic = frozenset(periodic)
-        nmt = axis.node.nmt
-        if cob in periodic and not was_silent:
-            nmt.stop_heartbeat()  # type: ignore[no-untyped-call]
-        elif was_silent and cob not in periodic and self._started and restart_heartbeat:
-            nmt.start_heartbeat(axis.value(od.HEARTBEAT_PRODUCER))
-
-    def _dropped_bus_off(self, cob_id: int) -> None:
-        self._counters.frames_dropped_bus_off += 1
-
-    def _run_fault_clock(self, now: float) -> None:
-        """At a SYNC: the schedule's faults that start or end now, and timed bus-offs' ends."""
-        step = self._steps_done
-        for k, (entry, start, end) in enumerate(self._schedule):
-            on = step >= start and (end is None or step < end)
-            if on != self._schedule_on[k]:
-                self._schedule_on[k] = on
-                axis = self._by_name[entry.joint]
-                self._set_fault(axis, entry.kind, entry.value if on else 0, "schedule", now)
-        for axis in self._axes:
-            until = axis.faults.bus_off_until_step
-            if until is not None and step >= until:
-                self._set_fault(axis, "bus_off", 0, "sdo", now)
-
-    def _reassert_faults(self, axis: _Axis, now: float) -> None:
-        """After a reset node: a drive fault whose cause lasts faults the drive again."""
-        if axis.faults.drive_fault:
-            self._drive_fault(axis, axis.faults.drive_fault, now)
-
-    # --- PDO configuration -----------------------------------------------------------------
-
-    def _mapped_object(self, axis: _Axis, raw: int, receive: bool) -> ODVariable:
-        """The object a mapping entry names, if it may be mapped in this direction."""
-        entry = MappingEntry.decode(raw)
-        if entry.index not in axis.od:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        obj = axis.od[entry.index]
-        if isinstance(obj, ODRecord | ODArray):
-            if entry.subindex not in obj:
-                raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-            obj = obj[entry.subindex]
-        elif entry.subindex != 0:
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        allowed = obj.writable if receive else obj.readable
-        if not (obj.pdo_mappable and allowed and entry.bits == len(obj) and entry.bits % 8 == 0):
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
-        _number_format(obj)
-        return obj
-
-    def _mapped_objects(self, axis: _Axis, slots: Sequence[int], receive: bool) -> list[ODVariable]:
-        objects = [self._mapped_object(axis, raw, receive) for raw in slots]
-        if sum(len(obj) for obj in objects) > cia402.PDO_MAX_BITS:
-            raise SdoAbortedError(ABORT_PDO_LENGTH)
-        return objects
-
-    def _getters(
-        self, axis: _Axis, objects: Sequence[ODVariable], receive: bool
-    ) -> list[Callable[[], int]]:
-        """What a TPDO reads for each mapped object when it is sent (an RPDO reads nothing)."""
-        return [] if receive else [axis.getter(obj.index, obj.subindex) for obj in objects]
-
-    def _load_pdo(self, axis: _Axis, number: int, receive: bool) -> _Pdo:
-        com = (od.RPDO_COMMUNICATION if receive else od.TPDO_COMMUNICATION) + number - 1
-        mapping = com + (od.RPDO_MAPPING - od.RPDO_COMMUNICATION)
-        cob = axis.value(com, 1)
-        count = axis.value(mapping, 0)
-        slots = [axis.values.get((mapping, k), 0) for k in range(1, cia402.PDO_MAX_ENTRIES + 1)]
-        pdo = _Pdo(
-            number=number,
-            receive=receive,
-            cob_id=cob & 0x7FF,
-            valid=not cob & cia402.PDO_COB_ID_INVALID,
-            transmission_type=axis.value(com, 2),
-            inhibit_100us=axis.values.get((com, 3), 0),
-            event_timer_ms=axis.values.get((com, 5), 0),
-            slots=slots,
-            count=count,
-        )
-        objects = self._mapped_objects(axis, slots[:count], receive)
-        pdo.map(objects, self._getters(axis, objects, receive))
-        return pdo
-
-    def _write_communication(self, pdo: _Pdo, subindex: int, value: int) -> int:
-        """Apply a write to a PDO communication object; returns the value to store."""
-        if subindex == 1:
-            if value & cia402.PDO_COB_ID_EXTENDED or value & 0x1FFFFFFF > 0x7FF:
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
-            valid = not value & cia402.PDO_COB_ID_INVALID
-            cob_id = value & 0x7FF
-            if pdo.valid and valid and cob_id != pdo.cob_id:
-                raise SdoAbortedError(ABORT_VALUE_RANGE)  # change the COB-ID of an invalid PDO
-            pdo.valid, pdo.cob_id = valid, cob_id
-            pdo.latched, pdo.last_rx_s, pdo.last_data = None, None, None
-            if pdo.receive:
-                self._rebuild_rpdo_table()
-            else:
-                # CiA 301 0x1800 sub 1 bit 30: these drives never answer a remote frame, so a
-                # TPDO's COB-ID keeps "no RTR allowed" whatever a master writes (masters that
-                # write only bit 31 and the id, as many do, are not refused for it).
-                value |= cia402.PDO_COB_ID_NO_RTR
-        elif subindex == 2:
-            if not cia402.is_valid_transmission_type(value):
-                raise SdoAbortedError(ABORT_VALUE_RANGE)
-            pdo.transmission_type, pdo.sync_count = value, 0
-        elif subindex == 3:
-            pdo.inhibit_100us = value
-        elif subindex == 5:
-            pdo.event_timer_ms = value
-        return value
-
-    def _write_mapping(self, axis: _Axis, pdo: _Pdo, subindex: int, value: int) -> None:
-        if pdo.valid:
-            raise SdoAbortedError(ABORT_DEVICE_STATE)  # set COB-ID bit 31 first
-        if subindex == 0:
-            if value > cia402.PDO_MAX_ENTRIES:
-                raise SdoAbortedError(ABORT_PDO_LENGTH)
-            objects = self._mapped_objects(axis, pdo.slots[:value], pdo.receive)
-            pdo.map(objects, self._getters(axis, objects, pdo.receive))
-            pdo.count = value
-            pdo.latched, pdo.last_data = None, None
-            return
-        if pdo.count != 0:
-            raise SdoAbortedError(ABORT_DEVICE_STATE)  # set sub 0 to 0 first
-        if value != 0:
-            self._mapped_object(axis, value, pdo.receive)
-        pdo.slots[subindex - 1] = value
-
-    def _rebuild_rpdo_table(self) -> None:
-        table: dict[int, list[tuple[_Axis, _Pdo]]] = {}
-        for axis in self._axes:
-            for pdo in axis.rpdos:
-                if pdo.valid:
-                    table.setdefault(pdo.cob_id, []).append((axis, pdo))
-        self._rpdo_table = table  # replaced whole: the receive thread reads it without the lock
-
     # --- NMT -------------------------------------------------------------------------------
 
-    def _reset(self, axis: _Axis, communication_only: bool, now: float) -> None:
+    def _reset(self, axis: Drive, communication_only: bool, now: float) -> None:
         """Objects back to their defaults (0x1000-0x1FFF only for reset communication).
 
         Reset communication keeps 0x1001: the error register reports the drive's errors (0x603F
@@ -1646,11 +654,7 @@ class VirtualDriveRack:
         for index in list(axis.node.data_store):
             if not communication_only or index < 0x2000:
                 del axis.node.data_store[index]
-        n_rpdo = _count_pdos(axis.od, od.RPDO_COMMUNICATION)
-        n_tpdo = _count_pdos(axis.od, od.TPDO_COMMUNICATION)
-        axis.rpdos = [self._load_pdo(axis, n, receive=True) for n in range(1, n_rpdo + 1)]
-        axis.tpdos = [self._load_pdo(axis, n, receive=False) for n in range(1, n_tpdo + 1)]
-        self._rebuild_rpdo_table()
+        self._pdos.load(axis)
         if not communication_only:
             axis.drive = Cia402AxisState(mode=axis.value(od.MODES_OF_OPERATION))
             self._set_drive(axis, axis.drive, now)
@@ -1658,13 +662,13 @@ class VirtualDriveRack:
         axis.sync_armed_s = now
         axis.sync_loss_reported = False
 
-    def _boot(self, axis: _Axis) -> None:
+    def _boot(self, axis: Drive) -> None:
         """Boot-up message, then PRE-OPERATIONAL with the heartbeat of 0x1017 running."""
-        axis.node.nmt.send_command(_NMT_RESET_NODE)  # from INITIALISING: sends the boot-up
-        axis.node.nmt.send_command(_NMT_PRE_OPERATIONAL)  # starts the heartbeat
+        axis.node.nmt.send_command(cia301.NMT_RESET_NODE)  # from INITIALISING: sends the boot-up
+        axis.node.nmt.send_command(cia301.NMT_ENTER_PRE_OPERATIONAL)  # starts the heartbeat
         axis.nmt = NMT_PRE_OPERATIONAL
 
-    def _leave_operational(self, axis: _Axis) -> None:
+    def _leave_operational(self, axis: Drive) -> None:
         for pdo in axis.rpdos:
             pdo.latched, pdo.last_rx_s = None, None
 
@@ -1675,24 +679,24 @@ class VirtualDriveRack:
             return
         command, node_id = data[0], data[1]
         states = {
-            _NMT_START: NMT_OPERATIONAL,
-            _NMT_STOP: NMT_STOPPED,
-            _NMT_PRE_OPERATIONAL: NMT_PRE_OPERATIONAL,
+            cia301.NMT_START: NMT_OPERATIONAL,
+            cia301.NMT_STOP: NMT_STOPPED,
+            cia301.NMT_ENTER_PRE_OPERATIONAL: NMT_PRE_OPERATIONAL,
         }
         for axis in self._axes:
             if node_id not in (0, axis.config.node_id) or axis.faults.bus_off:
                 continue
             if command in states:
                 self._enter_nmt(axis, states[command], now)
-            elif command in (_NMT_RESET_NODE, _NMT_RESET_COMMUNICATION):
-                communication_only = command == _NMT_RESET_COMMUNICATION
+            elif command in (cia301.NMT_RESET_NODE, cia301.NMT_RESET_COMMUNICATION):
+                communication_only = command == cia301.NMT_RESET_COMMUNICATION
                 if communication_only:
                     self._nmt_reaction(axis, now)
                 self._reset(axis, communication_only, now)
                 self._boot(axis)
-                self._reassert_faults(axis, now)
+                self._faults.reassert(axis, now)
 
-    def _enter_nmt(self, axis: _Axis, state: str, now: float) -> None:
+    def _enter_nmt(self, axis: Drive, state: str, now: float) -> None:
         """Move a node to an NMT state (its canopen NmtSlave is set by the caller).
 
         Leaving OPERATIONAL (no more PDOs: the last target must not stay applied) and entering
@@ -1742,7 +746,7 @@ class VirtualDriveRack:
                 return
         # An NMT frame of the wrong length goes to `_on_frame` (which counts it) only: canopen's
         # NMT slave would act on the first two bytes of a longer one.
-        if cob != NMT_COB_ID or len(msg.data) == 2:
+        if cob != cia301.NMT_COB_ID or len(msg.data) == 2:
             try:
                 self._network.notify(cob, msg.data, msg.timestamp)
             except Exception:
@@ -1771,20 +775,20 @@ class VirtualDriveRack:
         data = bytes(msg.data)
         try:
             now = self._clock()
-            if cob == SYNC_COB_ID:
+            if cob == cia301.SYNC_COB_ID:
                 # The bus's reception stamp, not `now`: SYNCs queued while this process stood
                 # still keep their spacing for the SYNC rate check (`_sync_in_time`).
                 stamp_s = msg.timestamp if msg.timestamp > 0.0 else time.time()
                 with self._lock:
                     self._on_sync(data, now, stamp_s)
-            elif cob == NMT_COB_ID:
+            elif cob == cia301.NMT_COB_ID:
                 with self._lock:
                     self._on_nmt(data, now)
-            elif HEARTBEAT_COB_BASE < cob <= HEARTBEAT_COB_BASE + 0x7F:
+            elif cia301.HEARTBEAT_COB_BASE < cob <= cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX:
                 with self._lock:
-                    self._on_heartbeat(cob - HEARTBEAT_COB_BASE, data, now)
+                    self._on_heartbeat(cob - cia301.HEARTBEAT_COB_BASE, data, now)
             else:
-                targets = self._rpdo_table.get(cob)
+                targets = self._pdos.rpdo_table.get(cob)
                 if targets:
                     with self._lock:
                         for axis, pdo in targets:
@@ -1797,7 +801,7 @@ class VirtualDriveRack:
         """The bus layer raised in the receive thread (a malformed datagram): count it, go on.
 
         The notifier's thread survives because this listener handles the error; the exception
-        it keeps is cleared so that the next send does not re-raise it (`_RackNetwork`).
+        it keeps is cleared so that the next send does not re-raise it (`RackNetwork`).
         """
         self._counters.bus_errors += 1
         notifier = self._network.notifier
@@ -1814,7 +818,7 @@ class VirtualDriveRack:
             if node_id == producer and time_ms and not axis.faults.bus_off:
                 axis.heartbeat_last_rx_s = now
 
-    def _on_rpdo(self, axis: _Axis, pdo: _Pdo, data: bytes, now: float) -> None:
+    def _on_rpdo(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
         if axis.faults.bus_off:
             return  # its controller takes no frame
         self._counters.rpdos_received += 1
@@ -1847,7 +851,7 @@ class VirtualDriveRack:
         else:
             self._apply_rpdo(axis, pdo, data, now)
 
-    def _apply_rpdo(self, axis: _Axis, pdo: _Pdo, data: bytes, now: float) -> None:
+    def _apply_rpdo(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
         for obj, value in zip(pdo.objects, pdo.frame.unpack(data), strict=True):
             try:
                 self._write(axis, obj.index, obj.subindex, int(value), now)
@@ -1860,8 +864,8 @@ class VirtualDriveRack:
         if not self._sync_length_ok(data):
             return
         self._counters.syncs += 1
-        if self._schedule or self._fault_log:
-            self._run_fault_clock(now)
+        if not self._faults.idle:
+            self._faults.run_clock(now)
         operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL and not a.faults.bus_off]
         for axis in operational:
             self._apply_latched_rpdos(axis, now)
@@ -1881,18 +885,18 @@ class VirtualDriveRack:
             self._set_drive(axis, axis.drive, now)
         done = self._clock()
         if self._lockstep:  # the monitor's work, at the rack's time after this cycle
-            self._last_sync_done_s = done
-            self._check_watchdogs(done)
+            self._watchdogs.last_sync_done_s = done
+            self._watchdogs.check(done)
             self._network.send_due(done)
-        self._service_event_tpdos(done)
-        self._last_sync_done_s = done
+        self._pdos.service_event_tpdos(done)
+        self._watchdogs.last_sync_done_s = done
 
-    def _send_tpdos_of_sync(self, operational: list[_Axis], now: float) -> None:
+    def _send_tpdos_of_sync(self, operational: list[Drive], now: float) -> None:
         """Every operational node's synchronous TPDOs; over lca_remote, in one write."""
         try:
             with batched_sends(self._network.bus):
                 for axis in operational:
-                    self._send_sync_tpdos(axis, now)
+                    self._pdos.send_sync_tpdos(axis, now)
         except (can.CanError, OSError) as exc:  # the batch's one write failed
             self._counters.send_errors += 1
             self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
@@ -1913,27 +917,12 @@ class VirtualDriveRack:
                 self._emcy(axis, cia402.EMCY_SYNC_LENGTH)
         return False
 
-    def _apply_latched_rpdos(self, axis: _Axis, now: float) -> None:
+    def _apply_latched_rpdos(self, axis: Drive, now: float) -> None:
         """At a SYNC: the synchronous RPDOs received since the previous one (the latest wins)."""
         for pdo in axis.rpdos:
             if pdo.latched is not None:
                 latched, pdo.latched = pdo.latched, None
                 self._apply_rpdo(axis, pdo, latched, now)
-
-    def _send_sync_tpdos(self, axis: _Axis, now: float) -> None:
-        """At a SYNC: type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
-        for pdo in axis.tpdos:
-            if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
-                continue
-            if pdo.transmission_type == 0:
-                frame = self._encode(axis, pdo)
-                if frame != pdo.last_data:
-                    self._send_tpdo(axis, pdo, frame, now)
-                continue
-            pdo.sync_count += 1
-            if pdo.sync_count >= pdo.transmission_type:
-                pdo.sync_count = 0
-                self._send_tpdo(axis, pdo, self._encode(axis, pdo), now)
 
     def _cycle_period_s(self) -> float:
         return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
@@ -1941,21 +930,14 @@ class VirtualDriveRack:
     def _sync_in_time(self, period_s: float, stamp_s: float) -> bool:
         """Whether this SYNC may advance the plant a period (0x1006 > 0), or comes too early.
 
-        CiA 301 7.2.5 gives a network one SYNC producer, 0x1006 (7.5.2.6) its period. SYNCs
-        faster than that (a second producer, a master whose cycle does not match what it
-        wrote to 0x1006) would run the plant faster than the wall clock. The pure judge
-        (`lca_sim.cia402.sync_rate`) counts the SYNCs against the time their bus stamps say
-        passed, over a window, so jitter and stalls (up to the SYNC-loss deadline, and a
-        freeze of this process up to 0.2 s) with their catch-up bursts never count. The
-        excess SYNCs are handled as any SYNC (RPDOs applied, TPDOs sent) but do not advance
-        the plant; each is counted (`syncs_too_fast`), and every node sends EMCY 0x8100 once
-        per episode (over after a window without excess).
+        SYNCs faster than 0x1006 (a second producer, a master whose cycle does not match what
+        it wrote there) would run the plant faster than the wall clock; the watchdogs' judge
+        (`RackWatchdogs.sync_verdict`) tells them. The excess SYNCs are handled as any SYNC
+        (RPDOs applied, TPDOs sent) but do not advance the plant; each is counted
+        (`syncs_too_fast`), and every node sends EMCY 0x8100 once per episode (over after a
+        window without excess).
         """
-        if period_s != self._sync_period_s or self._sync_rate is None:
-            self._sync_period_s = period_s
-            self._sync_rate = sync_rate.sync_rate_params(period_s, self.config.sync_loss_periods)
-            self._sync_judge = sync_rate.SyncRateState()
-        self._sync_judge, verdict = sync_rate.judge_sync(self._sync_judge, stamp_s, self._sync_rate)
+        verdict = self._watchdogs.sync_verdict(period_s, stamp_s)
         if verdict is sync_rate.SyncVerdict.IN_TIME:
             return True
         self._counters.syncs_too_fast += 1
@@ -2013,9 +995,6 @@ class VirtualDriveRack:
 
     # --- transmission ----------------------------------------------------------------------
 
-    def _encode(self, axis: _Axis, pdo: _Pdo) -> bytes:
-        return pdo.frame.pack(*[get() for get in pdo.getters])
-
     def _send(self, cob_id: int, data: bytes) -> bool:
         try:
             self._network.send_message(cob_id, data)
@@ -2025,17 +1004,7 @@ class VirtualDriveRack:
             return False
         return True
 
-    def _send_tpdo(self, axis: _Axis, pdo: _Pdo, frame: bytes, now: float) -> None:
-        faults = axis.faults
-        if faults.bus_off:
-            self._counters.frames_dropped_bus_off += 1
-        elif faults.lost_tpdos >> (pdo.number - 1) & 1:
-            self._counters.tpdos_lost += 1  # injected: lost as if sent (0x2030 sub 1)
-        elif self._send(pdo.cob_id, frame):
-            self._counters.tpdos_sent += 1
-        pdo.last_data, pdo.last_sent_s = frame, now
-
-    def _emcy(self, axis: _Axis, code: int, data: bytes = b"") -> None:
+    def _emcy(self, axis: Drive, code: int, data: bytes = b"") -> None:
         """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes."""
         if axis.nmt == NMT_STOPPED:
             return  # no EMCY in STOPPED (CiA 301)
@@ -2051,21 +1020,6 @@ class VirtualDriveRack:
             return
         self._counters.emcy_sent += 1
 
-    def _service_event_tpdos(self, now: float) -> None:
-        """Send the event-driven TPDOs whose data changed or whose event timer expired."""
-        for axis in self._axes:
-            if axis.nmt != NMT_OPERATIONAL:
-                continue
-            for pdo in axis.tpdos:
-                if not pdo.valid or pdo.transmission_type not in cia402.TRANSMISSION_EVENT_TYPES:
-                    continue
-                since_s = now - pdo.last_sent_s
-                frame = self._encode(axis, pdo)
-                changed = frame != pdo.last_data and since_s >= pdo.inhibit_100us * 1e-4
-                timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
-                if changed or timer_due:
-                    self._send_tpdo(axis, pdo, frame, now)
-
     # --- watchdogs -------------------------------------------------------------------------
 
     def _monitor(self) -> None:
@@ -2074,88 +1028,13 @@ class VirtualDriveRack:
             try:
                 with self._lock:
                     now = time.monotonic()
-                    frozen_s = now - due
+                    late_s = now - due
                     due = now + MONITOR_PERIOD_S
-                    if frozen_s > FREEZE_THRESHOLD_S:
-                        self._discount_freeze(frozen_s, now)
-                    self._check_watchdogs(now)
-                    self._service_event_tpdos(now)
+                    self._watchdogs.tick(late_s, now)
+                    self._pdos.service_event_tpdos(now)
             except Exception:
                 self._counters.handler_errors += 1
                 logger.exception("virtual drive: error in the monitor")
-
-    def _discount_freeze(self, frozen_s: float, now: float) -> None:
-        """Move every armed deadline on by `frozen_s`: this process, not the master, stood still.
-
-        No further than `now`: a frame the receive thread took after the freeze, before this
-        tick, has already stamped its deadline afresh. And no more than `max_stall_discount_s`
-        (rack.yaml): a longer stall is the drive standing still for longer than a master can
-        be expected to tolerate, so the rest counts against the deadlines as it would on a
-        drive that froze, and each node sends EMCY 0xFF02 with the stall in ms.
-
-        Every stall is counted (`process_freezes`, object 0x2020) and the longest is kept
-        (0x2021, ms), so a master learns that the drive stood still even when nothing faulted.
-
-        A real drive's watchdog runs on its own hardware. This one shares an interpreter with
-        its receive thread (and, with interface virtual, with the master): while the process is
-        frozen, frames wait unread in the bus queue, and judging the deadlines on waking would
-        blame the master for the freeze. A master that is silent while this process runs is
-        still caught on time.
-        """
-        self._counters.process_freezes += 1
-        self._longest_stall_s = max(self._longest_stall_s, frozen_s)
-        self._warn_once(
-            "freeze",
-            f"this process stood still for {frozen_s * 1e3:.0f} ms; the watchdogs do not count "
-            f"up to {self.config.max_stall_discount_s * 1e3:.0f} ms of such time against the "
-            "master (objects 0x2020 / 0x2021 count the stalls)",
-        )
-        if frozen_s > self.config.max_stall_discount_s:
-            self._counters.stalls_beyond_discount += 1
-            stall_ms = struct.pack("<H", min(round(frozen_s * 1e3), 0xFFFF))
-            for axis in self._axes:
-                self._emcy(axis, cia402.EMCY_PROCESS_STALL, stall_ms)
-            frozen_s = self.config.max_stall_discount_s
-        for axis in self._axes:
-            if axis.heartbeat_last_rx_s is not None:
-                axis.heartbeat_last_rx_s = discounted(axis.heartbeat_last_rx_s, frozen_s, now)
-            for pdo in axis.rpdos:
-                if pdo.last_rx_s is not None:
-                    pdo.last_rx_s = discounted(pdo.last_rx_s, frozen_s, now)
-            axis.sync_armed_s = discounted(axis.sync_armed_s, frozen_s, now)
-        self._last_sync_done_s = discounted(self._last_sync_done_s, frozen_s, now)
-
-    def _check_watchdogs(self, now: float) -> None:
-        for axis in self._axes:
-            _, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
-            last = axis.heartbeat_last_rx_s
-            if time_ms and last is not None and now - last > time_ms * 1e-3:
-                axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
-                self._counters.heartbeat_losses += 1
-                self._communication_error(axis, cia402.EMCY_HEARTBEAT, now)
-            if axis.nmt != NMT_OPERATIONAL:
-                continue
-            for pdo in axis.rpdos:
-                last = pdo.last_rx_s
-                if (
-                    pdo.event_timer_ms
-                    and last is not None
-                    and now - last > pdo.event_timer_ms * 1e-3
-                ):
-                    pdo.last_rx_s = None  # re-armed by the next reception
-                    self._counters.rpdo_timeouts += 1
-                    self._communication_error(axis, cia402.EMCY_RPDO_TIMEOUT, now)
-            period_s = axis.value(od.CYCLE_PERIOD) * 1e-6
-            if (
-                period_s > 0.0
-                and axis.drive.power is PowerState.OPERATION_ENABLED
-                and not axis.sync_loss_reported
-                and now - max(self._last_sync_done_s, axis.sync_armed_s)
-                > self.config.sync_loss_periods * period_s
-            ):
-                axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
-                self._counters.sync_losses += 1
-                self._communication_error(axis, cia402.EMCY_SYNC_LOSS, now)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:
@@ -2172,109 +1051,3 @@ def _signal_getter(
         return encode(float(signals[row, column]))
 
     return get
-
-
-def _count_pdos(dictionary: ObjectDictionary, communication_base: int) -> int:
-    mapping_offset = od.RPDO_MAPPING - od.RPDO_COMMUNICATION
-    count = 0
-    while (
-        communication_base + count in dictionary
-        and communication_base + count + mapping_offset in dictionary
-        and count < 512
-    ):
-        count += 1
-    return count
-
-
-# --- console script --------------------------------------------------------------------------
-
-
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="lca-virtual-drive",
-        description=(
-            "Virtual CiA 402 drives (one CANopen node per axis of the lca_sim plant) on a CAN "
-            "interface, until SIGINT or SIGTERM."
-        ),
-    )
-    parser.add_argument("--interface", default="socketcan", help="python-can interface")
-    parser.add_argument("--channel", default="can0", help="channel, e.g. can0 or vcan0")
-    parser.add_argument("--bitrate", type=int, default=None, help="bit/s, where settable")
-    parser.add_argument("--config", default=None, help="rack YAML (default: config/can/rack.yaml)")
-    parser.add_argument(
-        "--faults",
-        default=None,
-        help="YAML with a 'faults:' schedule, replacing the rack config's (docs/can.md)",
-    )
-    parser.add_argument(
-        "--timing-mode",
-        default=None,
-        choices=TIMING_MODES,
-        help="lockstep: the rack's time advances 0x1006 per SYNC only, every watchdog and "
-        "heartbeat on it (the master is the clock); default: the rack config's (realtime)",
-    )
-    parser.add_argument(
-        "--log-level", default="warning", choices=("debug", "info", "warning", "error")
-    )
-    return parser.parse_args(argv)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run a rack on a python-can interface until SIGINT/SIGTERM; 0 on a clean stop, 2 on error."""
-    args = _parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    prog = "lca-virtual-drive"
-    try:
-        config = load_rack_config(args.config)
-        if args.faults is not None:
-            config = load_faults(args.faults, config)
-        if args.timing_mode is not None:
-            config = replace(config, timing_mode=args.timing_mode)
-    except USER_ERRORS as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    kwargs: dict[str, Any] = {} if args.bitrate is None else {"bitrate": args.bitrate}
-    try:
-        bus = can.Bus(interface=args.interface, channel=args.channel, **kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-        print(
-            f"{prog}: error: cannot open CAN interface {args.interface!r} "
-            f"channel {args.channel!r}: {exc}",
-            file=sys.stderr,
-        )
-        return EXIT_BAD_INPUT
-    # The rack answers each SYNC within a fraction of a period: a thread holding the GIL for
-    # Python's default 5 ms would make it miss cycles (the bridge process sets the same).
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    rack: VirtualDriveRack | None = None
-    try:
-        rack = VirtualDriveRack(bus, config)
-        rack.start()  # settles the heap first
-        nodes = ", ".join(f"{a.name}={a.node_id}" for a in config.axes)
-        print(
-            f"{prog}: nodes {nodes} on {args.interface} {args.channel} ({config.timing_mode}); "
-            "SIGINT or SIGTERM stops",
-            file=sys.stderr,
-            flush=True,
-        )
-        while not stop.wait(0.2):
-            pass
-    except USER_ERRORS as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    finally:
-        if rack is not None:
-            rack.stop()
-        bus.shutdown()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

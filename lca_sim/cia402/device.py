@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 MODE_NONE = 0
 MODE_CSV = 9  # cyclic synchronous velocity: the drive closes the velocity loop (0x60FF)
 MODE_CST = 10  # cyclic synchronous torque
-# Modes a write of 0x6060 may select; CSV (9) and the others are refused.
+# Modes a write of 0x6060 may select (0, 9 = CSV, 10 = CST); the others are refused.
 SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CSV, MODE_CST})
 # The modes in which the drive follows a cyclic target (the torque, or its velocity loop's).
 CYCLIC_MODES: frozenset[int] = frozenset({MODE_CSV, MODE_CST})

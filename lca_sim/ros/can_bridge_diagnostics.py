@@ -19,7 +19,7 @@ from rclpy.node import Node
 from lca_sim.canbus import emcy
 from lca_sim.canbus.lockstep import LockstepLoop
 from lca_sim.canbus.master import Cia402Master
-from lca_sim.cia402.master import bus_load_pct
+from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.config.can_bridge_params import CanBridgeNodeParams
 from lca_sim.ros.node_util import status
 from lca_sim.ros.plant_contract import PlantPublisher, worst_first

@@ -29,7 +29,8 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from lca_control.contract import PlantSnapshot
 from lca_control.parameters import ParameterError
-from lca_sim.canbus.master import Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.config.can_bridge_params import (
     CAN_BRIDGE_PARAMETERS,
     CanBridgeNodeParams,
@@ -282,7 +283,7 @@ class CanBridgeNode(LifecycleNode):
         CiA 402-2 (IEC 61800-7-201) drive state machine: the master walks each drive with the
         controlwords shutdown 0x0006, switch on 0x0007, enable operation 0x000F (transitions
         2, 3, 4) to OPERATION ENABLED, one legal step per cycle
-        (`lca_sim.cia402.master.next_controlword`).
+        (`lca_sim.cia402.controlword.next_controlword`).
         """
         bridge = self._configured()
         configured = self._drives.configured

@@ -25,7 +25,9 @@ import numpy as np
 from lca_control.contract import FloatArray, PlantSnapshot
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
-from lca_sim.canbus.master import AxisState, BridgeError, BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_params import BridgeError, BridgeParams
+from lca_sim.canbus.master_state import AxisState, Snapshot
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, CanBridgeNodeParams
 from lca_sim.errors import ConfigError, LcaHilError
@@ -269,7 +271,8 @@ class CanDrives:
         self.loop = LockstepLoop(clock, master.cycle, p.lockstep_resend_s)
 
     def _start_rack(self, p: CanBridgeNodeParams) -> None:
-        from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config  # noqa: PLC0415
+        from lca_sim.canbus.virtual_rack import VirtualDriveRack  # noqa: PLC0415
+        from lca_sim.config.rack import load_rack_config  # noqa: PLC0415
 
         config = load_rack_config(Path(p.rack_config) if p.rack_config else None)
         config = replace(config, timing_mode=p.timing_mode)  # one clock for the whole loop

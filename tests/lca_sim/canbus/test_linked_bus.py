@@ -18,8 +18,11 @@ from support import wait_until
 
 from lca_sim import RobotParams
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, eds_path, load_rack_config
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_params import BridgeParams
+from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
+from lca_sim.config.rack import eds_path, load_rack_config
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 _channels = itertools.count()

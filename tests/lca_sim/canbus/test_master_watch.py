@@ -19,15 +19,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import can
-import canopen
 import pytest
-from support import wait_until
+from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import BridgeParams, Cia402Master
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, eds_path, load_rack_config
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.device import PowerState
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)
@@ -41,6 +37,7 @@ class TargetTorques(can.Listener):
     """The target torques (RPDO1 of the compact layout, per mille) the master sends, per node."""
 
     def __init__(self, channel: str) -> None:
+        self.channel = channel
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.sent: dict[int, list[int]] = {n: [] for n in NODE_IDS}
         self._lock = threading.Lock()
@@ -70,25 +67,15 @@ class TargetTorques(can.Listener):
 
 
 @dataclass
-class Rig:
+class Rig(RackAndMaster):
     """The shipped rack, the bridge's master cycling at 250 Hz, a timer-driven controller."""
 
-    rack: VirtualDriveRack
-    bridge: Cia402Master
     torques: TargetTorques
     currents_a: tuple[float, ...] = (0.0, PIVOT_A, 0.0, 0.0)
 
     def enable(self) -> None:
         """Every drive to operation enabled, the pivot at its 2 A."""
-        assert self.bridge.enable(True) == "enabling"
-        wait_until(
-            lambda: all(
-                self.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
-                for j in JOINTS
-            ),
-            "every drive enabled",
-            10.0,
-        )
+        self.enable_all()
         wait_until(lambda: abs(self.current_a(1) - PIVOT_A) < 0.05, "pivot at 2 A", 10.0)
 
     def current_a(self, k: int) -> float:
@@ -112,44 +99,18 @@ class Rig:
         assert "not enabled" in self.bridge.enable(True)  # a latch holds until ~/recover
 
 
-def _params(robot: RobotParams) -> BridgeParams:
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=CYCLE_HZ,
-        # the drives' watchdogs with room for a shared 2-core machine (as test_rack_faults.py);
-        # the master's heartbeat consumer keeps its default, 3 x 100 ms
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-        command_timeout_s=1.0,
-    )
-
-
 @pytest.fixture
-def rig(default_robot: RobotParams) -> Iterator[Rig]:
+def rig(default_robot: RobotParams, rack_and_master: Callable[..., RackAndMaster]) -> Iterator[Rig]:
     """The rack and the master, initialised and cycling, with a controller on a 5 ms timer."""
-    channel = f"test_master_watch_{os.getpid()}_{next(_channels)}"
-    cleanups: list[Callable[[], None]] = []
+    torques = TargetTorques(f"test_master_watch_{os.getpid()}_{next(_channels)}")
     stop = threading.Event()
+    feeder: threading.Thread | None = None
     try:
-        torques = TargetTorques(channel)
-        cleanups.append(torques.close)
-        rack_bus = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(rack_bus.shutdown)
-        rack = VirtualDriveRack(rack_bus, load_rack_config(None), robot=default_robot)
-        rack.start(settle=False)
-        cleanups.append(rack.stop)
-        network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-        network.connect()
-        cleanups.append(network.disconnect)
-        bridge = Cia402Master(network, _params(default_robot), eds_path())
-        cleanups.append(bridge.stop)
-        rig = Rig(rack, bridge, torques)
+        # the master's heartbeat consumer keeps its default, 3 x 100 ms
+        params = bridge_params(default_robot, cycle_hz=CYCLE_HZ, command_timeout_s=1.0)
+        built = rack_and_master(torques.channel, params, robot=default_robot)
+        bridge = built.bridge
+        rig = Rig(built.channel, built.rack, built.network, bridge, torques)
 
         def controller() -> None:  # commands whether states come or not, as a timer would
             while not stop.wait(0.005):
@@ -160,12 +121,12 @@ def rig(default_robot: RobotParams) -> Iterator[Rig]:
         bridge.set_currents(rig.currents_a)
         bridge.start()
         feeder.start()
-        cleanups.append(feeder.join)
-        cleanups.append(stop.set)
         yield rig
     finally:
-        for cleanup in reversed(cleanups):
-            cleanup()
+        stop.set()
+        if feeder is not None and feeder.is_alive():
+            feeder.join()
+        torques.close()
 
 
 def _latched_within(rig: Rig, text: str, bound_s: float) -> float:

@@ -10,8 +10,6 @@ after the one under test (frames of one bus are handled in order) and waits for 
 from __future__ import annotations
 
 import gc
-import itertools
-import os
 import struct
 import threading
 import time
@@ -23,24 +21,27 @@ import can
 import canopen
 import pytest
 from can.interfaces.virtual import VirtualBus
-from support import CONFIG
-from test_virtual_drive import Probe, emcy_code, enable, nmt, remote, sync, wait_until
+from support import (
+    CONFIG,
+    Probe,
+    emcy_code,
+    rack_nmt,
+    rack_sync,
+    remote_node,
+    sdo_enable,
+    wait_until,
+)
 
 from lca_sim import RobotParams
-from lca_sim.canbus.virtual_rack import (
-    AxisConfig,
-    RackConfig,
-    VirtualDriveRack,
-    load_rack_config,
-)
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.cia402.sync_rate import sync_rate_params
+from lca_sim.config.rack import AxisConfig, RackConfig, load_rack_config
 from lca_sim.errors import ConfigError
 
 PIVOT = 2
 L_ARM = 1
-_channels = itertools.count()
 
 
 class FlakyBus(VirtualBus):
@@ -55,22 +56,6 @@ class FlakyBus(VirtualBus):
             self.fail_next.clear()
             raise can.CanOperationError("malformed datagram from the bus layer")
         return super()._recv_internal(timeout)
-
-
-@pytest.fixture
-def channel() -> str:
-    """A virtual channel no other test uses."""
-    return f"test_rack_conformance_{os.getpid()}_{next(_channels)}"
-
-
-@pytest.fixture
-def probe(channel: str) -> Iterator[Probe]:
-    """The frame recorder, up before the rack so it sees the boot-up messages."""
-    recorder = Probe(channel)
-    try:
-        yield recorder
-    finally:
-        recorder.close()
 
 
 @pytest.fixture
@@ -96,18 +81,6 @@ def rack(
         drives.stop()
 
 
-@pytest.fixture
-def master(channel: str, rack: VirtualDriveRack) -> Iterator[canopen.Network]:
-    """A canopen master network (not our code) on a third bus instance."""
-    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-    network.NOTIFIER_CYCLE = 0.05
-    network.connect()
-    try:
-        yield network
-    finally:
-        network.disconnect()
-
-
 def sdo_upload_request(index: int, subindex: int = 0) -> bytes:
     """A CiA 301 SDO initiate upload request (client -> server, 8 bytes)."""
     return struct.pack("<BHB4x", 0x40, index, subindex)
@@ -117,14 +90,14 @@ def test_item_01_a_bus_receive_error_does_not_break_the_rack(
     rack: VirtualDriveRack, rack_bus: FlakyBus, probe: Probe, master: canopen.Network
 ) -> None:
     """One exception from the bus layer's receive: counted, and SDO and heartbeats go on."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     assert node.sdo[0x6041].raw & 0x4F == 0x40
     rack_bus.fail_next.set()
     wait_until(lambda: rack.counters.bus_errors == 1, "the receive error counted")
     mark = probe.mark()
     assert node.sdo[0x6041].raw & 0x4F == 0x40  # the SDO server still answers ...
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
-    sync(rack, probe)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_sync(rack, probe)
     probe.wait(0x182, mark)  # ... the TPDOs go ...
     probe.send(0x602, sdo_upload_request(0x1000))  # ... and the next request gets its answer
     wait_until(lambda: len(probe.seen(0x582, mark)) == 2, "the second SDO answer")
@@ -166,7 +139,7 @@ def test_item_03_rpdo_of_the_wrong_length_sends_emcy_and_is_not_applied(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """RPDO1 (4 bytes) with 3 bytes: EMCY 0x8210; with 6: EMCY 0x8220; neither applied."""
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     bad_before = rack.counters.bad_frames
     mark = probe.mark()
     probe.send(0x202, struct.pack("<Hb", 0x06, 100))  # too short
@@ -174,30 +147,30 @@ def test_item_03_rpdo_of_the_wrong_length_sends_emcy_and_is_not_applied(
     probe.send(0x202, struct.pack("<Hb", 0x06, 100))  # the same run: counted, no second EMCY
     probe.send(0x202, struct.pack("<Hhh", 0x06, 100, 0))  # too long
     wait_until(lambda: len(probe.seen(0x82, mark)) == 2, "EMCY for the long RPDO")
-    sync(rack, probe)
+    rack_sync(rack, probe)
     assert [emcy_code(d)[0] for d in probe.seen(0x82, mark)] == [0x8210, 0x8220]
     assert rack.counters.bad_frames == bad_before + 3
     assert rack.counters.rpdos_applied == 0
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     assert node.sdo[0x6071].raw == 0
     assert rack.power_state("pivot") is PowerState.SWITCH_ON_DISABLED  # 0x06 not applied
     probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # a right one is applied
     wait_until(lambda: rack.counters.rpdos_received == 4, "the right RPDO")
-    sync(rack, probe)
+    rack_sync(rack, probe)
     assert rack.power_state("pivot") is PowerState.READY_TO_SWITCH_ON
     assert len(probe.seen(0x82, mark)) == 2
 
 
 def test_item_04_sdo_is_not_answered_in_stopped(rack: VirtualDriveRack, probe: Probe) -> None:
     """A node in NMT STOPPED ignores SDO requests (counted); back in PRE-OPERATIONAL it answers."""
-    nmt(rack, probe, 0x02, PIVOT, "STOPPED")
+    rack_nmt(rack, probe, 0x02, PIVOT, "STOPPED")
     mark = probe.mark()
     probe.send(0x602, sdo_upload_request(0x1000))
     probe.send(0x601, sdo_upload_request(0x1000))  # l_arm is not stopped: handled after
     probe.wait(0x581, mark)
     assert probe.seen(0x582, mark) == []
     assert rack.counters.sdo_ignored_stopped == 1
-    nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
+    rack_nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
     probe.send(0x602, sdo_upload_request(0x1000))
     assert probe.wait(0x582, mark)[0] == 0x43
 
@@ -206,14 +179,14 @@ def test_item_06_tpdo_cob_ids_say_no_rtr_and_remote_frames_get_no_answer(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """0x1800-0x1803 sub 1 have bit 30 set, keep it through a rewrite; an RTR is not answered."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     for number, base in enumerate((0x180, 0x280, 0x380, 0x480)):
         assert node.sdo[0x1800 + number][1].raw == (1 << 30) | base | PIVOT
     node.sdo[0x1800][1].raw = 0x80000182  # disable, as a master writes it (bit 30 clear)
     assert node.sdo[0x1800][1].raw == 0xC0000182
     node.sdo[0x1800][1].raw = 0x00000182
     assert node.sdo[0x1800][1].raw == 0x40000182
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     mark = probe.mark()
     probe.bus.send(can.Message(arbitration_id=0x182, is_remote_frame=True, is_extended_id=False))
     probe.send(0x602, sdo_upload_request(0x1000))  # handled after the remote frame
@@ -226,19 +199,19 @@ def test_item_09_a_fault_entered_through_nmt_stop_sets_the_error_code(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """NMT stop of an enabled drive: FAULT (0x6007 = 1) with 0x603F = 0xFF01, 0x1001 = 0x11."""
-    node = remote(master, PIVOT)
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
-    enable(node)
-    nmt(rack, probe, 0x02, PIVOT, "STOPPED")
+    node = remote_node(master, PIVOT)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    sdo_enable(node)
+    rack_nmt(rack, probe, 0x02, PIVOT, "STOPPED")
     assert rack.power_state("pivot") is PowerState.FAULT
     assert rack.faults["pivot"] == 0xFF01
-    nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")  # SDO again
+    rack_nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")  # SDO again
     assert node.sdo[0x603F].raw == 0xFF01
     assert node.sdo[0x1001].raw == 0x11
-    nmt(rack, probe, 0x02, L_ARM, "STOPPED")  # a drive that produced no torque: no error
+    rack_nmt(rack, probe, 0x02, L_ARM, "STOPPED")  # a drive that produced no torque: no error
     assert rack.faults["l_arm"] == 0
-    lift = remote(master, 4)  # reset communication of an enabled drive: the same fault
-    enable(lift)
+    lift = remote_node(master, 4)  # reset communication of an enabled drive: the same fault
+    sdo_enable(lift)
     mark = probe.mark()
     probe.send(0x000, bytes([0x82, 4]))
     probe.wait(0x704, mark)  # its boot-up message
@@ -251,22 +224,22 @@ def test_item_05_leaving_operational_applies_the_communication_error_reaction(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """Enabled with a torque in OPERATIONAL, then NMT pre-operational: EMCY, FAULT, 0 A."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     # 20 ms cycle: SYNC loss (10 periods) leaves room for a shared machine between the SYNCs
     node.sdo[0x1006].raw = 20_000
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     for controlword in (0x06, 0x07, 0x0F):
         probe.send(0x202, struct.pack("<Hh", controlword, 0))
-        sync(rack, probe)
+        rack_sync(rack, probe)
     assert rack.power_state("pivot") is PowerState.OPERATION_ENABLED
     probe.send(0x202, struct.pack("<Hh", 0x0F, 500))
-    sync(rack, probe, 3)  # 60 ms of plant time (9 SYNCs in all: within the burst allowance)
+    rack_sync(rack, probe, 3)  # 60 ms of plant time (9 SYNCs in all: within the burst allowance)
     assert rack.plant_state().current_a[1] > 1.0
     mark = probe.mark()
-    nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
+    rack_nmt(rack, probe, 0x80, PIVOT, "PRE-OPERATIONAL")
     assert emcy_code(probe.wait(0x82, mark)) == (0xFF01, 0x11)
     assert rack.power_state("pivot") is PowerState.FAULT
-    sync(rack, probe, 3)
+    rack_sync(rack, probe, 3)
     assert rack.counters.syncs_too_fast == 0
     assert abs(rack.plant_state().current_a[1]) < 0.05
 
@@ -282,13 +255,13 @@ def test_error_behaviour_0x1029_sets_the_nmt_state_after_a_communication_error(
     state: str,
 ) -> None:
     """CiA 301 0x1029 sub 1: an RPDO deadline miss leaves the node per 0 / 1 / 2."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     assert node.sdo[0x1029][1].raw == 0  # CiA 301's default: to PRE-OPERATIONAL
     with pytest.raises(canopen.SdoAbortedError):
         node.sdo[0x1029][1].raw = 3
     node.sdo[0x1029][1].raw = behaviour
     node.sdo[0x1400][5].raw = 30  # RPDO1 deadline, ms
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     mark = probe.mark()
     probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # arms the deadline, then silence
     assert emcy_code(probe.wait(0x82, mark)) == (0x8250, 0x11)
@@ -303,12 +276,12 @@ def test_item_08_a_second_sync_producer_is_reported_and_does_not_speed_the_plant
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """0x1006 = 10 ms, SYNCs as fast as the bus takes them: EMCY 0x8100, plant at wall time."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1006].raw = 10_000
     mark = probe.mark()
     start_s = rack.plant_state().time_s
     wall_start_s = time.monotonic()
-    sync(rack, probe, 100)  # 1 s of plant time, sent within far less than 1 s
+    rack_sync(rack, probe, 100)  # 1 s of plant time, sent within far less than 1 s
     wall_s = time.monotonic() - wall_start_s
     advanced_s = rack.plant_state().time_s - start_s
     # at most two burst allowances (the judge's first credit and the debt it allows; 12
@@ -338,9 +311,9 @@ def test_item_07_a_stall_is_counted_reported_and_its_discount_bounded(
     try:
         rack.start()
         network.connect()
-        node = remote(network, PIVOT)
+        node = remote_node(network, PIVOT)
         node.sdo[0x1400][5].raw = 200  # RPDO1 deadline, ms
-        nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+        rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
         probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # arms the deadline; then silence
         wait_until(lambda: rack.counters.rpdos_received == 1, "the RPDO received")
         mark = probe.mark()

@@ -26,19 +26,15 @@ import can
 import canopen
 import pytest
 import yaml
-from support import CONFIG, wait_until
+from support import CONFIG, RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import (
-    RackConfig,
-    VirtualDriveRack,
-    eds_path,
-    load_rack_config,
-    main,
-)
+from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import PowerState
+from lca_sim.cli.virtual_drive import main
+from lca_sim.config.rack import RackConfig, load_rack_config
 from lca_sim.errors import ConfigError
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -55,6 +51,7 @@ class Recorder(can.Listener):
     """Every frame on the channel, in bus order (a listener of its own bus instance)."""
 
     def __init__(self, channel: str) -> None:
+        self.channel = channel
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.frames: list[tuple[int, bytes]] = []
         self._lock = threading.Lock()
@@ -86,12 +83,9 @@ class Recorder(can.Listener):
 
 
 @dataclass
-class Rig:
+class Rig(RackAndMaster):
     """A rack, the bridge's master (initialised and cycling), and a recorder of every frame."""
 
-    rack: VirtualDriveRack
-    bridge: Cia402Master
-    network: canopen.Network
     recorder: Recorder
     currents_a: list[float] = field(default_factory=lambda: [0.0] * 4)
     complete: int = 0  # complete cycles (snapshots) the bridge handed on
@@ -104,15 +98,7 @@ class Rig:
     def enable(self) -> None:
         """Every drive to operation enabled, the controller's currents answering each state."""
         self.bridge.set_currents(self.currents_a)
-        assert self.bridge.enable(True) == "enabling"
-        wait_until(
-            lambda: all(
-                self.bridge.axis_state(j).power_state is PowerState.OPERATION_ENABLED
-                for j in JOINTS
-            ),
-            "every drive enabled",
-            10.0,
-        )
+        self.enable_all()
 
     def after_syncs(self, count: int) -> None:
         """Wait until the rack has processed `count` more SYNCs."""
@@ -120,53 +106,29 @@ class Rig:
         wait_until(lambda: self.rack.counters.syncs >= done, f"{count} more SYNCs", 10.0)
 
 
-def _params(robot: RobotParams) -> BridgeParams:
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=250.0,
-        # room for a shared 2-core machine's stalls (as tests/.../test_can_bridge.py)
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-    )
-
-
 @pytest.fixture
-def rig(default_robot: RobotParams) -> Iterator[Rig]:
+def rig(default_robot: RobotParams, rack_and_master: Callable[..., RackAndMaster]) -> Iterator[Rig]:
     """The shipped rack and the bridge's master, initialised and cycling at 250 Hz."""
-    channel = f"test_rack_faults_{os.getpid()}_{next(_channels)}"
-    cleanups: list[Callable[[], None]] = []
+    recorder = Recorder(f"test_rack_faults_{os.getpid()}_{next(_channels)}")
     try:
-        recorder = Recorder(channel)
-        cleanups.append(recorder.close)
-        rack_bus = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(rack_bus.shutdown)
-        rack = VirtualDriveRack(rack_bus, load_rack_config(None), robot=default_robot)
-        rack.start(settle=False)
-        cleanups.append(rack.stop)
-        network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-        network.connect()
-        cleanups.append(network.disconnect)
         holder: list[Rig] = []
 
         def on_state(snapshot: Snapshot) -> None:
             holder[0].complete += 1
             holder[0].bridge.set_currents(holder[0].currents_a)  # a controller answering
 
-        bridge = Cia402Master(network, _params(default_robot), eds_path(), on_state=on_state)
-        cleanups.append(bridge.stop)
-        holder.append(Rig(rack, bridge, network, recorder))
-        bridge.init()
-        bridge.start()
+        built = rack_and_master(
+            recorder.channel,
+            bridge_params(default_robot),
+            on_state=on_state,
+            robot=default_robot,
+        )
+        holder.append(Rig(built.channel, built.rack, built.network, built.bridge, recorder))
+        built.bridge.init()
+        built.bridge.start()
         yield holder[0]
     finally:
-        for cleanup in reversed(cleanups):
-            cleanup()
+        recorder.close()
 
 
 class TpdoCount(can.Listener):

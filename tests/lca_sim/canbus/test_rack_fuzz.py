@@ -14,27 +14,24 @@ Bounded: 150 sequences of at most 121 frames, about 3 s here (the test asserts <
 
 from __future__ import annotations
 
-import itertools
-import os
 import struct
 import time
-from collections.abc import Iterator
 
 import can
 import canopen
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_virtual_drive import Probe, wait_until
+from support import Probe, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, eds_path, load_rack_config
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.device import PowerState
+from lca_sim.config.rack import eds_path
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)
-_channels = itertools.count()
 
 # --- the frames ------------------------------------------------------------------------------
 
@@ -130,35 +127,6 @@ _sequence = st.tuples(
 # --- the rig ---------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def channel() -> str:
-    """A virtual channel no other test uses."""
-    return f"test_rack_fuzz_{os.getpid()}_{next(_channels)}"
-
-
-@pytest.fixture
-def probe(channel: str) -> Iterator[Probe]:
-    """The frame recorder and injector."""
-    recorder = Probe(channel)
-    try:
-        yield recorder
-    finally:
-        recorder.close()
-
-
-@pytest.fixture
-def rack(channel: str, probe: Probe, default_robot: RobotParams) -> Iterator[VirtualDriveRack]:
-    """The shipped rack, started; stopped whatever happens."""
-    bus = can.Bus(interface="virtual", channel=channel)
-    drives = VirtualDriveRack(bus, load_rack_config(None), robot=default_robot)
-    try:
-        drives.start()
-        yield drives
-    finally:
-        drives.stop()
-        bus.shutdown()
-
-
 def _settled(rack: VirtualDriveRack, probe: Probe) -> None:
     """Wait until the rack has handled every frame sent so far (it answers a later request).
 
@@ -178,22 +146,6 @@ def _no_torque(rack: VirtualDriveRack) -> None:
         assert rack.power_state(name) is not PowerState.OPERATION_ENABLED, name
     currents_a = rack.plant_state().current_a
     assert all(abs(i) < 1e-6 for i in currents_a), currents_a
-
-
-def _bridge_params(robot: RobotParams) -> BridgeParams:
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=250.0,
-        # room for a shared 2-core machine's stalls, as in test_can_bridge.py
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-    )
 
 
 # --- the test --------------------------------------------------------------------------------
@@ -247,7 +199,7 @@ def test_random_frames_then_the_master_still_boots_enables_moves_and_stops(
         assert bridge is not None
         bridge.set_currents(currents_a)
 
-    bridge = Cia402Master(network, _bridge_params(default_robot), eds_path(), on_state=feed)
+    bridge = Cia402Master(network, bridge_params(default_robot), eds_path(), on_state=feed)
     try:
         bridge.init()
         bridge.start()
@@ -290,7 +242,7 @@ def test_random_frames_at_a_running_bridge_never_make_it_command_torque(
     """
     network = canopen.Network(can.Bus(interface="virtual", channel=channel))
     network.connect()
-    bridge = Cia402Master(network, _bridge_params(default_robot), eds_path())
+    bridge = Cia402Master(network, bridge_params(default_robot), eds_path())
     try:
         bridge.init()
         bridge.start()

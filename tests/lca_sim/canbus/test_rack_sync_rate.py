@@ -27,7 +27,8 @@ import pytest
 from support import wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, eds_path, load_rack_config
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
+from lca_sim.config.rack import eds_path, load_rack_config
 
 pytestmark = pytest.mark.slow  # each runs the master for 2 s or more
 

@@ -14,6 +14,7 @@ import os
 import re
 import select
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -27,12 +28,15 @@ import canopen
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from support import wait_until
+from support import bridge_params, wait_until
 
-from lca_sim.canbus import remote
-from lca_sim.canbus.master import BridgeParams, Cia402Master, Snapshot
+from lca_sim.canbus import remote, wire
+from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.relay import RelayServer
 from lca_sim.cia402.device import PowerState
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.cli import can_server
+from lca_sim.config.loader import config_dir
 
 BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
 EDS = config_dir() / "can" / "lca_drive.eds"
@@ -85,9 +89,9 @@ def relay() -> Iterator[str]:
 
 
 @pytest.fixture
-def in_process_relay() -> Iterator[remote.RelayServer]:
+def in_process_relay() -> Iterator[RelayServer]:
     """A relay on a thread of this process (for the codec tests: cheap to start)."""
-    server = remote.RelayServer(port=0)
+    server = RelayServer(port=0)
     thread = threading.Thread(target=server.serve, kwargs={"poll_s": 0.02}, daemon=True)
     thread.start()
     try:
@@ -125,23 +129,6 @@ class Heartbeats:
         return lambda: min(self.count(since, state).values()) >= n
 
 
-def _params() -> BridgeParams:
-    robot = load_robot("default")
-    axes = {a.name: a for a in robot.axes}
-    return BridgeParams(
-        joints=JOINTS,
-        node_ids=NODE_IDS,
-        torque_constants_nm_per_a=tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        gear_ratios=tuple(axes[j].gear_ratio for j in JOINTS),
-        drive_state_names=robot.state_machine.state_names,
-        cycle_hz=250.0,
-        # Room for a shared 2-core machine's stalls, as in test_can_bridge.
-        rpdo_deadline_ms=500,
-        heartbeat_consumer_ms=1000,
-        stale_timeout_s=0.5,
-    )
-
-
 def test_rack_and_master_in_separate_processes(relay: str) -> None:
     """Boot, enable, move the pivot both ways, stop; heartbeats survive NMT commands."""
     monitor = can.Bus(interface="lca_remote", channel=relay)
@@ -172,7 +159,7 @@ def test_rack_and_master_in_separate_processes(relay: str) -> None:
             assert bridge is not None
             bridge.set_currents(currents)
 
-        bridge = Cia402Master(network, _params(), EDS, on_state=on_state)
+        bridge = Cia402Master(network, bridge_params(), EDS, on_state=on_state)
         bridge.init()  # SDO configuration, then NMT start: every drive OPERATIONAL
         t_started = time.monotonic()
         bridge.start()
@@ -315,7 +302,7 @@ def _same(a: can.Message, b: can.Message) -> bool:
 @given(frames)
 def test_codec_round_trip(msg: can.Message) -> None:
     """Every frame python-can can hold comes back from the payload unchanged."""
-    back = remote.decode_message(remote.encode_message(msg), 12.5)
+    back = wire.decode_message(wire.encode_message(msg), 12.5)
     assert _same(back, msg), (msg, back)
     assert back.timestamp == 12.5  # the receiver's clock, not the sender's
 
@@ -326,19 +313,19 @@ def test_websocket_framing_survives_any_split(
     msgs: list[can.Message], chunk: int, masked: bool
 ) -> None:
     """Frames parsed from a stream cut at any points come out whole, masked or not."""
-    stream = b"".join(remote.ws_frame(2, remote.encode_message(m), mask=masked) for m in msgs)
+    stream = b"".join(wire.ws_frame(2, wire.encode_message(m), mask=masked) for m in msgs)
     buf = bytearray()
     got: list[tuple[int, bytes]] = []
     for i in range(0, len(stream), chunk):
         buf += stream[i : i + chunk]
-        got += remote.parse_frames(buf)
+        got += wire.parse_frames(buf)
     assert not buf
     assert [op for op, _ in got] == [2] * len(msgs)
     for (_, payload), msg in zip(got, msgs, strict=True):
-        assert _same(remote.decode_message(payload, 0.0), msg)
+        assert _same(wire.decode_message(payload, 0.0), msg)
 
 
-def test_special_frames_cross_the_relay(in_process_relay: remote.RelayServer) -> None:
+def test_special_frames_cross_the_relay(in_process_relay: RelayServer) -> None:
     """29-bit, RTR, FD, error and 0-byte frames arrive unchanged and in order at the others."""
     url = in_process_relay.url
     with (
@@ -360,7 +347,7 @@ def test_special_frames_cross_the_relay(in_process_relay: remote.RelayServer) ->
 
 
 def test_a_batch_is_one_write_and_arrives_whole_in_order(
-    in_process_relay: remote.RelayServer,
+    in_process_relay: RelayServer,
 ) -> None:
     """Frames sent in `batch()` reach nobody until it ends, then all of them, in order."""
     url = in_process_relay.url
@@ -381,7 +368,7 @@ def test_a_batch_is_one_write_and_arrives_whole_in_order(
         assert in_process_relay.stats.frames_in == len(frames)
 
 
-def test_filters_and_periodic_send(in_process_relay: remote.RelayServer) -> None:
+def test_filters_and_periodic_send(in_process_relay: RelayServer) -> None:
     """python-can's own filters and software periodic send, with a data change mid-way."""
     url = in_process_relay.url
     with (
@@ -410,7 +397,7 @@ def test_filters_and_periodic_send(in_process_relay: remote.RelayServer) -> None
         task.stop()
 
 
-def test_stock_python_can_remote_client_joins(in_process_relay: remote.RelayServer) -> None:
+def test_stock_python_can_remote_client_joins(in_process_relay: RelayServer) -> None:
     """python-can-remote's own `remote` interface sends and receives through the relay."""
     url = in_process_relay.url
     with (
@@ -426,7 +413,7 @@ def test_stock_python_can_remote_client_joins(in_process_relay: remote.RelayServ
 
 
 def test_no_server_is_an_init_error() -> None:
-    server = remote.RelayServer(port=0)  # bound, so the port is free of anyone else's server
+    server = RelayServer(port=0)  # bound, so the port is free of anyone else's server
     port = server.port
     server.stop()
     server.serve()  # returns at once and closes the listener
@@ -435,7 +422,42 @@ def test_no_server_is_an_init_error() -> None:
 
 
 def test_binds_loopback_by_default() -> None:
-    assert remote.DEFAULT_HOST == "127.0.0.1"
-    args = remote._parse_args([])
+    assert wire.DEFAULT_HOST == "127.0.0.1"
+    args = can_server._parse_args([])
     assert args.host == "127.0.0.1"
-    assert remote.channel_url("127.0.0.1") == ("127.0.0.1", 54701, "ws://127.0.0.1:54701/")
+    assert wire.channel_url("127.0.0.1") == ("127.0.0.1", 54701, "ws://127.0.0.1:54701/")
+
+
+def test_connect_leaves_the_process_socket_default_alone(
+    monkeypatch: pytest.MonkeyPatch, in_process_relay: RelayServer
+) -> None:
+    """The connect timeout is the bus's socket's own: `socket.setdefaulttimeout` is never called."""
+    calls: list[float | None] = []
+    monkeypatch.setattr(socket, "setdefaulttimeout", calls.append)
+    with can.Bus(interface="lca_remote", channel=in_process_relay.url, connect_timeout_s=3.0):
+        pass
+    assert calls == []
+
+
+def test_a_hanging_connect_times_out_alone() -> None:
+    """While a connect waits on a server that never answers, other threads keep no timeout."""
+    listener = socket.create_server(("127.0.0.1", 0))  # accepts into its backlog, never replies
+    port = listener.getsockname()[1]
+    errors: list[BaseException] = []
+
+    def connect() -> None:
+        try:
+            can.Bus(interface="lca_remote", channel=f"127.0.0.1:{port}", connect_timeout_s=2.0)
+        except can.CanInitializationError as exc:
+            errors.append(exc)
+
+    waiting = threading.Thread(target=connect)
+    waiting.start()
+    try:
+        while waiting.is_alive():
+            assert socket.getdefaulttimeout() is None
+            waiting.join(0.01)
+    finally:
+        waiting.join()
+        listener.close()
+    assert len(errors) == 1  # the bus's own timeout ended the wait

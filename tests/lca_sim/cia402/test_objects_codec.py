@@ -18,8 +18,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from support import CONFIG
 
-from lca_sim.cia402 import codec
-from lca_sim.cia402 import master as cm
+from lca_sim.cia402 import bus_load, codec
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
 from lca_sim.cia402.device import SUPPORTED_DRIVE_MODES_BITS
@@ -275,14 +274,16 @@ def test_bus_load_of_the_default_mapping() -> None:
     """
 
     def frame_bits(pdo: od.PdoDefault) -> int:
-        return cm.frame_bits(sum(od.entry(i).data_type.bits for i in pdo.objects) // 8)
+        return bus_load.frame_bits(sum(od.entry(i).data_type.bits for i in pdo.objects) // 8)
 
     synchronous = [p for p in od.DEFAULT_PDOS if p.valid and p.transmission_type <= 240]
-    per_cycle = cm.frame_bits(0) + 4 * sum(frame_bits(p) / p.transmission_type for p in synchronous)
+    per_cycle = bus_load.frame_bits(0) + 4 * sum(
+        frame_bits(p) / p.transmission_type for p in synchronous
+    )
     assert per_cycle == pytest.approx(1401.0)
-    assert cm.bus_load_pct(per_cycle * 500, 1e6) == pytest.approx(70.05)
+    assert bus_load.bus_load_pct(per_cycle * 500, 1e6) == pytest.approx(70.05)
     extras = next(p for p in od.DEFAULT_PDOS if p.objects[0] == od.LOAD_TORQUE)
-    assert cm.bus_load_pct((per_cycle + 4 * frame_bits(extras) * 0.9) * 500, 1e6) == (
+    assert bus_load.bus_load_pct((per_cycle + 4 * frame_bits(extras) * 0.9) * 500, 1e6) == (
         pytest.approx(90.75)
     )
 

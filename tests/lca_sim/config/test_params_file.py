@@ -114,7 +114,7 @@ def test_in_file_keeps_the_nodes_words() -> None:
 
 def test_with_parameters_sets_values_and_keeps_the_rest_of_the_file() -> None:
     """The first node's values replaced in place, its other values, order and nodes kept."""
-    document = {
+    document: dict[str, Any] = {
         "/controller": {"ros__parameters": {"joints": ["pivot"], "velocity_ti_s": 0.01}},
         "other": {"ros__parameters": {"x": 1}},
     }

@@ -40,11 +40,7 @@ def _bridge(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any) ->
         "auto_enable": True,
         "cycle_hz": 250.0,
         "diagnostics_period_s": 0.1,
-        # Room for this process's GIL (rack, bridge and test in one interpreter), as in
-        # test_can_swap: the drive-side watchdogs are not what these tests are about.
-        "rpdo_deadline_ms": 500,
-        "heartbeat_consumer_ms": 1000,
-        "stale_timeout_s": 0.5,
+        **support.ROOMY_WATCHDOGS,  # room for this process's GIL (rack, bridge, test)
     }
     values.update(overrides)
     bridge = CanBridgeNode(

@@ -54,11 +54,7 @@ def _bridge(ctx: Context, executor: SingleThreadedExecutor, **overrides: Any) ->
         "cycle_hz": CYCLE_HZ,
         "diagnostics_period_s": 0.1,
         "command_timeout_s": 0.5,
-        # Room for this process's GIL (rack, bridge and test in one interpreter), as in
-        # test_bridge_faults: the drive-side watchdogs are not what these tests are about.
-        "rpdo_deadline_ms": 500,
-        "heartbeat_consumer_ms": 1000,
-        "stale_timeout_s": 0.5,
+        **support.ROOMY_WATCHDOGS,  # room for this process's GIL (rack, bridge, test)
     }
     values.update(overrides)
     bridge = CanBridgeNode(

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from lca_sim.canbus.master import BridgeParams
+from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, validate_can_bridge_params
 from lca_sim.ros import can_drives
 from lca_sim.ros.can_drives import (

@@ -18,20 +18,15 @@ from typing import Any
 import can
 import canopen
 import pytest
-from support import wait_until
+from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim.canbus import emcy
-from lca_sim.canbus.master import (
-    CAN_ERR_BUSOFF,
-    BridgeError,
-    BridgeParams,
-    Cia402Master,
-    Snapshot,
-)
-from lca_sim.canbus.virtual_rack import VirtualDriveRack, load_rack_config
+from lca_sim.canbus.master import CAN_ERR_BUSOFF
+from lca_sim.canbus.master_params import BridgeError
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import config_dir
 
 EDS = config_dir() / "can" / "lca_drive.eds"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -40,14 +35,10 @@ _channels = itertools.count()
 
 
 @dataclass
-class Rig:
+class Rig(RackAndMaster):
     """A rack, a bridge on the same virtual channel, and a spare bus for injected frames."""
 
-    rack: Any
-    bridge: Cia402Master
-    network: canopen.Network
     injector: can.BusABC
-    channel: str
     snapshots: list[Snapshot] = field(default_factory=list)
     feeding: threading.Event = field(default_factory=threading.Event)
     currents_a: list[float] = field(default_factory=lambda: [0.0] * 4)
@@ -62,45 +53,14 @@ class Rig:
         return all(s is state for s in self.states().values())
 
 
-def _params(**overrides: Any) -> BridgeParams:
-    robot = load_robot("default")
-    axes = {a.name: a for a in robot.axes}
-    values: dict[str, Any] = {
-        "joints": JOINTS,
-        "node_ids": NODE_IDS,
-        "torque_constants_nm_per_a": tuple(axes[j].motor.torque_constant_nm_per_a for j in JOINTS),
-        "gear_ratios": tuple(axes[j].gear_ratio for j in JOINTS),
-        "drive_state_names": robot.state_machine.state_names,
-        "cycle_hz": 250.0,
-        # Watchdogs with room for a shared 2-core machine's stalls (a CI run saw a 0.3 s one);
-        # the tests of the watchdogs themselves still see them fire within their deadlines.
-        "rpdo_deadline_ms": 500,
-        "heartbeat_consumer_ms": 1000,
-        "stale_timeout_s": 0.5,
-    }
-    values.update(overrides)
-    return BridgeParams(**values)
-
-
 @pytest.fixture
-def rig_factory() -> Iterator[Callable[..., Rig]]:
+def rig_factory(
+    rack_and_master: Callable[..., RackAndMaster],
+) -> Iterator[Callable[..., Rig]]:
     """Build rigs; everything started is stopped at the end, whatever happened."""
-    cleanups: list[Callable[[], None]] = []
+    injectors: list[can.BusABC] = []
 
     def build(before_init: Callable[[str], None] | None = None, **overrides: Any) -> Rig:
-        channel = f"test_can_bridge_{next(_channels)}"
-        rack_bus = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(rack_bus.shutdown)
-        rack = VirtualDriveRack(rack_bus, load_rack_config(None))
-        rack.start()
-        cleanups.append(rack.stop)
-        if before_init is not None:  # e.g. remap the drives as a real one is mapped
-            before_init(channel)
-        injector = can.Bus(interface="virtual", channel=channel)
-        cleanups.append(injector.shutdown)
-        network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-        network.connect()
-        cleanups.append(network.disconnect)
         rig_holder: list[Rig] = []
 
         def on_state(snapshot: Snapshot) -> None:
@@ -110,17 +70,26 @@ def rig_factory() -> Iterator[Callable[..., Rig]]:
                 rig.bridge.set_currents(rig.currents_a)
                 rig.last_fed_s = time.monotonic()
 
-        bridge = Cia402Master(network, _params(**overrides), EDS, on_state=on_state)
-        cleanups.append(bridge.stop)
-        rig = Rig(rack, bridge, network, injector, channel)
+        built = rack_and_master(
+            f"test_master_{next(_channels)}",
+            bridge_params(**overrides),
+            on_state=on_state,
+            settle=True,
+            before_master=before_init,  # e.g. remap the drives as a real one is mapped
+        )
+        injector = can.Bus(interface="virtual", channel=built.channel)
+        injectors.append(injector)
+        rig = Rig(built.channel, built.rack, built.network, built.bridge, injector)
         rig_holder.append(rig)
-        bridge.init()
-        bridge.start()
+        built.bridge.init()
+        built.bridge.start()
         return rig
 
-    yield build
-    for cleanup in reversed(cleanups):
-        cleanup()
+    try:
+        yield build
+    finally:
+        for injector in injectors:
+            injector.shutdown()
 
 
 def _enabled(rig: Rig, feed: bool = True) -> Rig:
@@ -471,19 +440,20 @@ def test_compiled_tpdo_decoder_agrees_with_the_codec() -> None:
     """The bridge's per-mapping decoder gives the codec's values, NaN for 0xFFFF, skips bytes."""
     import struct
 
-    from lca_sim.canbus.master import AxisState, _compile_apply, _Target
+    from lca_sim.canbus.master_pdo import Target, compile_apply
+    from lca_sim.canbus.master_state import AxisState
     from lca_sim.cia402 import codec
 
     units = codec.DriveUnits(rated_torque_nm=1.2, rated_current_a=10.0, increments_per_rev=65536)
     targets = [
-        _Target(("statusword",)),
-        _Target(("motor_position_rad", "position"), codec.position(units).decoder()),
-        _Target(("eta_m",), codec.EFFICIENCY.decoder()),
-        _Target(("voltage_v",), codec.VOLTAGE.decoder()),
+        Target(("statusword",)),
+        Target(("motor_position_rad", "position"), codec.position(units).decoder()),
+        Target(("eta_m",), codec.EFFICIENCY.decoder()),
+        Target(("voltage_v",), codec.VOLTAGE.decoder()),
     ]
     # statusword, position, 2 bytes of an object the bridge skips, eta_m, voltage
     frame = struct.pack("<Hi2xHh", 0x0237, -3823151, 0xFFFF, -1234)
-    apply = _compile_apply(targets, struct.Struct("<Hi2xHh").unpack_from, 600.0)
+    apply = compile_apply(targets, struct.Struct("<Hi2xHh").unpack_from, 600.0)
     state = AxisState()
     apply(state, bytearray(frame))
     assert state.statusword == 0x0237
@@ -493,7 +463,7 @@ def test_compiled_tpdo_decoder_agrees_with_the_codec() -> None:
     assert state.voltage_v == pytest.approx(-12.34)
     assert math.isnan(state.load_torque_nm)  # not mapped: unknown
     with pytest.raises(ValueError, match="not AxisState fields"):
-        _compile_apply([_Target(("__class__",))], struct.Struct("<H").unpack_from, 1.0)
+        compile_apply([Target(("__class__",))], struct.Struct("<H").unpack_from, 1.0)
 
 
 def test_an_advisory_emcy_is_reported_with_its_text_and_the_axes_go_on(
@@ -650,12 +620,12 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
     stuffing (CAN 2.0A: 47 + 8 DLC + floor((34 + 8 DLC - 1) / 4) bits per frame) stays under
     1 Mbit/s: 989 bits per 1 ms cycle. The old layout (13 frames a cycle) needed 1401.
     """
-    from lca_sim.canbus.master import CONTROLWORD_REFRESH_CYCLES, EVENT_INHIBIT_100US
-    from lca_sim.cia402 import master as cm
+    from lca_sim.canbus.master_pdo import CONTROLWORD_REFRESH_CYCLES, EVENT_INHIBIT_100US
+    from lca_sim.cia402 import bus_load
     from lca_sim.cia402 import objects as od
 
     cycle_hz = 1000.0
-    every = _params(cycle_hz=cycle_hz).slow_tpdo_every
+    every = bridge_params(cycle_hz=cycle_hz).slow_tpdo_every
     assert every == 20
     axes = len(JOINTS)
 
@@ -676,8 +646,8 @@ def test_the_compact_layout_fits_1_mbit_at_1_khz_with_worst_case_stuffing() -> N
             + bits(1) * heartbeats_per_cycle
         )
 
-    worst = cm.bus_load_pct(per_cycle(cm.frame_bits) * cycle_hz, 1e6)
-    nominal = cm.bus_load_pct(per_cycle(cm.frame_bits_nominal) * cycle_hz, 1e6)
+    worst = bus_load.bus_load_pct(per_cycle(bus_load.frame_bits) * cycle_hz, 1e6)
+    nominal = bus_load.bus_load_pct(per_cycle(bus_load.frame_bits_nominal) * cycle_hz, 1e6)
     assert worst == pytest.approx(98.925)
     assert worst < 100.0
     assert nominal == pytest.approx(82.107)
@@ -695,8 +665,8 @@ def test_csv_the_drive_closes_the_velocity_loop_on_the_target_velocity(
     """
     rig = rig_factory(modes=("cst", "csv", "cst", "cst"))
     assert rig.bridge.velocity_axes == ("pivot",)
-    assert rig.rack.node("pivot").sdo[0x6060].raw == 9
-    assert rig.rack.node("l_arm").sdo[0x6060].raw == 10
+    assert rig.rack.node("pivot").sdo[0x6060].raw == 9  # type: ignore[union-attr]
+    assert rig.rack.node("l_arm").sdo[0x6060].raw == 10  # type: ignore[union-attr]
     target_rad_s = 0.02
     assert rig.bridge.set_velocities([0.0, target_rad_s, 0.0, 0.0]) is None
     _enabled(rig)

@@ -8,7 +8,6 @@ advances on the SYNCs a test sends, so the physics checks do not depend on the m
 
 from __future__ import annotations
 
-import itertools
 import math
 import os
 import signal
@@ -17,146 +16,24 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import can
 import canopen
 import pytest
-from support import wait_until as wait_until  # noqa: PLC0414  # re-exported to the rack tests
+from support import Probe, emcy_code, rack_nmt, rack_sync, remote_node, sdo_enable, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.virtual_rack import (
-    RackConfig,
-    VirtualDriveRack,
-    eds_path,
-    load_rack_config,
-    main,
-)
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.device import PowerState
+from lca_sim.cli.virtual_drive import main
+from lca_sim.config.rack import RackConfig, eds_path, load_rack_config
 from lca_sim.errors import ConfigError
 
 EDS = str(eds_path())
 PIVOT = 2  # node ids of the shipped rack.yaml
 L_ARM = 1
 TIMEOUT_S = 5.0  # generous: the machine is shared
-_channels = itertools.count()
-
-
-class Probe:
-    """A raw bus on the test channel that records every frame and sends raw frames."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel)
-        self.frames: list[can.Message] = []
-        self._lock = threading.Lock()
-        self._notifier = can.Notifier(self.bus, [self._record], timeout=0.05)
-
-    def _record(self, msg: can.Message) -> None:
-        with self._lock:
-            self.frames.append(msg)
-
-    def mark(self) -> int:
-        """The position of the next frame to arrive (for `wait` and `seen`)."""
-        with self._lock:
-            return len(self.frames)
-
-    def seen(self, cob_id: int, since: int = 0) -> list[bytes]:
-        """Data of the frames with this COB-ID received since `since`."""
-        with self._lock:
-            return [bytes(m.data) for m in self.frames[since:] if m.arbitration_id == cob_id]
-
-    def wait(self, cob_id: int, since: int = 0, timeout_s: float = TIMEOUT_S) -> bytes:
-        """Wait for a frame with this COB-ID after `since`; return its data."""
-        wait_until(lambda: bool(self.seen(cob_id, since)), f"a frame 0x{cob_id:03X}", timeout_s)
-        return self.seen(cob_id, since)[0]
-
-    def send(self, cob_id: int, data: bytes = b"") -> None:
-        """Send one standard frame."""
-        self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
-
-    def close(self) -> None:
-        """Stop recording and close the bus."""
-        self._notifier.stop()
-        self.bus.shutdown()
-
-
-@pytest.fixture
-def channel() -> str:
-    """A virtual channel no other test uses."""
-    return f"test_virtual_drive_{os.getpid()}_{next(_channels)}"
-
-
-@pytest.fixture
-def probe(channel: str) -> Iterator[Probe]:
-    """The frame recorder, up before the rack so it sees the boot-up messages."""
-    recorder = Probe(channel)
-    try:
-        yield recorder
-    finally:
-        recorder.close()
-
-
-@pytest.fixture
-def rack(channel: str, probe: Probe, default_robot: RobotParams) -> Iterator[VirtualDriveRack]:
-    """The shipped rack config on its own bus instance, started; stopped whatever happens."""
-    bus = can.Bus(interface="virtual", channel=channel)
-    drives = VirtualDriveRack(bus, load_rack_config(None), robot=default_robot)
-    try:
-        drives.start()
-        yield drives
-    finally:
-        drives.stop()
-        bus.shutdown()
-
-
-@pytest.fixture
-def master(channel: str, rack: VirtualDriveRack) -> Iterator[canopen.Network]:
-    """A canopen master network (not our code) on a third bus instance."""
-    network = canopen.Network(can.Bus(interface="virtual", channel=channel))
-    network.NOTIFIER_CYCLE = 0.05
-    network.connect()
-    try:
-        yield network
-    finally:
-        network.sync.stop()
-        network.disconnect()
-
-
-def remote(network: canopen.Network, node_id: int) -> canopen.RemoteNode:
-    """A remote node of the master, with the drive's EDS and a patient SDO client."""
-    node = canopen.RemoteNode(node_id, EDS)
-    network.add_node(node)
-    node.sdo.RESPONSE_TIMEOUT = 2.0
-    return node
-
-
-def sync(rack: VirtualDriveRack, probe: Probe, count: int = 1) -> None:
-    """Send `count` SYNCs and wait until the rack has processed them all."""
-    done = rack.counters.syncs + count
-    for _ in range(count):
-        probe.send(0x080)
-    wait_until(lambda: rack.counters.syncs >= done, f"{count} SYNC(s) processed")
-
-
-def nmt(rack: VirtualDriveRack, probe: Probe, command: int, node_id: int, state: str) -> None:
-    """Send an NMT command and wait for the node's NMT state."""
-    probe.send(0x000, bytes([command, node_id]))
-    name = {1: "l_arm", 2: "pivot", 3: "c_arc", 4: "lift"}[node_id]
-    wait_until(lambda: rack.nmt_state(name) == state, f"node {node_id} in {state}")
-
-
-def enable(node: canopen.RemoteNode) -> None:
-    """Walk a drive to OPERATION ENABLED over SDO."""
-    for controlword in (0x06, 0x07, 0x0F):
-        node.sdo[0x6040].raw = controlword
-    assert node.sdo[0x6041].raw & 0x6F == 0x27
-
-
-def emcy_code(data: bytes) -> tuple[int, int]:
-    """(error code, error register) of an EMCY frame."""
-    code, register = struct.unpack_from("<HB", data)
-    return code, register
 
 
 # --- NMT ------------------------------------------------------------------------------------
@@ -173,11 +50,11 @@ def test_boot_up_then_periodic_heartbeat(rack: VirtualDriveRack, probe: Probe) -
 
 def test_nmt_stop_ignores_pdos(rack: VirtualDriveRack, probe: Probe) -> None:
     """In STOPPED, RPDOs are dropped, SYNCs bring no TPDO, the heartbeat says 04."""
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
-    nmt(rack, probe, 0x02, PIVOT, "STOPPED")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x02, PIVOT, "STOPPED")
     mark = probe.mark()
     probe.send(0x202, struct.pack("<Hh", 0x06, 0))
-    sync(rack, probe, 3)
+    rack_sync(rack, probe, 3)
     wait_until(lambda: b"\x04" in probe.seen(0x702, mark), "a STOPPED heartbeat")
     assert probe.seen(0x182, mark) == []
     assert rack.power_state("pivot") is PowerState.SWITCH_ON_DISABLED
@@ -188,10 +65,10 @@ def test_nmt_reset_node_boots_again_with_defaults(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """Reset node: a new boot-up message, and written objects back at their defaults."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x6072].raw = 100
     node.sdo[0x1017].raw = 50
-    enable(node)
+    sdo_enable(node)
     mark = probe.mark()
     probe.send(0x000, bytes([0x81, PIVOT]))
     assert probe.wait(0x702, mark) == b"\x00"
@@ -206,7 +83,7 @@ def test_nmt_reset_node_boots_again_with_defaults(
 
 def test_enable_walk_over_sdo(rack: VirtualDriveRack, master: canopen.Network) -> None:
     """0x06, 0x07, 0x0F by SDO: statusword & 0x6F reads 0x21, 0x23, 0x27."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     assert node.sdo[0x6041].raw & 0x4F == 0x40
     masked = []
     for controlword in (0x06, 0x07, 0x0F):
@@ -219,7 +96,7 @@ def test_enable_walk_over_sdo(rack: VirtualDriveRack, master: canopen.Network) -
 
 def test_enable_walk_over_rpdo_applied_at_sync(rack: VirtualDriveRack, probe: Probe) -> None:
     """RPDO1 controlwords take effect at the next SYNC; TPDO1 of that SYNC shows them."""
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     probe.send(0x202, struct.pack("<Hh", 0x06, 0))
     wait_until(lambda: rack.counters.rpdos_received == 1, "the RPDO received")
     assert rack.power_state("pivot") is PowerState.SWITCH_ON_DISABLED  # not before the SYNC
@@ -227,7 +104,7 @@ def test_enable_walk_over_rpdo_applied_at_sync(rack: VirtualDriveRack, probe: Pr
     for controlword in (0x06, 0x07, 0x0F):
         probe.send(0x202, struct.pack("<Hh", controlword, 0))
         mark = probe.mark()
-        sync(rack, probe)
+        rack_sync(rack, probe)
         statusword, position = struct.unpack("<Hi", probe.wait(0x182, mark))
         masked.append(statusword & 0x6F)
     assert masked == [0x21, 0x23, 0x27]
@@ -236,7 +113,7 @@ def test_enable_walk_over_rpdo_applied_at_sync(rack: VirtualDriveRack, probe: Pr
 
 def test_illegal_jump_stays_where_it_is(rack: VirtualDriveRack, master: canopen.Network) -> None:
     """0x0F straight from SWITCH ON DISABLED, 0x07 too: nothing happens."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     for controlword in (0x0F, 0x07):
         node.sdo[0x6040].raw = controlword
         assert node.sdo[0x6041].raw & 0x4F == 0x40
@@ -245,7 +122,7 @@ def test_illegal_jump_stays_where_it_is(rack: VirtualDriveRack, master: canopen.
 
 def test_sdo_aborts(rack: VirtualDriveRack, master: canopen.Network) -> None:
     """Unsupported mode, unknown object, missing sub-index, read-only, max torque too high."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     cases = [
         (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 1)), 0x06090030),
         (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 8)), 0x06090030),  # CSP
@@ -258,7 +135,7 @@ def test_sdo_aborts(rack: VirtualDriveRack, master: canopen.Network) -> None:
     codes = []
     for request, _ in cases:
         with pytest.raises(canopen.SdoAbortedError) as aborted:
-            request()
+            request()  # type: ignore[no-untyped-call]
         codes.append(aborted.value.code)
     assert codes == [code for _, code in cases]
     assert node.sdo[0x6060].raw == 10
@@ -269,9 +146,9 @@ def test_fault_reset_acts_on_the_rising_edge_only(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """Bit 7 held high resets nothing; its 0 -> 1 edge leaves FAULT, with an EMCY reset."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1016][1].raw = (127 << 16) | 30  # watch the master's heartbeat, 30 ms
-    enable(node)
+    sdo_enable(node)
     node.sdo[0x6040].raw = 0x8F  # bit 7 rises while enabled: nothing to reset
     assert node.sdo[0x6041].raw & 0x6F == 0x27
     probe.send(0x77F, b"\x05")  # one master heartbeat, then silence: FAULT
@@ -305,11 +182,11 @@ def test_target_torque_gives_rated_current_share(
     current_a: float,
 ) -> None:
     """N per mille of rated torque -> N / 1000 x 10 A in the plant; actuals report it back."""
-    node = remote(master, node_id)
+    node = remote_node(master, node_id)
     node.sdo[0x1006].raw = 10_000  # 10 ms of plant per SYNC
     node.sdo[0x6071].raw = target_permille
-    enable(node)
-    sync(rack, probe, 6)  # 60 ms: the current loop settled long ago
+    sdo_enable(node)
+    rack_sync(rack, probe, 6)  # 60 ms: the current loop settled long ago
     index = rack.simulator.axis_names.index(axis)
     assert rack.plant_state().current_a[index] == pytest.approx(current_a, abs=0.02)
     assert node.sdo[0x6078].raw == pytest.approx(target_permille, abs=2)
@@ -323,12 +200,12 @@ def test_target_beyond_max_torque_is_clamped(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """0x6072 = 100 per mille: a 500 target gives 1 A and statusword bit 11."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1006].raw = 10_000
     node.sdo[0x6072].raw = 100
     node.sdo[0x6071].raw = -500
-    enable(node)
-    sync(rack, probe, 6)
+    sdo_enable(node)
+    rack_sync(rack, probe, 6)
     assert rack.plant_state().current_a[1] == pytest.approx(-1.0, abs=0.02)
     assert node.sdo[0x6041].raw & 0x0800 == 0x0800
     node.sdo[0x6071].raw = -50
@@ -339,19 +216,19 @@ def test_no_current_unless_operation_enabled(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """A target torque in every state short of OPERATION ENABLED, or with halt: 0 A exactly."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1006].raw = 10_000
     node.sdo[0x6071].raw = 800
     currents = []
     for controlword in (0x00, 0x06, 0x07):
         node.sdo[0x6040].raw = controlword
-        sync(rack, probe, 2)
+        rack_sync(rack, probe, 2)
         currents.append(rack.plant_state().current_a[1])
     node.sdo[0x6040].raw = 0x0F
-    sync(rack, probe, 2)
+    rack_sync(rack, probe, 2)
     enabled_a = rack.plant_state().current_a[1]
     node.sdo[0x6040].raw = 0x010F  # halt
-    sync(rack, probe, 4)
+    rack_sync(rack, probe, 4)
     assert currents == [0.0, 0.0, 0.0]
     assert enabled_a == pytest.approx(8.0, abs=0.1)
     assert rack.plant_state().current_a[1] == pytest.approx(0.0, abs=0.01)
@@ -362,15 +239,15 @@ def test_tpdo3_reports_the_drive_chain_state(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """TPDO3 (on change): gear state index, motion, eta_m / eta_l per mille."""
-    node = remote(master, PIVOT)
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    node = remote_node(master, PIVOT)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     state, motion, eta_m, eta_l = struct.unpack("<BbHH", probe.wait(0x382))
     assert (state, motion, eta_m, eta_l) == (0, 0, 0xFFFF, 0xFFFF)  # stop_hold: eq. 10 idle
     node.sdo[0x1006].raw = 50_000  # SYNC loss after 150 ms: ample for a test sending SYNCs
     node.sdo[0x6071].raw = 800  # 8 A lifts the pivot: motor driving, eta_m 0.9 (Table 1)
-    enable(node)
+    sdo_enable(node)
     mark = probe.mark()
-    sync(rack, probe, 4)
+    rack_sync(rack, probe, 4)
     lifting = (rack.simulator.state_names.index("motor_driving"), 1, 900, 1000)
     wait_until(
         lambda: lifting in [struct.unpack("<BbHH", data) for data in probe.seen(0x382, mark)],
@@ -385,9 +262,9 @@ def test_master_heartbeat_lost_faults_with_emcy(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """No master heartbeat within 0x1016: EMCY 0x8130, 0x603F / 0x1001 set, FAULT (0x6007 = 1)."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1016][1].raw = (127 << 16) | 50
-    enable(node)
+    sdo_enable(node)
     mark = probe.mark()
     probe.send(0x77F, b"\x05")  # one heartbeat arms the consumer, then silence
     assert emcy_code(probe.wait(0x82, mark)) == (0x8130, 0x11)
@@ -415,10 +292,10 @@ def test_heartbeat_loss_applies_the_abort_connection_option(
     state: PowerState,
 ) -> None:
     """0x6007 = 0 keeps going, 2 disables voltage, 3 quick-stops; the EMCY goes out in each."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x6007].raw = option
     node.sdo[0x1016][1].raw = (127 << 16) | 30
-    enable(node)
+    sdo_enable(node)
     mark = probe.mark()
     probe.send(0x77F, b"\x05")
     assert emcy_code(probe.wait(0x82, mark))[0] == 0x8130
@@ -428,10 +305,10 @@ def test_heartbeat_loss_applies_the_abort_connection_option(
 
 def test_rpdo_deadline(rack: VirtualDriveRack, probe: Probe, master: canopen.Network) -> None:
     """RPDO1 event timer 40 ms: after one RPDO and silence, EMCY 0x8250 and FAULT."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1400][5].raw = 40
-    enable(node)
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    sdo_enable(node)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     mark = probe.mark()
     probe.send(0x202, struct.pack("<Hh", 0x0F, 0))
     assert emcy_code(probe.wait(0x82, mark)) == (0x8250, 0x11)
@@ -447,10 +324,10 @@ def test_a_frozen_rack_does_not_blame_the_master(
     The rack's threads stand still for 0.3 s (40 ms RPDO deadline) while the master goes on
     sending: the frozen time is discounted, no fault. Silence afterwards still faults.
     """
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1400][5].raw = 40
-    enable(node)
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    sdo_enable(node)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     stop_sending = threading.Event()
 
     def master_rpdos() -> None:
@@ -479,11 +356,11 @@ def test_a_frozen_rack_does_not_blame_the_master(
 
 def test_sync_loss(rack: VirtualDriveRack, probe: Probe, master: canopen.Network) -> None:
     """0x1006 = 20 ms, OPERATIONAL and enabled, no SYNC: EMCY 0x8700 and FAULT."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1006].raw = 20_000
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     mark = probe.mark()
-    enable(node)
+    sdo_enable(node)
     assert emcy_code(probe.wait(0x82, mark)) == (0x8700, 0x11)
     wait_until(lambda: rack.power_state("pivot") is PowerState.FAULT, "FAULT")
     assert rack.counters.sync_losses == 1
@@ -497,7 +374,7 @@ def test_rpdo_remap_over_sdo_takes_effect(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """RPDO1 remapped to the controlword alone: 2-byte frames drive it, 4-byte ones are bad."""
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     refused = []
 
     def refuse(sub: int, value: int) -> None:
@@ -514,13 +391,13 @@ def test_rpdo_remap_over_sdo_takes_effect(
     node.sdo[0x1600][0].raw = 1
     node.sdo[0x1400][1].raw = 0x00000202
     assert refused == [0x08000022, 0x08000022, 0x06040041]
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     probe.send(0x202, struct.pack("<Hh", 0x06, 0))  # the old layout: dropped
-    sync(rack, probe)
+    rack_sync(rack, probe)
     assert rack.counters.bad_frames == 1
     assert rack.power_state("pivot") is PowerState.SWITCH_ON_DISABLED
     probe.send(0x202, struct.pack("<H", 0x06))
-    sync(rack, probe)
+    rack_sync(rack, probe)
     assert rack.power_state("pivot") is PowerState.READY_TO_SWITCH_ON
 
 
@@ -528,17 +405,17 @@ def test_tpdo_remap_with_canopen_adds_torque_actual(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """The canopen library's PdoMap.save() adds torque actual to TPDO1: 8-byte TPDO1s."""
-    node = remote(master, PIVOT)
-    node.tpdo.read()
+    node = remote_node(master, PIVOT)
+    node.tpdo.read()  # type: ignore[no-untyped-call]
     node.tpdo[1].add_variable(0x6077)
     node.tpdo[1].save()
     assert node.sdo[0x1A00][0].raw == 3
     node.sdo[0x1006].raw = 50_000  # SYNC loss after 150 ms: ample for a test sending SYNCs
     node.sdo[0x6071].raw = -300
-    enable(node)
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    sdo_enable(node)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     mark = probe.mark()
-    sync(rack, probe, 3)
+    rack_sync(rack, probe, 3)
     wait_until(lambda: len(probe.seen(0x182, mark)) == 3, "three TPDO1s")
     frames = [struct.unpack("<Hih", data) for data in probe.seen(0x182, mark)]
     assert [statusword & 0x6F for statusword, _, _ in frames] == [0x27] * 3
@@ -550,14 +427,14 @@ def test_bad_frames_are_counted_and_the_rack_keeps_serving(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
     """SYNC with 2 bytes, NMT with 1, heartbeat with 0, a 3-byte RPDO: counted, no harm."""
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     before = rack.counters.syncs
     for cob_id, data in ((0x080, b"\x01\x02"), (0x000, b"\x01"), (0x77F, b""), (0x202, b"\x06")):
         probe.send(cob_id, data)
     wait_until(lambda: rack.counters.bad_frames == 4, "four bad frames counted")
     assert rack.counters.syncs == before
     assert rack.counters.handler_errors == 0
-    assert remote(master, PIVOT).sdo[0x6041].raw & 0x4F == 0x40
+    assert remote_node(master, PIVOT).sdo[0x6041].raw & 0x4F == 0x40
 
 
 # --- an independent master ------------------------------------------------------------------
@@ -567,14 +444,14 @@ def test_canopen_402_master_enables_and_moves_an_axis(
     rack: VirtualDriveRack, master: canopen.Network
 ) -> None:
     """The canopen library's BaseNode402 walks l_arm to OPERATION ENABLED in CST, moves it."""
-    node = canopen.BaseNode402(L_ARM, EDS)
+    node = canopen.BaseNode402(L_ARM, EDS)  # type: ignore[no-untyped-call]
     master.add_node(node)
     node.sdo.RESPONSE_TIMEOUT = 2.0
     node.TIMEOUT_CHECK_TPDO = 2.0
     node.TIMEOUT_SWITCH_STATE_SINGLE = 3.0
     node.TIMEOUT_SWITCH_STATE_FINAL = 6.0
     node.nmt.state = "PRE-OPERATIONAL"
-    node.setup_402_state_machine()  # reads the PDO configuration over SDO
+    node.setup_402_state_machine()  # type: ignore[no-untyped-call]  # reads the PDOs over SDO
     node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
     assert node.op_mode == "CYCLIC SYNCHRONOUS TORQUE"
     node.nmt.state = "OPERATIONAL"
@@ -590,7 +467,7 @@ def test_canopen_402_master_enables_and_moves_an_axis(
         assert node.tpdo_values[0x606C] > 0
         assert rack.plant_state().velocity[0] > 0.0
     finally:
-        master.sync.stop()
+        master.sync.stop()  # type: ignore[no-untyped-call]
         node.rpdo[1].stop()
 
 
@@ -673,7 +550,7 @@ def test_main_reports_a_missing_interface(capsys: pytest.CaptureFixture[str]) ->
 def test_main_runs_until_sigterm() -> None:
     """The console script serves a bus until SIGTERM, then exits 0."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "lca_sim.canbus.virtual_rack", "--interface", "virtual"],
+        [sys.executable, "-m", "lca_sim.cli.virtual_drive", "--interface", "virtual"],
         stderr=subprocess.PIPE,
         text=True,
     )
@@ -702,15 +579,16 @@ def test_only_whole_byte_numbers_map(data_type: int, mappable: bool) -> None:
     from canopen.objectdictionary import ODVariable
     from canopen.sdo.exceptions import SdoAbortedError
 
-    from lca_sim.canbus.virtual_rack import ABORT_NOT_MAPPABLE, _frame_codec
+    from lca_sim.canbus.rack_state import frame_codec
+    from lca_sim.cia402.cia301 import ABORT_NOT_MAPPABLE
 
     obj = ODVariable("x", 0x2000, 0)
     obj.data_type = data_type
     if mappable:
-        assert _frame_codec([obj]).size == len(obj) // 8
+        assert frame_codec([obj]).size == len(obj) // 8
     else:
         with pytest.raises(SdoAbortedError) as info:
-            _frame_codec([obj])
+            frame_codec([obj])
         assert info.value.code == ABORT_NOT_MAPPABLE
 
 
@@ -719,9 +597,9 @@ def test_only_whole_byte_numbers_map(data_type: int, mappable: bool) -> None:
 
 def test_tpdo4_goes_every_tenth_sync(rack: VirtualDriveRack, probe: Probe) -> None:
     """TPDO4 is transmission type 10: the 10th and 20th of 25 SYNCs, after that SYNC's TPDO1."""
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     mark = probe.mark()
-    sync(rack, probe, 25)
+    rack_sync(rack, probe, 25)
     wait_until(lambda: len(probe.seen(0x182, mark)) == 25, "25 TPDO1s")
     wait_until(lambda: len(probe.seen(0x482, mark)) == 2, "two TPDO4s")
     with probe._lock:
@@ -740,14 +618,14 @@ def test_tpdo4_reports_load_friction_and_voltage(
     before its SYNC's step, which is the state after the previous SYNC: read then, compared
     within one quantum.
     """
-    node = remote(master, PIVOT)
+    node = remote_node(master, PIVOT)
     node.sdo[0x1803][2].raw = 1
     node.sdo[0x1006].raw = 50_000  # SYNC loss after 500 ms: ample for a test sending SYNCs
     node.sdo[0x6071].raw = 800
-    enable(node)
-    nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    sdo_enable(node)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
     start = probe.mark()
-    sync(rack, probe, 4)  # 150 ms of plant: the pivot is moving up
+    rack_sync(rack, probe, 4)  # 150 ms of plant: the pivot is moving up
     # The 4th SYNC's TPDO4 may reach the probe after the rack has counted that SYNC: let it
     # arrive, or it would be taken for the next SYNC's (one step of motion apart).
     wait_until(lambda: len(probe.seen(0x482, start)) >= 4, "the 4 SYNCs' TPDO4s")
@@ -755,7 +633,7 @@ def test_tpdo4_reports_load_friction_and_voltage(
         signals = rack.simulator.signals
     pivot = rack.simulator.axis_names.index("pivot")
     mark = probe.mark()
-    sync(rack, probe)
+    rack_sync(rack, probe)
     load, friction, voltage = struct.unpack("<hhh", probe.wait(0x482, mark))
     expected = {name: float(signals.values[name][pivot]) for name in SIGNALS}
     assert signals.motion[pivot] == 1  # direct: eq. 10 with friction and eta

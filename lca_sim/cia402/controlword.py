@@ -1,9 +1,8 @@
-"""The CANopen master's side of CiA 402, as pure functions (no bus, no clock, no ROS).
+"""What a CiA 402 master commands each cycle, as pure functions (no bus, no clock, no ROS).
 
-What the CAN bridge decides every cycle, from the last statusword of each drive and its own
-latches: the controlword that walks the drive towards the wanted power state, the target torque
-(per mille of the rated torque) for a current command, and the bus load a set of frames puts on
-a classical CAN bus. The bus I/O around it is `lca_sim.canbus.master`.
+From the last statusword of each drive and the master's own latches: the controlword that walks
+the drive towards the wanted power state, and the target torque (per mille of the rated torque)
+for a current command. The bus I/O around it is `lca_sim.canbus.master`.
 """
 
 from __future__ import annotations
@@ -107,22 +106,3 @@ class TorqueScale:
         if permille < -limit:
             return -limit, True
         return permille, False
-
-
-def frame_bits(data_bytes: int) -> int:
-    """Bits on the wire of a classical CAN frame with an 11-bit identifier, worst-case stuffing.
-
-    44 + 8 n bits of frame, 3 of interframe space, and one stuff bit per 4 of the 34 + 8 n
-    bits that are stuffed (CiA / Bosch worst case, as used for bus-load budgets).
-    """
-    return 47 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4
-
-
-def frame_bits_nominal(data_bytes: int) -> int:
-    """Bits on the wire of the same frame without stuffing (44 + 8 n, plus 3 of interframe)."""
-    return 47 + 8 * data_bytes
-
-
-def bus_load_pct(bits_per_s: float, bitrate_bit_s: float) -> float:
-    """Bus load in percent of the bit rate."""
-    return 100.0 * bits_per_s / bitrate_bit_s

@@ -1,12 +1,12 @@
-"""The CANopen master's CiA 402 logic (pure): statusword decoding, the enable walk, scaling."""
+"""What a CiA 402 master commands (`lca_sim.cia402.controlword`): statusword, walk, torque."""
 
 from __future__ import annotations
 
 import pytest
 
-from lca_sim.cia402 import master as cm
+from lca_sim.cia402 import controlword as ctl
+from lca_sim.cia402.controlword import TorqueScale, Want
 from lca_sim.cia402.device import PowerState
-from lca_sim.cia402.master import TorqueScale, Want
 
 
 @pytest.mark.parametrize(
@@ -25,7 +25,7 @@ from lca_sim.cia402.master import TorqueScale, Want
     ],
 )
 def test_statusword_patterns_of_cia402(statusword: int, state: PowerState) -> None:
-    assert cm.power_state(statusword) is state
+    assert ctl.power_state(statusword) is state
 
 
 def _drive(state: PowerState, controlword: int) -> PowerState:
@@ -47,39 +47,39 @@ def _drive(state: PowerState, controlword: int) -> PowerState:
 def test_enable_walk_is_06_07_0f_and_back() -> None:
     state, controlword, sent = PowerState.SWITCH_ON_DISABLED, 0, []
     for _ in range(5):
-        controlword = cm.next_controlword(state, Want.ENABLED, controlword)
+        controlword = ctl.next_controlword(state, Want.ENABLED, controlword)
         sent.append(controlword)
         state = _drive(state, controlword)
     assert sent == [0x06, 0x07, 0x0F, 0x0F, 0x0F]
     assert state is PowerState.OPERATION_ENABLED
-    controlword = cm.next_controlword(state, Want.DISABLED, controlword)
+    controlword = ctl.next_controlword(state, Want.DISABLED, controlword)
     assert controlword == 0x07
     state = _drive(state, controlword)
-    assert cm.next_controlword(state, Want.DISABLED, controlword) == 0x06
+    assert ctl.next_controlword(state, Want.DISABLED, controlword) == 0x06
 
 
 def test_fault_reset_is_a_rising_edge_then_the_walk() -> None:
     state, controlword, sent = PowerState.FAULT, 0x0F, []
     for _ in range(3):
-        controlword = cm.next_controlword(state, Want.FAULT_RESET, controlword)
+        controlword = ctl.next_controlword(state, Want.FAULT_RESET, controlword)
         sent.append(controlword)
         state = _drive(state, controlword)
     # bit 7 was high before (0x0F has it low): edge at once; then no second edge is needed
     assert sent[0] == 0x80
     assert state is PowerState.READY_TO_SWITCH_ON
     # starting from a controlword that already had bit 7 high, it first drops the bit
-    assert cm.next_controlword(PowerState.FAULT, Want.FAULT_RESET, 0x80) == 0x00
+    assert ctl.next_controlword(PowerState.FAULT, Want.FAULT_RESET, 0x80) == 0x00
 
 
 def test_quick_stop_from_enabled_ends_switch_on_disabled() -> None:
     state, controlword = PowerState.OPERATION_ENABLED, 0x0F
     for _ in range(3):
-        controlword = cm.next_controlword(state, Want.QUICK_STOP, controlword)
+        controlword = ctl.next_controlword(state, Want.QUICK_STOP, controlword)
         state = _drive(state, controlword)
-    assert controlword == cm.CMD_QUICK_STOP
+    assert controlword == ctl.CMD_QUICK_STOP
     assert state is PowerState.SWITCH_ON_DISABLED
     # and a fault is never "quick stopped" out of (only a reset leaves it)
-    assert cm.next_controlword(PowerState.FAULT, Want.QUICK_STOP, 0) == cm.CMD_DISABLE_VOLTAGE
+    assert ctl.next_controlword(PowerState.FAULT, Want.QUICK_STOP, 0) == ctl.CMD_DISABLE_VOLTAGE
 
 
 def test_torque_scale_per_mille_and_clamp() -> None:
@@ -93,13 +93,3 @@ def test_torque_scale_per_mille_and_clamp() -> None:
     assert scale.target_permille(-30.0) == (-2000, True)
     with pytest.raises(ValueError, match="rated torque"):
         TorqueScale(0.12, 0.0, 1000)
-
-
-def test_frame_bits_and_bus_load_of_four_axes() -> None:
-    assert cm.frame_bits(0) == 55  # SYNC
-    assert cm.frame_bits(8) == 135  # the classic worst case of an 8-byte standard frame
-    # Per cycle: SYNC, 4 RPDO1 (4 bytes), 4 TPDO1 (6), 4 TPDO2 (6): docs/can.md's mapping.
-    bits = cm.frame_bits(0) + 4 * (cm.frame_bits(4) + 2 * cm.frame_bits(6))
-    assert bits == 55 + 4 * (95 + 2 * 115)
-    assert cm.bus_load_pct(bits * 500, 1e6) == pytest.approx(67.75)
-    assert cm.bus_load_pct(bits * 1000, 1e6) > 100.0  # 1 kHz does not fit on 1 Mbit/s
