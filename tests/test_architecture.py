@@ -33,6 +33,7 @@ import ast
 import graphlib
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -756,3 +757,98 @@ def test_ros_commands_say_they_need_ros(tmp_path: Path) -> None:
         assert "runs over ROS 2" in lines[0] and "'rclpy'" in lines[0], lines
     assert paper_err.strip().endswith("or pass --no-ros")  # the paper's way round it
     assert not any(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------- f. small rooms, true paths
+
+MODULE_BUDGET_LINES = 600
+CLASS_BUDGET_LINES = 400
+# A module or class may exceed the budget only with its reason in its module docstring, in a
+# paragraph that starts with this phrase (the numba kernel: one compiled function per scheme,
+# whose parts must see each other at compile time).
+OVER_BUDGET = "Over the size budget:"
+
+
+def _sources() -> Iterator[tuple[str, Path]]:
+    for root in PROJECT_ROOTS:
+        for path in sorted((ROOT / root).rglob("*.py")):
+            yield path.relative_to(ROOT).as_posix(), path
+
+
+def test_modules_and_classes_keep_to_the_size_budget() -> None:
+    """A module at most 600 lines, a class at most 400, or a stated reason in the docstring."""
+    over = []
+    for rel, path in _sources():
+        text = path.read_text(encoding="utf-8")
+        tree = ast.parse(text)
+        doc = ast.get_docstring(tree) or ""
+        if OVER_BUDGET in doc:
+            reason = doc.split(OVER_BUDGET, 1)[1].strip()
+            assert len(reason) > 20, f"{rel}: '{OVER_BUDGET}' without a reason"
+            continue
+        lines = len(text.splitlines())
+        if lines > MODULE_BUDGET_LINES:
+            over.append(f"{rel}: {lines} lines")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef) and node.end_lineno is not None:
+                size = node.end_lineno - node.lineno + 1
+                if size > CLASS_BUDGET_LINES:
+                    over.append(f"{rel}: class {node.name} {size} lines")
+    assert not over, "over the size budget (split by composition, or state why):\n" + "\n".join(
+        over
+    )
+
+
+# A path of this repository cited in code or prose: tests/... or docs/..., a file name at the end.
+CITED_PATH = re.compile(
+    r"(?<![\w./-])((?:tests|docs|bench|config|scripts)/[\w./-]*\w\.(?:py|md|yaml|png|eds|sh|urdf))"
+)
+
+
+def _citing_files() -> Iterator[Path]:
+    for pattern in ("lca_sim/**/*.py", "lca_control/**/*.py", "tests/**/*.py", "bench/*.py"):
+        yield from sorted(ROOT.glob(pattern))
+    yield from sorted(ROOT.glob("docs/*.md"))
+    yield ROOT / "README.md"
+    yield ROOT / "bench" / "README.md"
+
+
+def test_every_cited_path_exists() -> None:
+    """Every tests/, docs/, bench/, config/ or scripts/ file named in code and docs exists."""
+    missing = []
+    for path in _citing_files():
+        for match in CITED_PATH.finditer(path.read_text(encoding="utf-8")):
+            cited = match.group(1)
+            if "/.../" in cited or any(part.isupper() for part in cited.split("/")):
+                continue  # an elision or a placeholder (config/KIND/NAME.yaml), not a path
+            if not (ROOT / cited).exists() and not (path.parent / cited).exists():
+                missing.append(f"{path.relative_to(ROOT)}: {cited}")
+    assert not missing, "cited paths that do not exist:\n" + "\n".join(sorted(set(missing)))
+
+
+def _exception_classes() -> Iterator[tuple[str, str, type[BaseException]]]:
+    import importlib
+
+    for rel, path in _sources():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        names = [n.name for n in tree.body if isinstance(n, ast.ClassDef)]
+        if not names:
+            continue
+        module = importlib.import_module(rel.removesuffix(".py").replace("/", "."))
+        for name in names:
+            cls = getattr(module, name)
+            if isinstance(cls, type) and issubclass(cls, BaseException):
+                yield rel, name, cls
+
+
+def test_every_project_error_derives_from_its_package_base() -> None:
+    """lca_sim's errors are LcaHilErrors, lca_control's ControlParamErrors: one catch each."""
+    from lca_control.pi import ControlParamError
+    from lca_sim.errors import LcaHilError
+
+    outside = [
+        f"{rel}: {name}{tuple(base.__name__ for base in cls.__bases__)}"
+        for rel, name, cls in _exception_classes()
+        if not issubclass(cls, LcaHilError if rel.startswith("lca_sim/") else ControlParamError)
+    ]
+    assert not outside, "errors outside their package's base:\n" + "\n".join(outside)

@@ -7,6 +7,10 @@ step takes two packed arrays built once per simulator: `model[row, axis]` (read 
 `work[row, axis]` (`X_*` the state, `S_*` what a step exposes, then scratch rows).
 Sign conventions, the load-sign band `P_LOAD_TORQUE_BAND` and the call path: docs/model.md,
 sections 1, 4 and 5.
+
+Over the size budget: the row layout of `model` and `work` and the compiled functions that index
+them are one unit; numba compiles each entry point with every function it calls, and split
+modules would share the row constants across imports without making any part readable alone.
 """
 
 from __future__ import annotations
