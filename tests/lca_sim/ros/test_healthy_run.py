@@ -283,7 +283,7 @@ def test_simulated_time_starts_at_the_first_tick_not_at_construction() -> None:
         executor.add_node(sim)
         try:
             spin_until(executor, lambda: sim.steps >= 250, "25 ms of simulated time")
-            assert sim._overrun_steps == 0  # nothing skipped: the gap was before the clock
+            assert sim.pacing.overrun_steps == 0  # nothing skipped: the gap was before the clock
             # The first state is stamped at the first tick, not 0.3 s before it.
             assert sim.sim_time_s - sim.steps * 1e-4 >= first_tick_wall_s - 0.01
         finally:

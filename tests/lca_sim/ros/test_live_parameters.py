@@ -138,10 +138,10 @@ def _stored(name: str, value: Any) -> Probe:
 def _resends_after(sim: SimulatorNode, resend_s: float) -> bool:
     """lockstep_resend_s: the last state is published again after that silence, not before."""
     published = sim._published
-    sim._last_command_wall = sim._last_publish_wall = time.monotonic() - 0.6 * resend_s
+    sim.pacing.last_command_wall = sim.pacing.last_publish_wall = time.monotonic() - 0.6 * resend_s
     sim._lockstep_kick()
     quiet = sim._published == published
-    sim._last_command_wall = sim._last_publish_wall = time.monotonic() - 1.1 * resend_s
+    sim.pacing.last_command_wall = sim.pacing.last_publish_wall = time.monotonic() - 1.1 * resend_s
     sim._lockstep_kick()
     return quiet and sim._published == published + 1
 
@@ -237,7 +237,7 @@ def test_simulator_applies_or_rejects_every_parameter() -> None:
             ],
         )
         executor.add_node(sim)
-        sim._started = True  # lockstep without a controller: the test sends the commands
+        sim.pacing.started = True  # lockstep without a controller: the test sends the commands
         probes: dict[str, Probe] = {
             **_common_simulator_probes(),
             **{name: _stored(name, v) for name, v in STORED_IN_LOCKSTEP_VOLTAGE.items()},
