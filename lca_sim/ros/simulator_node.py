@@ -16,17 +16,14 @@ injected faults: docs/faults.md.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
 
-from lca_control import contract as pc
 from lca_control.parameters import ParameterError
 from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
@@ -37,12 +34,13 @@ from lca_sim.config.simulator_params import (
 )
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.faults import FaultInjector
+from lca_sim.model.params import RobotParams
 from lca_sim.model.simulator import Simulator
 from lca_sim.ros.fault_params import FaultParameters, is_fault_parameter
-from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, set_enabled_by_service
-from lca_sim.ros.plant_contract import PlantPublisher, qos_profile
+from lca_sim.ros.plant_contract import PlantPublisher
 from lca_sim.ros.sim_axes import AxisWatch
+from lca_sim.ros.sim_commands import SimCommands
 from lca_sim.ros.sim_pacing import SimPacing
 from lca_sim.ros.sim_snapshot import SimSnapshots
 from lca_sim.ros.simulator_diagnostics import SimulatorDiagnostics
@@ -90,7 +88,6 @@ class SimulatorNode(Node):
         self._lockstep = p.timing_mode == "lockstep"
         self.pacing = SimPacing(lambda: self.params, self._lockstep)
         self._published = 0
-        self._wrong_interface = 0
         self._irreversible = robot.state_machine.irreversible_stop
         self._axes = AxisWatch(self.sim, self.plant, self.faults)
         self._plant = PlantPublisher(
@@ -113,46 +110,25 @@ class SimulatorNode(Node):
             f"{active} for {list(p.joints)}, dt {p.dt_s:g} s"
         )
 
-    def _create_interfaces(self, p: SimulatorNodeParams, robot: Any) -> str:
+    def _create_interfaces(self, p: SimulatorNodeParams, robot: RobotParams) -> str:
         """Subscriptions, services and timers; returns the command topic taken."""
-        command_qos = qos_profile(pc.COMMAND_QOS)
-        active, other = (
-            (pc.VOLTAGE_COMMANDS, pc.CURRENT_COMMANDS)
-            if p.command_interface == "voltage"
-            else (pc.CURRENT_COMMANDS, pc.VOLTAGE_COMMANDS)
+        self._commands = SimCommands(
+            self, p, robot, self.sim.axis_names, self.plant, self.pacing, self._lockstep_step
         )
-        self.create_subscription(Float64MultiArray, active, self._on_command, command_qos)
-        self.create_subscription(Float64MultiArray, other, self._on_wrong_interface, command_qos)
-        # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N).
-        self._joint_index = [self.sim.axis_names.index(j) for j in p.joints]
-        self._joint_commands = JointCommandAdapter(
-            p.joints,
-            effort_scales(robot, p.joints, p.joint_command_effort),
-            takes_effort=p.command_interface != "voltage",
-            velocity_refused=lambda j: (
-                f"velocity commands for {j}: the simulator has no velocity loop (command "
-                "effort, or use the CAN bridge with the axis in csv mode)"
-            ),
-            effort_refused=lambda _: (
-                "effort refused: the simulator takes voltages (command_interface)"
-            ),
-            topic=p.joint_command_topic,
-        )
-        if p.joint_command_topic:
-            self.create_subscription(
-                JointState, p.joint_command_topic, self._on_joint_command, command_qos
-            )
-        self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_service(Trigger, "~/pause", self._on_pause)
-        self.create_service(Trigger, "~/resume", self._on_resume)
-        self.create_service(Trigger, "~/step", self._on_step)
+        for name, action in (
+            ("reset", self.reset),
+            ("pause", self.pause),
+            ("resume", self.resume),
+            ("step", self.step),
+        ):
+            self.create_service(Trigger, f"~/{name}", _trigger(action))
         self.create_service(SetBool, "~/enable", self._on_enable)
         if self._lockstep:
             self._kick_timer = self.create_timer(LOCKSTEP_TICK_S, self._lockstep_kick)
         else:
             self._tick_timer = self.create_timer(1.0 / p.publish_rate_hz, self._realtime_tick)
         self._diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
-        return active
+        return self._commands.topic
 
     @property
     def params(self) -> SimulatorNodeParams:
@@ -162,7 +138,7 @@ class SimulatorNode(Node):
     @property
     def joint_command_counts(self) -> dict[str, int]:
         """JointState commands accepted and refused, and unknown joint names in them."""
-        return self._joint_commands.counts
+        return self._commands.joint_commands.counts
 
     # --- time ----------------------------------------------------------------------------
 
@@ -213,52 +189,6 @@ class SimulatorNode(Node):
 
     # --- commands ------------------------------------------------------------------------
 
-    def _on_command(self, msg: Float64MultiArray) -> None:
-        self._take_command(list(msg.data))
-
-    def _on_joint_command(self, msg: JointState) -> None:
-        """A JointState command (docs/ros2_control.md): effort per joint, by name.
-
-        Effort is this node's command (A, or joint torque per `joint_command_effort`) on the
-        joints named with a finite entry; every other joint keeps its command. The simulator
-        has no velocity loop, so a non-zero velocity entry is refused (counted, warned); a
-        zero one is what the interface sends for a velocity interface no controller claims.
-        In voltage mode effort has no meaning here and the message is refused. In lockstep
-        the message is the period's command either way, as a refused array is.
-        """
-        adapter = self._joint_commands
-        cmd = adapter.read(msg.name, msg.velocity, msg.effort)
-        values = None
-        if cmd.accepted:
-            values = adapter.fill(self.plant.target[self._joint_index].tolist(), cmd.effort)
-        if cmd.problems:
-            self.get_logger().warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
-        self._take_command(values)
-
-    def _take_command(self, values: list[float] | None) -> None:
-        """One command array (joints order): in force, and in lockstep the period's command.
-
-        None: a refused JointState command, which in lockstep still runs the period (in
-        realtime it is no command: the timeout runs on).
-        """
-        if values is None and not self._lockstep:
-            return
-        reason = None if values is None else self.plant.command(values)
-        if reason is not None:
-            self.get_logger().warning(
-                f"command rejected ({self.plant.counters.rejected} so far): {reason}",
-                throttle_duration_sec=1.0,
-            )
-            if not self._lockstep:
-                return
-            # In lockstep the loop must go on: the last good command stays in force.
-        pacing = self.pacing
-        pacing.command_came()
-        if self._lockstep and pacing.started:
-            if pacing.paused and not pacing.admit_paused_command():
-                return  # it waits for ~/step or ~/resume (`command_pending`)
-            self._lockstep_step()
-
     def _lockstep_step(self) -> None:
         """Advance one control period (or up to the end) and publish; nothing once ended."""
         pacing = self.pacing
@@ -284,14 +214,6 @@ class SimulatorNode(Node):
             f"(lockstep_end_s): {self._published} states published, no more will follow"
         )
         self._publish_diagnostics()
-
-    def _on_wrong_interface(self, msg: Float64MultiArray) -> None:
-        self._wrong_interface += 1
-        self.get_logger().warning(
-            f"ignoring commands on the inactive interface ({self._wrong_interface} so far); "
-            f"command_interface is {self.params.command_interface}",
-            throttle_duration_sec=5.0,
-        )
 
     # --- stepping ------------------------------------------------------------------------
 
@@ -363,27 +285,11 @@ class SimulatorNode(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = self._diagnostics.statuses(
-            self._published, self._wrong_interface, self._joint_commands.counts
+            self._published, self._commands.wrong_interface, self._commands.joint_commands.counts
         )
         self._plant.publish_diagnostics(array)
 
     # --- services and parameters ---------------------------------------------------------
-
-    def _on_reset(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success, response.message = self.reset()
-        return response
-
-    def _on_pause(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success, response.message = self.pause()
-        return response
-
-    def _on_resume(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success, response.message = self.resume()
-        return response
-
-    def _on_step(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success, response.message = self.step()
-        return response
 
     def reset(self) -> tuple[bool, str]:
         """`~/reset`: the plant at `initial_position`, at rest, with a zero command.
@@ -506,6 +412,18 @@ class SimulatorNode(Node):
             self._diag_timer = self.create_timer(
                 new.diagnostics_period_s, self._publish_diagnostics
             )
+
+
+def _trigger(
+    action: Callable[[], tuple[bool, str]],
+) -> Callable[[Trigger.Request, Trigger.Response], Trigger.Response]:
+    """A std_srvs/Trigger handler that replies with the action's success and message."""
+
+    def handler(_request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = action()
+        return response
+
+    return handler
 
 
 def main(args: Sequence[str] | None = None) -> int:

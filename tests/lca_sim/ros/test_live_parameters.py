@@ -86,7 +86,7 @@ def _walk(node: Node, table: Any, probes: dict[str, Probe], current: Callable[[s
 def _lockstep_advance_s(sim: SimulatorNode) -> float:
     """Simulated time one lockstep command advances, measured on the running node."""
     t0 = sim.sim_time_s
-    sim._on_command(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+    sim._commands.on_command(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
     return sim.sim_time_s - t0
 
 
@@ -96,9 +96,9 @@ def _lockstep_ends_at(sim: SimulatorNode, end_s: float) -> bool:
     for _ in range(100_000):
         if sim.ended:
             break
-        sim._on_command(command)
+        sim._commands.on_command(command)
     published = sim._published
-    sim._on_command(command)  # after the end: ignored
+    sim._commands.on_command(command)  # after the end: ignored
     return sim.ended and abs(sim.sim_time_s - end_s) < 1e-12 and sim._published == published
 
 
@@ -110,7 +110,7 @@ def _step_runs_periods(sim: SimulatorNode, periods: int) -> bool:
     t0 = sim.sim_time_s
     stepped = sim.step()[0]
     for _ in range(periods + 2):
-        sim._on_command(command)
+        sim._commands.on_command(command)
     advanced_s = sim.sim_time_s - t0
     sim.resume()  # the command left waiting runs its period
     return stepped and math.isclose(advanced_s, periods * sim.params.control_period_s)
@@ -148,7 +148,7 @@ def _resends_after(sim: SimulatorNode, resend_s: float) -> bool:
 
 def _command(sim: SimulatorNode, pivot: float) -> None:
     """A command array that moves only the pivot (its unit is the node's interface's)."""
-    sim._on_command(
+    sim._commands.on_command(
         Float64MultiArray(data=[pivot if j == "pivot" else 0.0 for j in sim.params.joints])
     )
 
