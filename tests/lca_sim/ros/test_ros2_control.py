@@ -25,7 +25,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.config.loader import config_dir
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 from lca_sim.ros.joint_command import read_joint_command
@@ -46,9 +46,9 @@ class FakeTopicSystem(Node):
         self.velocity = [0.0] * len(JOINTS)
         self.effort = [0.0] * len(JOINTS)
         self.states: list[JointState] = []
-        self._pub = self.create_publisher(JointState, ri.ROBOT_JOINT_COMMANDS, QoSProfile(depth=1))
+        self._pub = self.create_publisher(JointState, pc.ROBOT_JOINT_COMMANDS, QoSProfile(depth=1))
         self.create_subscription(
-            JointState, ri.ROBOT_JOINT_STATES, self.states.append, qos_profile_sensor_data
+            JointState, pc.ROBOT_JOINT_STATES, self.states.append, qos_profile_sensor_data
         )
         self.sent = 0
         self.create_timer(1.0 / UPDATE_RATE_HZ, self._write)
