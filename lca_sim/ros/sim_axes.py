@@ -4,7 +4,8 @@
 at, the speed it reached an end stop with) and builds its `lca_hil/simulator/<joint>`
 /diagnostics status: WARN "end stop hit at X", "<joint> pushing into its lower (upper) end
 stop", "back-driving: <joint> moving at X with no command", WARN or ERROR for an injected
-fault; OK "resting on its lower end stop" for a pose it never moved into. docs/faults.md.
+fault; OK "resting on its lower end stop" for a pose it never moved into. docs/faults.md and
+docs/reliability.md have the whole story.
 """
 
 from __future__ import annotations

@@ -1,11 +1,14 @@
 """The simulator node's simulated time: realtime pacing or lockstep, pause and step, the end.
 
-`SimPacing` keeps the model steps taken and how they relate to the wall clock: in realtime,
-the steps due at each tick (at most `MAX_CATCH_UP_PERIODS` publish periods; a larger backlog
-is skipped and counted), the pauses and `~/step` steps that are neither running nor a stall,
-and the realtime factor; in lockstep, the start, the command waiting while paused, the
-`~/step` budget and the run's end (`lockstep_end_s`). docs/simulation-control.md has the
-whole story; `lca_sim.ros.simulator_node` is the shell that drives it.
+Realtime: each tick runs the model steps wall time asks for, at most `MAX_CATCH_UP_PERIODS`
+publish periods' worth; a larger backlog (a stall) is skipped and counted, so stamps stay
+continuous and lag the wall clock (`skipped_s`, `stamp_lag_s`, a per-period `realtime_factor`,
+WARN "stalled" beyond `STALL_WARN_S`). Pauses and `~/step` steps are neither running nor a
+stall. Lockstep: one control period per command after the first state went out; while paused
+a command waits for `~/step` or `~/resume`; at `lockstep_end_s` the run ends (later commands
+are counted, nothing more goes out; raising it live resumes the run). `SimPacing` keeps these
+counts for the shell, `lca_sim.ros.simulator_node`; docs/simulation-control.md and
+docs/reliability.md have the whole story.
 """
 
 from __future__ import annotations

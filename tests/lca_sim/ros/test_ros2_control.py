@@ -28,7 +28,6 @@ from sensor_msgs.msg import JointState
 from lca_control import contract as pc
 from lca_sim.config.loader import config_dir
 from lca_sim.ros.can_bridge_node import CanBridgeNode
-from lca_sim.ros.joint_command import read_joint_command
 from lca_sim.ros.node_util import make_executor
 from lca_sim.ros.simulator_node import SimulatorNode
 
@@ -84,15 +83,6 @@ def _assert_states_fit_the_interface(states: list[JointState]) -> None:
         assert len(msg.position) == len(msg.velocity) == len(msg.effort) == len(JOINTS)
         values = [*msg.position, *msg.velocity, *msg.effort]
         assert all(math.isfinite(v) for v in values), values
-
-
-def test_read_joint_command_matches_names_and_leaves_nan_out() -> None:
-    """Any order, a partial set, NaN left out, unknown names listed, ragged fields refused."""
-    cmd = read_joint_command(["pivot", "elbow", "l_arm"], [], [1.0, 2.0, math.nan], JOINTS)
-    assert cmd.effort == {"pivot": 1.0} and cmd.velocity == {} and cmd.unknown == ("elbow",)
-    assert cmd.error == ""
-    ragged = read_joint_command(["pivot", "l_arm"], [0.5], [1.0, 2.0], JOINTS)
-    assert "velocity has 1 entries for 2 names" in ragged.error and not ragged.effort
 
 
 def test_simulator_follows_joint_state_effort_by_name() -> None:
