@@ -29,7 +29,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_control.controller import (
     CONTROLLER_PARAMETERS,
     ControllerParams,
@@ -73,26 +73,26 @@ class ControllerNode(Node):
         self._plant_lost = False  # silent beyond plant_timeout_s (before the first state too)
         self.plant_losses = 0
         self._restarts_logged = 0
-        state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-        command_qos = QoSProfile(depth=ri.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        state_qos = QoSProfile(depth=pc.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        command_qos = QoSProfile(depth=pc.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         topic = (
-            ri.VOLTAGE_COMMANDS if params.command_interface == "voltage" else ri.CURRENT_COMMANDS
+            pc.VOLTAGE_COMMANDS if params.command_interface == "voltage" else pc.CURRENT_COMMANDS
         )
         self._command_pub = self.create_publisher(Float64MultiArray, topic, command_qos)
         # The topics no other node may publish: a second controller would fight this one.
-        self._own_topics = (topic, ri.VELOCITY_COMMANDS)
+        self._own_topics = (topic, pc.VELOCITY_COMMANDS)
         self._other_publishers: tuple[str, ...] = ()
         self._velocity_pub = self.create_publisher(
-            Float64MultiArray, ri.VELOCITY_COMMANDS, command_qos
+            Float64MultiArray, pc.VELOCITY_COMMANDS, command_qos
         )
-        self._diag_pub = self.create_publisher(DiagnosticArray, ri.DIAGNOSTICS, 10)
-        self.create_subscription(JointState, ri.JOINT_STATES, self._on_joint_states, state_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, pc.DIAGNOSTICS, 10)
+        self.create_subscription(JointState, pc.JOINT_STATES, self._on_joint_states, state_qos)
         if params.command_interface == "voltage":
             # Only the current loop needs the motor currents; with current commands the drive
             # runs that loop, and every message not taken is executor time saved per step.
-            self.create_subscription(JointState, ri.MOTOR_STATES, self._on_motor_states, state_qos)
+            self.create_subscription(JointState, pc.MOTOR_STATES, self._on_motor_states, state_qos)
         self.create_subscription(
-            Float64MultiArray, ri.VELOCITY_REFERENCE, self._on_reference, command_qos
+            Float64MultiArray, pc.VELOCITY_REFERENCE, self._on_reference, command_qos
         )
         self.create_service(SetBool, "~/enable", self._on_enable)
         # A steady clock: on sim time this timer would stop with /clock, i.e. exactly when a

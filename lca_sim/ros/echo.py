@@ -10,13 +10,9 @@ message is printed as YAML with its fields in declaration order, arrays as lists
 string), a subnormal float as 0.0 (every other float at full precision).
 
 The QoS is keep-last `STATE_QOS_DEPTH`; the reliability matches the publishers by default
-(best-effort if any publisher is) or is forced with `--qos-reliability`.
-
-(`rosidl_runtime_py.convert.message_to_yaml` is not part of the PyPI ROS wheels this project
-installs, so the conversion below walks the message fields itself.)
-
-Exit codes: 0 after the requested messages or on SIGINT/SIGTERM, 2 bad arguments or a topic
-that did not appear within `--wait-s` (one line on stderr).
+(best-effort if any publisher is) or is forced with `--qos-reliability`. Exit codes: 0 after
+the requested messages or on SIGINT/SIGTERM, 2 bad arguments or a topic that did not appear
+within `--wait-s` (one line on stderr).
 """
 
 from __future__ import annotations
@@ -82,6 +78,8 @@ def diagnostic_level_text(level: bytes | int) -> str:
     return f"{number} ({DIAGNOSTIC_LEVEL_NAMES.get(number, 'unknown')})"
 
 
+# `rosidl_runtime_py.convert.message_to_yaml` is not part of the PyPI ROS wheels this project
+# installs, so the conversion walks the message fields itself.
 def message_to_plain(msg: Any) -> Any:
     """A ROS message (or field value) as plain dicts, lists and scalars, fields in order.
 

@@ -9,14 +9,12 @@ pytest runs) with, in the test module or the root conftest.py::
         lca_hil_loop.step(500)  # 2 s of simulated time, the controller in the loop
         assert lca_hil_loop.simulator.sim_time_s == pytest.approx(2.0)
 
-`lca_hil_loop` starts a lockstep simulator in this process (its own rclpy Context) and a
-controller (`lca-controller`, a child process: the layers keep the two nodes' modules apart), on
-their own ROS domain id (`lca_hil_domain_id`), once per test module; before each test it
-resets them, so every test begins paused at simulated time 0 with the controller's first
-command waiting: `step(n)` runs n control periods, `resume()` lets the loop run free. The
-parameters come from the fixtures `lca_hil_simulator_parameters` and
-`lca_hil_controller_parameters`; override any of these three (module scope or wider) in your
-conftest. docs/simulation-control.md describes the services this is built on.
+`lca_hil_loop` starts a lockstep simulator in this process and a controller (`lca-controller`,
+a child process) on their own ROS domain id (`lca_hil_domain_id`), once per test module, and
+resets them before each test: every test begins paused at simulated time 0 with the first
+command waiting; `step(n)` runs n control periods, `resume()` lets the loop run free. Override
+the fixtures `lca_hil_simulator_parameters`, `lca_hil_controller_parameters` or the domain id
+in your conftest; docs/simulation-control.md describes the services this is built on.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from support import Diagnostics, spin_until
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.cia402.device import PowerState
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 
@@ -62,7 +62,7 @@ def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> 
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
         probe = Diagnostics(ctx, executor)
-        commands = probe.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
+        commands = probe.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
         try:
             spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
             # waiting for its controller is no fault: OK, saying what it waits for
@@ -102,7 +102,7 @@ def test_a_second_publisher_of_joint_states_is_an_error_on_the_bridge() -> None:
         other = Node("second_plant", context=ctx)
         try:
             probe.wait_for(BRIDGE, OK, "running")
-            publisher = other.create_publisher(JointState, ri.JOINT_STATES, 10)
+            publisher = other.create_publisher(JointState, pc.JOINT_STATES, 10)
             probe.wait_for(BRIDGE, ERROR, "another node publishes joint_states: /second_plant")
             assert "/second_plant" in probe.value(BRIDGE, "other_publishers")
             other.destroy_publisher(publisher)
@@ -170,7 +170,7 @@ def test_commands_late_for_their_cycle_warn_on_the_bridge() -> None:
     with ros_context() as (ctx, executor):
         bridge = _bridge(ctx, executor, command_timeout_s=0.5)
         probe = Diagnostics(ctx, executor)
-        commands = probe.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
+        commands = probe.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
         probe.node.create_timer(
             0.04, lambda: commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
         )

@@ -26,7 +26,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from support import Diagnostics, spin_until
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CST, PowerState
@@ -78,9 +78,9 @@ class Manager:
         self._change = self.node.create_client(ChangeState, "/can_bridge/change_state")
         self._get = self.node.create_client(GetState, "/can_bridge/get_state")
         self._enable = self.node.create_client(Trigger, "/can_bridge/enable")
-        self.currents = self.node.create_publisher(Float64MultiArray, ri.CURRENT_COMMANDS, 10)
+        self.currents = self.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
         self.joint_states: list[JointState] = []
-        self.node.create_subscription(JointState, ri.JOINT_STATES, self.joint_states.append, 50)
+        self.node.create_subscription(JointState, pc.JOINT_STATES, self.joint_states.append, 50)
 
     def _call(self, client: Any, request: Any) -> Any:
         spin_until(self.executor, client.service_is_ready, f"{client.srv_name} served", 30.0)

@@ -29,7 +29,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from support import CONFIG, start_shipped, wait_until
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_control.profiles import RampProfile
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 from lca_sim.ros.controller_node import ControllerNode
@@ -74,10 +74,10 @@ class SwapRun:
 
     def listen(self, node: Node) -> None:
         """Subscribe `node` to the states, the first command and the bridge's diagnostics."""
-        node.create_subscription(JointState, ri.JOINT_STATES, self._on_joint, 100)
-        node.create_subscription(Float64MultiArray, ri.CURRENT_COMMANDS, self._on_command, 100)
-        node.create_subscription(DiagnosticArray, ri.DRIVE_CHAIN_STATES, self._on_drive, 100)
-        node.create_subscription(DiagnosticArray, ri.DIAGNOSTICS, self._on_diagnostics, 50)
+        node.create_subscription(JointState, pc.JOINT_STATES, self._on_joint, 100)
+        node.create_subscription(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_command, 100)
+        node.create_subscription(DiagnosticArray, pc.DRIVE_CHAIN_STATES, self._on_drive, 100)
+        node.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, self._on_diagnostics, 50)
 
     def _on_joint(self, msg: JointState) -> None:
         self.stamp_s.append(from_stamp(msg.header.stamp))
@@ -90,7 +90,7 @@ class SwapRun:
 
     def _on_drive(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            pivot = status.name == ri.DRIVE_STATUS_PREFIX + "pivot"
+            pivot = status.name == pc.DRIVE_STATUS_PREFIX + "pivot"
             last = self.transitions[-1][1] if self.transitions else ""
             if pivot and status.message != last:
                 position = self.position_rad[-1] if self.position_rad else math.nan

@@ -39,7 +39,7 @@ from support import (
     wait_until,
 )
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.ros.node_util import from_stamp
 
 SIMULATOR_DOMAIN_ID = 230
@@ -65,9 +65,9 @@ class HealthProbe:
 
     def listen(self, node: Node) -> None:
         """Subscribe `node` to /diagnostics, joint_states and drive_chain_states."""
-        node.create_subscription(DiagnosticArray, ri.DIAGNOSTICS, self._on_diagnostics, 50)
-        node.create_subscription(JointState, ri.JOINT_STATES, self._on_joint, 100)
-        node.create_subscription(DiagnosticArray, ri.DRIVE_CHAIN_STATES, self._on_drive, 100)
+        node.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, self._on_diagnostics, 50)
+        node.create_subscription(JointState, pc.JOINT_STATES, self._on_joint, 100)
+        node.create_subscription(DiagnosticArray, pc.DRIVE_CHAIN_STATES, self._on_drive, 100)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
@@ -82,7 +82,7 @@ class HealthProbe:
 
     def _on_drive(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name != ri.DRIVE_STATUS_PREFIX + "pivot":
+            if status.name != pc.DRIVE_STATUS_PREFIX + "pivot":
                 continue
             if not self.pivot_states or self.pivot_states[-1][1] != status.message:
                 stamp_s = from_stamp(msg.header.stamp)
@@ -234,7 +234,7 @@ def test_a_lift_parked_on_its_stop_is_ok_and_one_driven_into_it_is_not() -> None
         assert found.message == "stop_hold: resting on its lower end stop"
         assert float(diagnostics.value(LIFT_STATUS, "position")) == 0.0
         volts = [0.0, 0.0, 0.0, 0.0]
-        pub = diagnostics.node.create_publisher(Float64MultiArray, ri.VOLTAGE_COMMANDS, 10)
+        pub = diagnostics.node.create_publisher(Float64MultiArray, pc.VOLTAGE_COMMANDS, 10)
         diagnostics.node.create_timer(0.02, lambda: pub.publish(Float64MultiArray(data=volts)))
         # the motor pushing down into the stop
         volts[3] = -30.0
@@ -283,7 +283,7 @@ def test_simulated_time_starts_at_the_first_tick_not_at_construction() -> None:
         executor.add_node(sim)
         try:
             spin_until(executor, lambda: sim.steps >= 250, "25 ms of simulated time")
-            assert sim._overrun_steps == 0  # nothing skipped: the gap was before the clock
+            assert sim.pacing.overrun_steps == 0  # nothing skipped: the gap was before the clock
             # The first state is stamped at the first tick, not 0.3 s before it.
             assert sim.sim_time_s - sim.steps * 1e-4 >= first_tick_wall_s - 0.01
         finally:

@@ -86,7 +86,7 @@ def _walk(node: Node, table: Any, probes: dict[str, Probe], current: Callable[[s
 def _lockstep_advance_s(sim: SimulatorNode) -> float:
     """Simulated time one lockstep command advances, measured on the running node."""
     t0 = sim.sim_time_s
-    sim._on_command(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+    sim._commands.on_command(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
     return sim.sim_time_s - t0
 
 
@@ -96,9 +96,9 @@ def _lockstep_ends_at(sim: SimulatorNode, end_s: float) -> bool:
     for _ in range(100_000):
         if sim.ended:
             break
-        sim._on_command(command)
+        sim._commands.on_command(command)
     published = sim._published
-    sim._on_command(command)  # after the end: ignored
+    sim._commands.on_command(command)  # after the end: ignored
     return sim.ended and abs(sim.sim_time_s - end_s) < 1e-12 and sim._published == published
 
 
@@ -110,7 +110,7 @@ def _step_runs_periods(sim: SimulatorNode, periods: int) -> bool:
     t0 = sim.sim_time_s
     stepped = sim.step()[0]
     for _ in range(periods + 2):
-        sim._on_command(command)
+        sim._commands.on_command(command)
     advanced_s = sim.sim_time_s - t0
     sim.resume()  # the command left waiting runs its period
     return stepped and math.isclose(advanced_s, periods * sim.params.control_period_s)
@@ -138,17 +138,17 @@ def _stored(name: str, value: Any) -> Probe:
 def _resends_after(sim: SimulatorNode, resend_s: float) -> bool:
     """lockstep_resend_s: the last state is published again after that silence, not before."""
     published = sim._published
-    sim._last_command_wall = sim._last_publish_wall = time.monotonic() - 0.6 * resend_s
+    sim.pacing.last_command_wall = sim.pacing.last_publish_wall = time.monotonic() - 0.6 * resend_s
     sim._lockstep_kick()
     quiet = sim._published == published
-    sim._last_command_wall = sim._last_publish_wall = time.monotonic() - 1.1 * resend_s
+    sim.pacing.last_command_wall = sim.pacing.last_publish_wall = time.monotonic() - 1.1 * resend_s
     sim._lockstep_kick()
     return quiet and sim._published == published + 1
 
 
 def _command(sim: SimulatorNode, pivot: float) -> None:
     """A command array that moves only the pivot (its unit is the node's interface's)."""
-    sim._on_command(
+    sim._commands.on_command(
         Float64MultiArray(data=[pivot if j == "pivot" else 0.0 for j in sim.params.joints])
     )
 
@@ -237,7 +237,7 @@ def test_simulator_applies_or_rejects_every_parameter() -> None:
             ],
         )
         executor.add_node(sim)
-        sim._started = True  # lockstep without a controller: the test sends the commands
+        sim.pacing.started = True  # lockstep without a controller: the test sends the commands
         probes: dict[str, Probe] = {
             **_common_simulator_probes(),
             **{name: _stored(name, v) for name, v in STORED_IN_LOCKSTEP_VOLTAGE.items()},

@@ -25,10 +25,9 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.config.loader import config_dir
 from lca_sim.ros.can_bridge_node import CanBridgeNode
-from lca_sim.ros.joint_command import read_joint_command
 from lca_sim.ros.node_util import make_executor
 from lca_sim.ros.simulator_node import SimulatorNode
 
@@ -46,9 +45,9 @@ class FakeTopicSystem(Node):
         self.velocity = [0.0] * len(JOINTS)
         self.effort = [0.0] * len(JOINTS)
         self.states: list[JointState] = []
-        self._pub = self.create_publisher(JointState, ri.ROBOT_JOINT_COMMANDS, QoSProfile(depth=1))
+        self._pub = self.create_publisher(JointState, pc.ROBOT_JOINT_COMMANDS, QoSProfile(depth=1))
         self.create_subscription(
-            JointState, ri.ROBOT_JOINT_STATES, self.states.append, qos_profile_sensor_data
+            JointState, pc.ROBOT_JOINT_STATES, self.states.append, qos_profile_sensor_data
         )
         self.sent = 0
         self.create_timer(1.0 / UPDATE_RATE_HZ, self._write)
@@ -84,15 +83,6 @@ def _assert_states_fit_the_interface(states: list[JointState]) -> None:
         assert len(msg.position) == len(msg.velocity) == len(msg.effort) == len(JOINTS)
         values = [*msg.position, *msg.velocity, *msg.effort]
         assert all(math.isfinite(v) for v in values), values
-
-
-def test_read_joint_command_matches_names_and_leaves_nan_out() -> None:
-    """Any order, a partial set, NaN left out, unknown names listed, ragged fields refused."""
-    cmd = read_joint_command(["pivot", "elbow", "l_arm"], [], [1.0, 2.0, math.nan], JOINTS)
-    assert cmd.effort == {"pivot": 1.0} and cmd.velocity == {} and cmd.unknown == ("elbow",)
-    assert cmd.error == ""
-    ragged = read_joint_command(["pivot", "l_arm"], [0.5], [1.0, 2.0], JOINTS)
-    assert "velocity has 1 entries for 2 names" in ragged.error and not ragged.effort
 
 
 def test_simulator_follows_joint_state_effort_by_name() -> None:

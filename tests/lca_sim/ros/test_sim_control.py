@@ -106,7 +106,7 @@ def test_realtime_pause_holds_the_state_bit_for_bit() -> None:
         assert {kv.key: kv.value for kv in paused.values}["paused"] == "True"
         assert services.call("resume").success
         spin_until(executor, lambda: sim.sim_time_s > t_s + 0.2, "simulated time again")
-        assert sim._overrun_steps * sim.params.dt_s < 0.3  # the 0.6 s pause is no backlog
+        assert sim.pacing.overrun_steps * sim.params.dt_s < 0.3  # the 0.6 s pause is no backlog
         diagnostics.clear()
         diagnostics.wait_for(support.SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
         assert float(diagnostics.value(support.SIMULATOR_STATUS, "paused_s")) >= 0.6
@@ -171,7 +171,7 @@ def test_realtime_factor_two_runs_simulated_time_twice_as_fast() -> None:
         sim = start_simulator(ctx, executor, REALTIME)
         diagnostics = Diagnostics(ctx, executor)
         assert sim.set_parameters_atomically(support.parameters(realtime_factor=2.0)).successful
-        spin_until(executor, lambda: sim.sim_time_s > sim._time_base_s + 0.1, "running")
+        spin_until(executor, lambda: sim.sim_time_s > sim.pacing.time_base_s + 0.1, "running")
         wall0, sim0 = time.monotonic(), sim.sim_time_s
         _spin_for_wall(executor, 1.5)
         rate = (sim.sim_time_s - sim0) / (time.monotonic() - wall0)

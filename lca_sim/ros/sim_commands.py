@@ -1,0 +1,134 @@
+"""The simulator's command inputs: voltage or current arrays, and JointState commands.
+
+`SimCommands` subscribes to the command topic of `command_interface` (and counts what comes
+on the other one), and to the JointState command topic (docs/ros2_control.md); it puts each
+command in force on the plant and, in lockstep, hands it on as the period's command. A refused
+command still runs its period in lockstep, so the loop goes on with the last good command.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from lca_control import contract as pc
+from lca_sim.config.simulator_params import SimulatorNodeParams
+from lca_sim.model.commanded_plant import CommandedPlant
+from lca_sim.model.params import RobotParams
+from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
+from lca_sim.ros.plant_contract import qos_profile
+from lca_sim.ros.sim_pacing import SimPacing
+
+
+class SimCommands:
+    """The simulator's command subscriptions and what they count.
+
+    Args:
+        node: the simulator node; the subscriptions are created on it.
+        p: its parameters at start-up (the interface, joints and topics are read-only).
+        robot: the robot config (k_t and gear ratios for a JointState torque).
+        axis_names: the simulator's axes, in its order (the plant's `target`).
+        plant: the commanded plant the commands go to.
+        pacing: the node's simulated time (lockstep start, pause, step budget).
+        run_period: lockstep: run the period of the command just taken.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        p: SimulatorNodeParams,
+        robot: RobotParams,
+        axis_names: tuple[str, ...],
+        plant: CommandedPlant,
+        pacing: SimPacing,
+        run_period: Callable[[], None],
+    ) -> None:
+        self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
+        self._interface = p.command_interface
+        self._plant = plant
+        self._pacing = pacing
+        self._run_period = run_period
+        self.wrong_interface = 0
+        qos = qos_profile(pc.COMMAND_QOS)
+        self.topic, other = (
+            (pc.VOLTAGE_COMMANDS, pc.CURRENT_COMMANDS)
+            if p.command_interface == "voltage"
+            else (pc.CURRENT_COMMANDS, pc.VOLTAGE_COMMANDS)
+        )
+        node.create_subscription(Float64MultiArray, self.topic, self.on_command, qos)
+        node.create_subscription(Float64MultiArray, other, self._on_wrong_interface, qos)
+        # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N).
+        self._joint_index = [axis_names.index(j) for j in p.joints]
+        self.joint_commands = JointCommandAdapter(
+            p.joints,
+            effort_scales(robot, p.joints, p.joint_command_effort),
+            takes_effort=p.command_interface != "voltage",
+            velocity_refused=lambda j: (
+                f"velocity commands for {j}: the simulator has no velocity loop (command "
+                "effort, or use the CAN bridge with the axis in csv mode)"
+            ),
+            effort_refused=lambda _: (
+                "effort refused: the simulator takes voltages (command_interface)"
+            ),
+            topic=p.joint_command_topic,
+        )
+        if p.joint_command_topic:
+            node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
+
+    def on_command(self, msg: Float64MultiArray) -> None:
+        """A command array on the interface's topic (joints order)."""
+        self._take(list(msg.data))
+
+    def _on_joint(self, msg: JointState) -> None:
+        """A JointState command (docs/ros2_control.md): effort per joint, by name.
+
+        Effort is this node's command (A, or joint torque per `joint_command_effort`) on the
+        joints named with a finite entry; every other joint keeps its command. The simulator
+        has no velocity loop, so a non-zero velocity entry is refused (counted, warned); a
+        zero one is what the interface sends for a velocity interface no controller claims.
+        In voltage mode effort has no meaning here and the message is refused. In lockstep
+        the message is the period's command either way, as a refused array is.
+        """
+        adapter = self.joint_commands
+        cmd = adapter.read(msg.name, msg.velocity, msg.effort)
+        values = None
+        if cmd.accepted:
+            values = adapter.fill(self._plant.target[self._joint_index].tolist(), cmd.effort)
+        if cmd.problems:
+            self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
+        self._take(values)
+
+    def _take(self, values: list[float] | None) -> None:
+        """One command array (joints order): in force, and in lockstep the period's command.
+
+        None: a refused JointState command, which in lockstep still runs the period (in
+        realtime it is no command: the timeout runs on).
+        """
+        pacing = self._pacing
+        if values is None and not pacing.lockstep:
+            return
+        reason = None if values is None else self._plant.command(values)
+        if reason is not None:
+            self._log.warning(
+                f"command rejected ({self._plant.counters.rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
+            if not pacing.lockstep:
+                return
+            # In lockstep the loop must go on: the last good command stays in force.
+        pacing.command_came()
+        if pacing.lockstep and pacing.started:
+            if pacing.paused and not pacing.admit_paused_command():
+                return  # it waits for ~/step or ~/resume (`command_pending`)
+            self._run_period()
+
+    def _on_wrong_interface(self, msg: Float64MultiArray) -> None:
+        self.wrong_interface += 1
+        self._log.warning(
+            f"ignoring commands on the inactive interface ({self.wrong_interface} so far); "
+            f"command_interface is {self._interface}",
+            throttle_duration_sec=5.0,
+        )
