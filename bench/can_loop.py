@@ -429,26 +429,26 @@ class Observer:
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
 
-        from lca_control import contract as ri
+        from lca_control import contract as pc
         from lca_sim.ros.node_util import make_executor
 
         self._context = Context()
         rclpy.init(context=self._context, domain_id=domain_id)
         self.node = rclpy.create_node("can_loop_bench", context=self._context)
         self.node.create_subscription(
-            DiagnosticArray, ri.DIAGNOSTICS, record.on_diagnostics, ri.DIAGNOSTICS_QOS_DEPTH
+            DiagnosticArray, pc.DIAGNOSTICS, record.on_diagnostics, pc.DIAGNOSTICS_QOS_DEPTH
         )
-        state_qos = reliable_qos(ri.STATE_QOS_DEPTH)
+        state_qos = reliable_qos(pc.STATE_QOS_DEPTH)
         self.node.create_subscription(
-            JointState, ri.JOINT_STATES, record.on_joint_states, state_qos, raw=True
+            JointState, pc.JOINT_STATES, record.on_joint_states, state_qos, raw=True
         )
         # A deep queue here: this reader must not be the one that drops a command.
         self.node.create_subscription(
-            Float64MultiArray, ri.CURRENT_COMMANDS, record.on_commands, state_qos, raw=True
+            Float64MultiArray, pc.CURRENT_COMMANDS, record.on_commands, state_qos, raw=True
         )
         if drive_states:
             self.node.create_subscription(
-                DiagnosticArray, ri.DRIVE_CHAIN_STATES, record.on_drive_states, state_qos, raw=True
+                DiagnosticArray, pc.DRIVE_CHAIN_STATES, record.on_drive_states, state_qos, raw=True
             )
         self._executor = make_executor(self._context, "events")
         self._executor.add_node(self.node)

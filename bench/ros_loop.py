@@ -385,7 +385,7 @@ def subscribe_diagnostics(node: Any, samples: list[DiagSample], timing_mode: str
     """Append every simulator status of `timing_mode` on /diagnostics to `samples`."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from lca_control import contract as ri
+    from lca_control import contract as pc
 
     def on_diag(msg: Any) -> None:
         now = time.monotonic()
@@ -396,14 +396,14 @@ def subscribe_diagnostics(node: Any, samples: list[DiagSample], timing_mode: str
                 if values.get("timing_mode") == timing_mode:
                     samples.append(DiagSample(now, stamp_s, values))
 
-    node.create_subscription(DiagnosticArray, ri.DIAGNOSTICS, on_diag, 10)
+    node.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, on_diag, 10)
 
 
 def foreign_publishers(node: Any) -> str | None:
     """An error when joint_states has other publishers than our simulator (shared domain)."""
-    from lca_control import contract as ri
+    from lca_control import contract as pc
 
-    count = node.count_publishers(ri.JOINT_STATES)
+    count = node.count_publishers(pc.JOINT_STATES)
     if count == 1:
         return None
     domain = os.environ.get("ROS_DOMAIN_ID")
@@ -463,7 +463,7 @@ def role_observe_realtime(
     from rclpy.node import Node
     from sensor_msgs.msg import JointState
 
-    from lca_control import contract as ri
+    from lca_control import contract as pc
 
     node = Node("bench_observe_realtime")
     samples: list[DiagSample] = []
@@ -481,8 +481,8 @@ def role_observe_realtime(
             recv.append(now)
             stamps.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
 
-    qos = reliable_qos(ri.STATE_QOS_DEPTH)
-    node.create_subscription(JointState, ri.JOINT_STATES, on_state, qos)
+    qos = reliable_qos(pc.STATE_QOS_DEPTH)
+    node.create_subscription(JointState, pc.JOINT_STATES, on_state, qos)
 
     def diag_after(t: float) -> DiagSample | None:
         return next((s for s in samples if s.recv_t >= t), None)

@@ -29,7 +29,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from support import ROOT, wait_until
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.config.loader import shipped_names
 
 BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
@@ -152,9 +152,9 @@ def observer(domain_id: int) -> Iterator[Observer]:
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     obs = Observer(node, executor)
-    state_qos = QoSProfile(depth=ri.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-    node.create_subscription(JointState, ri.JOINT_STATES, obs.joint_states.append, state_qos)
-    node.create_subscription(DiagnosticArray, ri.DIAGNOSTICS, obs.diagnostics.append, 10)
+    state_qos = QoSProfile(depth=pc.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(JointState, pc.JOINT_STATES, obs.joint_states.append, state_qos)
+    node.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, obs.diagnostics.append, 10)
     try:
         yield obs
     finally:

@@ -47,7 +47,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.analysis.closed_loop import ClosedLoopConfig, replay_references, tracking_window
 from lca_sim.analysis.metrics import VelocityTracking, velocity_tracking
 from lca_sim.batch.closed_loop_config import load_config
@@ -168,8 +168,8 @@ def _argvs(bag: Path, duration_s: float, run: Fig15Run) -> dict[str, list[str]]:
     return {
         "recorder": [
             _script("lca-record"), "-o", str(bag), "--wait-s", "30",
-            ri.JOINT_STATES, ri.MOTOR_STATES, ri.DRIVE_CHAIN_STATES, ri.VOLTAGE_COMMANDS,
-            ri.CURRENT_COMMANDS, ri.VELOCITY_COMMANDS, ri.CLOCK,
+            pc.JOINT_STATES, pc.MOTOR_STATES, pc.DRIVE_CHAIN_STATES, pc.VOLTAGE_COMMANDS,
+            pc.CURRENT_COMMANDS, pc.VELOCITY_COMMANDS, pc.CLOCK,
             "--ros-args", "-p", "use_sim_time:=true",
         ],
         # No use_sim_time for the controller: it steps on the state stamps, and a /clock
@@ -257,8 +257,8 @@ def run_fig15(out: Path, duration_s: float) -> int:
     node = Node("lca_hil_progress", context=ctx)
     progress = _Progress()
     reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    node.create_subscription(Clock, ri.CLOCK, progress.on_clock, reliable)
-    node.create_subscription(DiagnosticArray, ri.DIAGNOSTICS, progress.on_diagnostics, reliable)
+    node.create_subscription(Clock, pc.CLOCK, progress.on_clock, reliable)
+    node.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, progress.on_diagnostics, reliable)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     procs: dict[str, subprocess.Popen[bytes]] = {}

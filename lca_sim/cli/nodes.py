@@ -18,7 +18,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
 from lca_sim.cli.console import own_arguments, script_arguments, wants_help
@@ -73,10 +73,10 @@ class NodeScript:
 
 
 _PLANT_STATES = (
-    f"{ri.JOINT_STATES} ({ri.JOINT_STATE_TYPE}): joint side, SI",
-    f"{ri.MOTOR_STATES} ({ri.JOINT_STATE_TYPE}): motor side, effort = current (A)",
-    f"{ri.DRIVE_CHAIN_STATES} ({ri.DIAGNOSTIC_ARRAY_TYPE}): drive and motion state per joint",
-    f"{ri.DIAGNOSTICS} ({ri.DIAGNOSTIC_ARRAY_TYPE}): health and counters",
+    f"{pc.JOINT_STATES} ({pc.JOINT_STATE_TYPE}): joint side, SI",
+    f"{pc.MOTOR_STATES} ({pc.JOINT_STATE_TYPE}): motor side, effort = current (A)",
+    f"{pc.DRIVE_CHAIN_STATES} ({pc.DIAGNOSTIC_ARRAY_TYPE}): drive and motion state per joint",
+    f"{pc.DIAGNOSTICS} ({pc.DIAGNOSTIC_ARRAY_TYPE}): health and counters",
 )
 
 SIMULATOR = NodeScript(
@@ -89,10 +89,10 @@ SIMULATOR = NodeScript(
     ),
     publishes=(
         *_PLANT_STATES,
-        f"{ri.CLOCK} ({ri.CLOCK_TYPE}): simulated time, in lockstep only",
+        f"{pc.CLOCK} ({pc.CLOCK_TYPE}): simulated time, in lockstep only",
     ),
     subscribes=(
-        f"{ri.VOLTAGE_COMMANDS} or {ri.CURRENT_COMMANDS} ({ri.FLOAT64_MULTI_ARRAY_TYPE}): "
+        f"{pc.VOLTAGE_COMMANDS} or {pc.CURRENT_COMMANDS} ({pc.FLOAT64_MULTI_ARRAY_TYPE}): "
         "per command_interface; the other one is counted and refused",
     ),
     services=(
@@ -110,14 +110,14 @@ CONTROLLER = NodeScript(
         "period taken from the state stamps, so it drives the simulator and the CAN bridge alike."
     ),
     publishes=(
-        f"{ri.VOLTAGE_COMMANDS} or {ri.CURRENT_COMMANDS} ({ri.FLOAT64_MULTI_ARRAY_TYPE}): "
+        f"{pc.VOLTAGE_COMMANDS} or {pc.CURRENT_COMMANDS} ({pc.FLOAT64_MULTI_ARRAY_TYPE}): "
         "per command_interface",
-        f"{ri.DIAGNOSTICS} ({ri.DIAGNOSTIC_ARRAY_TYPE}): health and counters",
+        f"{pc.DIAGNOSTICS} ({pc.DIAGNOSTIC_ARRAY_TYPE}): health and counters",
     ),
     subscribes=(
-        f"{ri.JOINT_STATES} ({ri.JOINT_STATE_TYPE})",
-        f"{ri.MOTOR_STATES} ({ri.JOINT_STATE_TYPE}): with voltage commands only (current loop)",
-        f"{ri.VELOCITY_REFERENCE} ({ri.FLOAT64_MULTI_ARRAY_TYPE}): rad/s (m/s) per joint",
+        f"{pc.JOINT_STATES} ({pc.JOINT_STATE_TYPE})",
+        f"{pc.MOTOR_STATES} ({pc.JOINT_STATE_TYPE}): with voltage commands only (current loop)",
+        f"{pc.VELOCITY_REFERENCE} ({pc.FLOAT64_MULTI_ARRAY_TYPE}): rad/s (m/s) per joint",
     ),
     services=("~/enable (std_srvs/srv/SetBool): sets the enabled parameter",),
     table=CONTROLLER_PARAMETERS,
@@ -134,8 +134,8 @@ CAN_BRIDGE = NodeScript(
     ),
     publishes=_PLANT_STATES,
     subscribes=(
-        f"{ri.CURRENT_COMMANDS} ({ri.FLOAT64_MULTI_ARRAY_TYPE}): A per joint",
-        f"{ri.VOLTAGE_COMMANDS} ({ri.FLOAT64_MULTI_ARRAY_TYPE}): counted and refused",
+        f"{pc.CURRENT_COMMANDS} ({pc.FLOAT64_MULTI_ARRAY_TYPE}): A per joint",
+        f"{pc.VOLTAGE_COMMANDS} ({pc.FLOAT64_MULTI_ARRAY_TYPE}): counted and refused",
     ),
     services=(
         "~/init, ~/enable, ~/disable, ~/halt, ~/recover, ~/cyclic_torque_mode "

@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from support import CONFIG, spin_until, start_simulator
 
-from lca_control import contract as ri
+from lca_control import contract as pc
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopResult, stamp_time_s
 from lca_sim.analysis.metrics import Trace
 from lca_sim.batch.closed_loop_config import closed_loop_config
@@ -75,8 +75,8 @@ class _Recorder:
         self.joint: list[tuple[float, list[float], list[float]]] = []
         self.motor: list[tuple[float, list[float]]] = []
         self.commands: list[list[float]] = []
-        self.command_topic = ri.VOLTAGE_COMMANDS if interface == "voltage" else ri.CURRENT_COMMANDS
-        self.node.create_subscription(JointState, ri.MOTOR_STATES, self._on_motor, self.qos)
+        self.command_topic = pc.VOLTAGE_COMMANDS if interface == "voltage" else pc.CURRENT_COMMANDS
+        self.node.create_subscription(JointState, pc.MOTOR_STATES, self._on_motor, self.qos)
         self.node.create_subscription(
             Float64MultiArray, self.command_topic, self._on_command, self.qos
         )
@@ -84,7 +84,7 @@ class _Recorder:
 
     def take_joint_states(self) -> None:
         """Subscribe to joint_states: the lockstep simulator starts once it has matched."""
-        self.node.create_subscription(JointState, ri.JOINT_STATES, self._on_joint, self.qos)
+        self.node.create_subscription(JointState, pc.JOINT_STATES, self._on_joint, self.qos)
 
     def _on_joint(self, msg: JointState) -> None:
         self.joint.append((from_stamp(msg.header.stamp), list(msg.position), list(msg.velocity)))
@@ -126,9 +126,9 @@ def _lockstep_over_ros(
             executor,
             lambda: (
                 node.count_subscribers(recorder.command_topic) >= 2
-                and node.count_subscribers(ri.MOTOR_STATES) >= motor_readers
-                and node.count_subscribers(ri.JOINT_STATES) >= 1
-                and node.count_publishers(ri.JOINT_STATES) >= 1
+                and node.count_subscribers(pc.MOTOR_STATES) >= motor_readers
+                and node.count_subscribers(pc.JOINT_STATES) >= 1
+                and node.count_publishers(pc.JOINT_STATES) >= 1
             ),
             "the controller, the simulator and the recorder see each other",
         )

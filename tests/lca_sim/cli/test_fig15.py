@@ -109,7 +109,7 @@ def test_fig15_runs_the_scenario_that_lca_hil_run_runs(tmp_path: Path) -> None:
     No initial pose, command interface or control period of fig15's own.
     """
     pytest.importorskip("rclpy")
-    from lca_control import contract as ri
+    from lca_control import contract as pc
     from lca_sim.cli import fig15
 
     run = fig15.fig15_run(13.0)
@@ -118,7 +118,7 @@ def test_fig15_runs_the_scenario_that_lca_hil_run_runs(tmp_path: Path) -> None:
     assert f"--params-file {run.simulator_yaml}" in simulator
     assert "initial_position" not in simulator and "command_interface" not in simulator
     assert "control_period_s" not in simulator
-    assert ri.VELOCITY_COMMANDS in argvs["recorder"]
+    assert pc.VELOCITY_COMMANDS in argvs["recorder"]
     expected = node_parameters(run.simulator_yaml, "simulator")["initial_position"]
     assert list(run.config.initial_position) == expected  # the one file both tools read
     velocity = fig15.ramp_profile()  # the controller file's ramp, not a copy of it
