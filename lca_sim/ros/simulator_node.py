@@ -199,7 +199,7 @@ class SimulatorNode(Node):
         steps = pacing.period_steps()
         self._switch_faults()
         self.plant.advance(steps)
-        pacing.steps += steps
+        pacing.advanced(steps)
         self._publish_state()
         if pacing.ended:
             self._report_end()
@@ -239,7 +239,7 @@ class SimulatorNode(Node):
         if due > 0:
             self._switch_faults()
             self.plant.advance(due)
-            pacing.steps += due
+            pacing.advanced(due)
         self._publish_state()
 
     def _lockstep_kick(self) -> None:

@@ -29,7 +29,7 @@ def _run_periods(pacing: SimPacing, n: int) -> list[int]:
     taken: list[int] = []
     for _ in range(n):
         steps = pacing.period_steps()
-        pacing.steps += steps
+        pacing.advanced(steps)
         taken.append(steps)
     return taken
 
@@ -60,7 +60,8 @@ def test_a_rewind_after_periods_starts_again_at_zero() -> None:
     assert not pacing.rewind()  # nothing ran yet: the command taken is kept
     _run_periods(pacing, 3)
     pacing.end_reported = True
-    pacing.pending, pacing.step_budget = True, 2
+    assert pacing.pause() and not pacing.admit_paused_command()  # a command waits
+    assert pacing.budget_steps(3) and pacing.step_budget == 2
     assert pacing.rewind()
     assert (pacing.steps, pacing.pending, pacing.step_budget) == (0, False, 0)
     assert not pacing.end_reported and not pacing.ended
