@@ -25,17 +25,14 @@ from rclpy.node import Node
 from std_srvs.srv import SetBool, Trigger
 
 from lca_control.parameters import ParameterError
-from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
 from lca_sim.config.simulator_params import (
     SIMULATOR_PARAMETERS,
     SimulatorNodeParams,
     validate_simulator_params,
 )
-from lca_sim.model.commanded_plant import CommandedPlant
-from lca_sim.model.faults import FaultInjector
 from lca_sim.model.params import RobotParams
-from lca_sim.model.simulator import Simulator
+from lca_sim.model.plant import PlantConfig, build_plant
 from lca_sim.ros.fault_params import FaultParameters, is_fault_parameter
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, set_enabled_by_service
 from lca_sim.ros.plant_contract import PlantPublisher
@@ -64,26 +61,32 @@ class SimulatorNode(Node):
         )
         p = self.params
         robot = load_robot(p.robot)
-        self.sim = Simulator(robot, dt_s=p.dt_s, rigid_body_update_steps=p.rigid_body_update_steps)
-        # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
-        self.faults = FaultInjector(self.sim, period_s=p.control_period_s)
+        plant = build_plant(
+            PlantConfig(
+                robot=robot,
+                dt_s=p.dt_s,
+                rigid_body_update_steps=p.rigid_body_update_steps,
+                joints=p.joints,
+                interface=p.command_interface,
+                current_kp_v_per_a=p.current_kp_v_per_a,
+                current_ti_s=p.current_ti_s,
+                max_abs_command=(
+                    p.max_command_voltage_v
+                    if p.command_interface == "voltage"
+                    else p.max_command_current_a
+                ),
+                enabled=p.enabled,
+                # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
+                fault_period_s=p.control_period_s,
+            )
+        )
+        self.sim, self.plant = plant.sim, plant.commanded
+        assert plant.faults is not None  # fault_period_s given
+        self.faults = plant.faults
         self._fault_params = FaultParameters(
             self, self.faults, lockstep=p.timing_mode == "lockstep"
         )
         self._snapshots = SimSnapshots(self.sim, self.faults)
-        self.plant = CommandedPlant(
-            sim=self.sim,
-            joints=p.joints,
-            interface=p.command_interface,
-            current_pi=PIParams(p.current_kp_v_per_a, p.current_ti_s, -1.0, 1.0),
-            max_abs_command=(
-                p.max_command_voltage_v
-                if p.command_interface == "voltage"
-                else p.max_command_current_a
-            ),
-            enabled=p.enabled,
-            faults=self.faults,
-        )
         self._reset_pose()
         self._lockstep = p.timing_mode == "lockstep"
         self.pacing = SimPacing(lambda: self.params, self._lockstep)
