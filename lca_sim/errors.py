@@ -98,3 +98,9 @@ def run_guarded(prog: str, body: Callable[[], int], interrupted: str = "interrup
     except KeyboardInterrupt:
         print(f"{prog}: {interrupted}", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def fail(prog: str, message: str) -> int:
+    """Say `prog: error: message` on stderr; returns the bad-input exit code."""
+    print(f"{prog}: error: {message}", file=sys.stderr, flush=True)
+    return EXIT_BAD_INPUT

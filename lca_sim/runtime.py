@@ -16,7 +16,11 @@ that point instead.
 from __future__ import annotations
 
 import gc
+import signal
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from types import FrameType
 
 # A cyclic thread that wakes this much later than due was frozen with its whole process (the
 # GIL held by a collection or a library load, the host paused). The CAN bridge's cycle and the
@@ -62,3 +66,24 @@ def yield_gil() -> None:
     (five runs).
     """
     time.sleep(0)
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextmanager
+def stop_signals(on_stop: Callable[[str], None]) -> Iterator[None]:
+    """Inside the block, SIGINT and SIGTERM call `on_stop` with the signal's name.
+
+    The handlers that were set before come back when the block ends, however it ends.
+    """
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        on_stop(signal.Signals(signum).name)
+
+    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

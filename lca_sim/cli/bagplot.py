@@ -71,9 +71,8 @@ from lca_sim.cli.bag_events import (
     plot_spec,
     state_order,
 )
-from lca_sim.cli.console import fail
 from lca_sim.cli.plotting import Clipped, clip_spikes, joint_unit, label_gap, merge_events, save_png
-from lca_sim.errors import EXIT_OK
+from lca_sim.errors import EXIT_OK, fail
 from lca_sim.ros.bag_read import (
     ETA_KEYS,
     TIME_BASES,

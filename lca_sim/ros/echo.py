@@ -21,28 +21,26 @@ import argparse
 import array
 import math
 import os
-import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from types import FrameType
 from typing import Any, cast
 
-import rclpy
 import yaml
 from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
-from lca_sim.ros.record import first_line
+from lca_sim.errors import EXIT_OK, fail
+from lca_sim.ros.node_util import ToolStartError, first_line, tool_arguments, tool_context
 from lca_sim.ros.record_bag import RecorderError
 from lca_sim.ros.record_topics import import_message_class, subscription_qos
 from lca_sim.ros.tool_args import echo_parser
+from lca_sim.runtime import stop_signals
+
+PROG = "lca-echo"
 
 NODE_NAME = "lca_echo"
 
@@ -156,33 +154,17 @@ class _Printer:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the lca-echo console script."""
-    all_args = ["lca-echo", *(sys.argv[1:] if argv is None else argv)]
     try:
-        own_args = remove_ros_args(all_args)[1:]
-    except Exception as exc:  # rclpy's RCLInvalidROSArgsError
-        return _fail(f"bad ROS arguments: {first_line(exc)}")
+        all_args, own_args = tool_arguments(PROG, argv)
+    except ToolStartError as exc:
+        return fail(PROG, str(exc))
     args, limit = _parse_args(own_args)
-
     done = threading.Event()
-
-    def on_signal(_signum: int, _frame: FrameType | None) -> None:
-        done.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    context = Context()
     try:
-        try:
-            rclpy.init(
-                args=all_args, context=context, signal_handler_options=SignalHandlerOptions.NO
-            )
-        except Exception as exc:  # rclpy reports bad ROS arguments with its own exceptions
-            return _fail(f"cannot start ROS: {first_line(exc)}")
-        return _run_node(context, args, limit, done)
-    finally:
-        if context.ok():
-            rclpy.shutdown(context=context)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        with stop_signals(lambda _name: done.set()), tool_context(all_args) as context:
+            return _run_node(context, args, limit, done)
+    except ToolStartError as exc:
+        return fail(PROG, str(exc))
 
 
 def _parse_args(own_args: list[str]) -> tuple[argparse.Namespace, int | None]:
@@ -210,7 +192,7 @@ def _run_node(
     try:
         return _echo(node, executor, args, limit, done)
     except RecorderError as exc:
-        return _fail(str(exc))
+        return fail(PROG, str(exc))
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -238,12 +220,12 @@ def _echo(
     try:
         topic = node.resolve_topic_name(args.topic)
     except Exception as exc:  # rclpy's name validation errors
-        return _fail(f"bad topic name {args.topic!r}: {first_line(exc)}")
+        return fail(PROG, f"bad topic name {args.topic!r}: {first_line(exc)}")
     msgtype = _wait_for_type(node, executor, topic, args.wait_s, done)
     if msgtype is None:
         if done.is_set():  # interrupted while waiting
             return EXIT_OK
-        return _fail(f"topic {topic} did not appear within {args.wait_s:g} s")
+        return fail(PROG, f"topic {topic} did not appear within {args.wait_s:g} s")
     msg_class = import_message_class(msgtype)
     qos = subscription_qos(topic, node.get_publishers_info_by_topic(topic))
     if args.qos_reliability in _FORCED_RELIABILITY:
@@ -275,8 +257,3 @@ def _wait_for_type(
             return None
         executor.spin_once(timeout_sec=0.05)
     return None
-
-
-def _fail(text: str) -> int:
-    print(f"lca-echo: error: {text}", file=sys.stderr, flush=True)
-    return EXIT_BAD_INPUT

@@ -6,7 +6,8 @@ import math
 import os
 import signal
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from typing import Any, Generic, TypeVar
 
 import rclpy
@@ -19,9 +20,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok as rclpy_ok
+from rclpy.utilities import remove_ros_args
 
 from lca_control.parameters import ParameterTable
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS
+from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS, LcaHilError
 from lca_sim.runtime import settle_heap
 
 
@@ -256,3 +258,51 @@ def other_publishers(node: Node, topics: Sequence[str]) -> list[str]:
         if others:
             found.append(f"{topic}: {', '.join(others)}")
     return found
+
+
+class ToolStartError(LcaHilError):
+    """A ROS 2 console tool could not start: bad ROS arguments, or rclpy refused to init."""
+
+
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its class name if it has none).
+
+    rcl's source locations (`, at /project/src/rcl/...`) are cut off.
+    """
+    text = str(exc).strip()
+    line = text.splitlines()[0] if text else type(exc).__name__
+    return line.split(", at /", 1)[0]
+
+
+def tool_arguments(prog: str, argv: Sequence[str] | None) -> tuple[list[str], list[str]]:
+    """A ROS tool's arguments with `prog` first, and its own ones (the ROS arguments removed).
+
+    Raises:
+        ToolStartError: ROS arguments rcl cannot read.
+    """
+    all_args = [prog, *(sys.argv[1:] if argv is None else argv)]
+    try:
+        return all_args, remove_ros_args(all_args)[1:]
+    except Exception as exc:  # rclpy's RCLInvalidROSArgsError
+        raise ToolStartError(f"bad ROS arguments: {first_line(exc)}") from None
+
+
+@contextmanager
+def tool_context(all_args: Sequence[str]) -> Iterator[Context]:
+    """A ROS tool's own rclpy context (no rclpy signal handlers), shut down when the block ends.
+
+    Raises:
+        ToolStartError: rclpy refused the arguments or could not start.
+    """
+    context = Context()
+    try:
+        try:
+            rclpy.init(
+                args=list(all_args), context=context, signal_handler_options=SignalHandlerOptions.NO
+            )
+        except Exception as exc:  # rclpy reports bad ROS arguments with its own exceptions
+            raise ToolStartError(f"cannot start ROS: {first_line(exc)}") from None
+        yield context
+    finally:
+        if context.ok():
+            rclpy.shutdown(context=context)

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 import threading
 import time
@@ -36,27 +35,32 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from types import FrameType
 
-import rclpy
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.context import Context
 from rclpy.executors import Executor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from rclpy.timer import Timer
-from rclpy.utilities import remove_ros_args
 
 from lca_control.contract import STATE_QOS_DEPTH
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
+from lca_sim.errors import EXIT_OK, fail
 from lca_sim.ros.bag_recover import recover_main
-from lca_sim.ros.node_util import make_executor
+from lca_sim.ros.node_util import (
+    ToolStartError,
+    first_line,
+    make_executor,
+    tool_arguments,
+    tool_context,
+)
 from lca_sim.ros.record_bag import BagFile, RecorderError
 from lca_sim.ros.record_topics import TopicSubscriber
 from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S as DEFAULT_MAX_LOSS_S
 from lca_sim.ros.tool_args import RECORD_WAIT_S as DEFAULT_WAIT_S
 from lca_sim.ros.tool_args import record_parser
+from lca_sim.runtime import stop_signals
+
+PROG = "lca-record"
 
 NODE_NAME = "lca_record"
 GRAPH_POLL_PERIOD_S = 0.1
@@ -231,49 +235,35 @@ def default_output(now: datetime | None = None) -> Path:
 
 
 class _StopFlag:
-    """Set by SIGINT/SIGTERM; the spin loop checks it between short waits."""
+    """Set by SIGINT/SIGTERM (`stop_signals`); the spin loop checks it between short waits."""
 
     def __init__(self) -> None:
         self.event = threading.Event()
         self.signal_name = ""
 
-    def __call__(self, signum: int, _frame: FrameType | None) -> None:
-        self.signal_name = signal.Signals(signum).name
+    def set(self, signal_name: str) -> None:
+        self.signal_name = signal_name
         self.event.set()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the lca-record console script."""
-    all_args = ["lca-record", *(sys.argv[1:] if argv is None else argv)]
     try:
-        own_args = remove_ros_args(all_args)[1:]
-    except Exception as exc:  # rclpy's RCLInvalidROSArgsError
-        return _fail(f"bad ROS arguments: {first_line(exc)}")
+        all_args, own_args = tool_arguments(PROG, argv)
+    except ToolStartError as exc:
+        return fail(PROG, str(exc))
     args = _parse_args(own_args)
     if args.recover is not None:
         return recover_main(own_args)
     output: Path = args.output if args.output is not None else default_output()
     if output.exists():
-        return _fail(f"output {output} exists already; not overwriting (choose another -o)")
-
+        return fail(PROG, f"output {output} exists already; not overwriting (choose another -o)")
     stop = _StopFlag()
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    context = Context()
     try:
-        try:
-            rclpy.init(
-                args=all_args, context=context, signal_handler_options=SignalHandlerOptions.NO
-            )
-        except Exception as exc:  # rclpy reports bad ROS arguments with its own exceptions
-            return _fail(f"cannot start ROS: {first_line(exc)}")
-        run = _record(context, args, output, stop)
-    except RecorderError as exc:
-        return _fail(str(exc))
-    finally:
-        if context.ok():
-            rclpy.shutdown(context=context)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        with stop_signals(stop.set), tool_context(all_args) as context:
+            run = _record(context, args, output, stop)
+    except (ToolStartError, RecorderError) as exc:
+        return fail(PROG, str(exc))
     return _finish(output, run)
 
 
@@ -349,7 +339,7 @@ def _finish(output: Path, run: _Run) -> int:
         _warn(f"stopped while still waiting for {', '.join(run.never_seen)}")
     if run.reason == REASON_IDLE:
         dropped = ", ".join(run.dropped)
-        return _fail(f"could not record {dropped}; {output} is empty")
+        return fail(PROG, f"could not record {dropped}; {output} is empty")
     return EXIT_OK
 
 
@@ -408,18 +398,3 @@ def _note(text: str) -> None:
 
 def _warn(text: str) -> None:
     print(f"lca-record: warning: {text}", file=sys.stderr, flush=True)
-
-
-def first_line(exc: BaseException) -> str:
-    """The first line of an exception's message (its class name if it has none).
-
-    rcl's source locations (`, at /project/src/rcl/...`) are cut off.
-    """
-    text = str(exc).strip()
-    line = text.splitlines()[0] if text else type(exc).__name__
-    return line.split(", at /", 1)[0]
-
-
-def _fail(text: str) -> int:
-    print(f"lca-record: error: {text}", file=sys.stderr, flush=True)
-    return EXIT_BAD_INPUT

@@ -7,8 +7,9 @@ import signal
 
 import pytest
 
-from lca_sim.cli.console import STOP_SIGNALS, fail, script_arguments, stop_signals
-from lca_sim.errors import EXIT_BAD_INPUT
+from lca_sim.cli.console import script_arguments
+from lca_sim.errors import EXIT_BAD_INPUT, fail
+from lca_sim.runtime import STOP_SIGNALS, stop_signals
 
 
 def test_fail_says_one_line_and_returns_the_bad_input_code(
