@@ -112,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(
         f"composed closed loop: {len(config.robot.axes)} axes, {config.command_interface} "
         f"commands, control period {config.control_period_s * 1e3:g} ms, model step "
-        f"{config.dt_s * 1e3:g} ms (rigid-body terms every {config.rigid_body_update_steps} "
+        f"{config.dt_s * 1e3:g} ms (rigid-body terms every {config.plant.rigid_body_update_steps} "
         f"steps), {config.controller.reference_source} on {config.controller.profile_joint}, "
         f"{config.duration_s:g} s = {periods} periods; built in {build_s:.2f} s"
     )
@@ -179,7 +179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "command_interface": config.command_interface,
         "control_period_s": config.control_period_s,
         "dt_s": config.dt_s,
-        "rigid_body_update_steps": config.rigid_body_update_steps,
+        "rigid_body_update_steps": config.plant.rigid_body_update_steps,
         "build_s": round(build_s, 3),
         "repeats": args.repeats,
         "timing": "median of interleaved repeats, one process, one core",

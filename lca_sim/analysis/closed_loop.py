@@ -30,6 +30,7 @@ nodes' parameter files; `lca-hil run` (`lca_sim.cli.run`) writes the result.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -85,30 +86,19 @@ def check_time_s(name: str, value: float, dt_s: float | None = None) -> None:
 
 @dataclass(frozen=True, slots=True)
 class ClosedLoopConfig:
-    """One composed run: the robot, the controller's parameters and the simulator node's.
-
-    The plant fields are the simulator node's parameters of the same names
-    (`lca_sim.config.simulator_params`), the ones a lockstep run uses.
+    """One composed run: the plant, the controller's parameters and the simulator node's pacing.
 
     Attributes:
-        robot: the validated robot.
+        plant: the plant as the simulator node builds it from its parameters
+            (`lca_sim.config.simulator_params.plant_config`): robot, model step, command
+            interface, in-drive current PI, command limits.
         controller: the controller node's validated parameters.
         duration_s: simulated time of the run's last state (`lockstep_end_s`), s: a whole
             number of model steps; the last period is shorter when it is not a whole number of
             control periods.
-        joints: the plant's command order (the simulator's `joints`).
-        command_interface: `current` (the current PI runs in the plant at the model rate) or
-            `voltage` (both loops in the controller); the controller's must be the same.
-        dt_s: the model step, s.
-        rigid_body_update_steps: model steps per evaluation of Pinocchio's terms
-            (`rigid_body_period_s` / `dt_s`; the node's default 1 ms is 10).
         control_period_s: simulated time per command, s: a whole number of model steps.
-        current_kp_v_per_a, current_ti_s: the in-drive current PI (current interface).
-        max_abs_command: commands beyond this magnitude are refused (`max_command_current_a`
-            or `max_command_voltage_v`, by the interface).
         initial_position: the pose at t = 0, one value per robot axis (rad, m for the lift).
-        plant_enabled: the simulator's `enabled`: false puts 0 V on every axis.
-        faults: a fault schedule (lca_sim.model.faults; the simulator node's
+        faults: a fault schedule (lca_sim.model.fault_schedule; the simulator node's
             `fault_schedule`): switched at each period's start as the node does, the sensor
             faults on what the controller reads. The link faults (dropped, delayed, stale
             messages) need the node: a schedule naming them is refused here.
@@ -118,19 +108,11 @@ class ClosedLoopConfig:
             parameter).
     """
 
-    robot: RobotParams
+    plant: PlantConfig
     controller: ControllerParams
     duration_s: float
-    joints: tuple[str, ...]
-    command_interface: str
-    dt_s: float
-    rigid_body_update_steps: int
     control_period_s: float
-    current_kp_v_per_a: float
-    current_ti_s: float
-    max_abs_command: float
     initial_position: tuple[float, ...]
-    plant_enabled: bool = True
     faults: tuple[ScheduledFault, ...] = ()
 
     def __post_init__(self) -> None:
@@ -147,12 +129,28 @@ class ClosedLoopConfig:
         link = sorted({f.kind for f in self.faults if f.owner == LINK})
         if link:
             raise ParameterError("fault_schedule", "no link faults in a composed run", link)
-        if len(self.initial_position) != len(self.robot.axes):
+        robot = self.plant.robot
+        if len(self.initial_position) != len(robot.axes):
             raise ParameterError(
                 "initial_position",
-                f"{len(self.robot.axes)} positions ({', '.join(self.robot.axis_names)})",
+                f"{len(robot.axes)} positions ({', '.join(robot.axis_names)})",
                 self.initial_position,
             )
+
+    @property
+    def robot(self) -> RobotParams:
+        """The robot of the plant."""
+        return self.plant.robot
+
+    @property
+    def command_interface(self) -> str:
+        """`current` (the current PI runs in the plant) or `voltage` (both in the controller)."""
+        return self.plant.interface
+
+    @property
+    def dt_s(self) -> float:
+        """The model step, s."""
+        return self.plant.dt_s
 
     @property
     def substeps_per_period(self) -> int:
@@ -289,25 +287,13 @@ class ClosedLoop:
     def __init__(self, config: ClosedLoopConfig) -> None:
         self.config = config
         c = config
-        plant = build_plant(
-            PlantConfig(
-                robot=c.robot,
-                dt_s=c.dt_s,
-                rigid_body_update_steps=c.rigid_body_update_steps,
-                joints=c.joints,
-                interface=c.command_interface,
-                current_kp_v_per_a=c.current_kp_v_per_a,
-                current_ti_s=c.current_ti_s,
-                max_abs_command=c.max_abs_command,
-                enabled=c.plant_enabled,
-                fault_period_s=c.control_period_s if c.faults else None,
-            )
-        )
+        fault_period_s = c.control_period_s if c.faults else None
+        plant = build_plant(dataclasses.replace(c.plant, fault_period_s=fault_period_s))
         self.sim, self.plant, self.faults = plant.sim, plant.commanded, plant.faults
         if self.faults is not None:
             self.faults.set_schedule(c.faults)
         axes = self.sim.axis_names
-        for joint in (*c.joints, *c.controller.joints):
+        for joint in (*c.plant.joints, *c.controller.joints):
             if joint not in axes:
                 raise UnknownNameError("joint", joint, axes)
         self._index = [axes.index(j) for j in c.controller.joints]

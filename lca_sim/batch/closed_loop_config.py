@@ -18,6 +18,7 @@ from lca_sim.analysis.closed_loop import ClosedLoopConfig
 from lca_sim.batch.point import Documents
 from lca_sim.config.loader import load_robot
 from lca_sim.config.params_file import plant_params, read_node_files
+from lca_sim.config.simulator_params import plant_config
 from lca_sim.model.fault_schedule import parse_fault_schedule, standing_faults
 from lca_sim.model.params import RobotParams
 
@@ -49,25 +50,12 @@ def closed_loop_config(
         duration_s = simulator.lockstep_end_s
         if duration_s <= 0.0:
             raise ParameterError("lockstep_end_s", "a run's end > 0 (or --duration-s)", 0.0)
-    interface = simulator.command_interface
     return ClosedLoopConfig(
-        robot=load_robot(simulator.robot) if robot is None else robot,
+        plant=plant_config(simulator, load_robot(simulator.robot) if robot is None else robot),
         controller=controller,
         duration_s=duration_s,
-        joints=simulator.joints,
-        command_interface=interface,
-        dt_s=simulator.dt_s,
-        rigid_body_update_steps=simulator.rigid_body_update_steps,
         control_period_s=simulator.control_period_s,
-        current_kp_v_per_a=simulator.current_kp_v_per_a,
-        current_ti_s=simulator.current_ti_s,
-        max_abs_command=(
-            simulator.max_command_voltage_v
-            if interface == "voltage"
-            else simulator.max_command_current_a
-        ),
         initial_position=simulator.initial_position,
-        plant_enabled=simulator.enabled,
     )
 
 

@@ -112,7 +112,7 @@ def summary(result: ClosedLoopResult, config: ClosedLoopConfig, wall_s: float) -
         "duration_s": duration_s,
         "control_period_s": config.control_period_s,
         "dt_s": config.dt_s,
-        "rigid_body_update_steps": config.rigid_body_update_steps,
+        "rigid_body_update_steps": config.plant.rigid_body_update_steps,
         "states": len(result.time_s),
         "commands_rejected": result.commands_rejected,
         "wall_s": wall_s,

@@ -23,7 +23,8 @@ from lca_control.parameters import (
     non_negative,
     positive,
 )
-from lca_sim.model.params import AXIS_NAMES
+from lca_sim.model.params import AXIS_NAMES, RobotParams
+from lca_sim.model.plant import PlantConfig
 
 TIMING_MODES = ("realtime", "lockstep")
 # How the simulator's /diagnostics says a lockstep run has reached `lockstep_end_s`: its status
@@ -148,6 +149,30 @@ class SimulatorNodeParams:
     def rigid_body_update_steps(self) -> int:
         """Model steps per evaluation of the rigid-body terms (`Simulator`)."""
         return round(self.rigid_body_period_s / self.dt_s)
+
+
+def plant_config(
+    params: SimulatorNodeParams, robot: RobotParams, fault_period_s: float | None = None
+) -> PlantConfig:
+    """The plant the simulator node runs with these parameters (`lca_sim.model.plant`).
+
+    The node, `lca-hil run` and the closed-loop sweeps build their plant from this one reading
+    of the parameters: the command limit is `max_command_voltage_v` or `max_command_current_a`
+    by the interface.
+    """
+    voltage = params.command_interface == "voltage"
+    return PlantConfig(
+        robot=robot,
+        dt_s=params.dt_s,
+        rigid_body_update_steps=params.rigid_body_update_steps,
+        joints=params.joints,
+        interface=params.command_interface,
+        current_kp_v_per_a=params.current_kp_v_per_a,
+        current_ti_s=params.current_ti_s,
+        max_abs_command=params.max_command_voltage_v if voltage else params.max_command_current_a,
+        enabled=params.enabled,
+        fault_period_s=fault_period_s,
+    )
 
 
 def _whole_multiple(name: str, period_s: float, dt_s: float) -> float:

@@ -29,10 +29,11 @@ from lca_sim.config.loader import load_robot
 from lca_sim.config.simulator_params import (
     SIMULATOR_PARAMETERS,
     SimulatorNodeParams,
+    plant_config,
     validate_simulator_params,
 )
 from lca_sim.model.params import RobotParams
-from lca_sim.model.plant import PlantConfig, build_plant
+from lca_sim.model.plant import build_plant
 from lca_sim.ros.fault_params import FaultParameters, is_fault_parameter
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, set_enabled_by_service
 from lca_sim.ros.plant_contract import PlantPublisher
@@ -61,25 +62,8 @@ class SimulatorNode(Node):
         )
         p = self.params
         robot = load_robot(p.robot)
-        plant = build_plant(
-            PlantConfig(
-                robot=robot,
-                dt_s=p.dt_s,
-                rigid_body_update_steps=p.rigid_body_update_steps,
-                joints=p.joints,
-                interface=p.command_interface,
-                current_kp_v_per_a=p.current_kp_v_per_a,
-                current_ti_s=p.current_ti_s,
-                max_abs_command=(
-                    p.max_command_voltage_v
-                    if p.command_interface == "voltage"
-                    else p.max_command_current_a
-                ),
-                enabled=p.enabled,
-                # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
-                fault_period_s=p.control_period_s,
-            )
-        )
+        # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
+        plant = build_plant(plant_config(p, robot, fault_period_s=p.control_period_s))
         self.sim, self.plant = plant.sim, plant.commanded
         assert plant.faults is not None  # fault_period_s given
         self.faults = plant.faults
