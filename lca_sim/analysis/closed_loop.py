@@ -1,28 +1,15 @@
 """The composed closed loop: the controller core against the commanded plant, in one process.
 
 `ClosedLoop` runs what the lockstep ROS loop runs (the simulator node with `timing_mode:
-lockstep`, the controller node), without ROS: the same objects, the same numbers, in the same
-order. Per control period, as the nodes do it:
-
-1. the plant's state at model step `k` is "published" with the stamp the simulator node gives
-   it: `k * dt_s` seconds, rounded to whole nanoseconds as `builtin_interfaces/Time` holds it
-   (`stamp_time_s`, the round trip of `lca_sim.ros.node_util.to_stamp` / `from_stamp`);
-2. the controller core (`lca_control.controller.JointController.update`) takes that time and the
-   joint positions, velocities and (voltage interface) armature currents, in its own joint
-   order, exactly the float64 values `joint_states` / `motor_states` carry;
-3. the plant (`lca_sim.model.commanded_plant.CommandedPlant`) takes the command array (a refused
-   one leaves the last good command in force, as in lockstep), then advances one control period
-   of model steps (`substeps_per_period`), or fewer up to the run's end (`lockstep_end_s`).
-
-The run starts as the node does: the `Simulator` with its rigid-body hold, the commanded plant
-around it (its warm-up step rewound), `reset` to the initial pose and `hold_zero`; the first
-state is at t = 0, and the controller's first period is its `nominal_period_s`. It ends with the
-state at the end time; the controller's command on that state is computed (and recorded) but,
-as in lockstep after `lockstep_end_s`, never applied.
-
-So a run of this module and a lockstep run recorded through the nodes are equal to the last bit
-(`tests/lca_sim/analysis/test_closed_loop.py` runs both): JointState and Float64MultiArray carry
-float64, so the only rounding on the way is that of the stamps, which is done here too.
+lockstep`, the controller node) without ROS: the same objects, the same numbers, in the same
+order. Per control period the plant's state at model step `k`, stamped `k * dt_s` rounded to
+whole nanoseconds as `builtin_interfaces/Time` holds it (`stamp_time_s`), goes to
+`lca_control.controller.JointController.update`; its command array goes through
+`CommandedPlant.command` (a refused one leaves the last good command in force), and the plant
+advances one control period (`substeps_per_period`), or fewer up to `lockstep_end_s`. The
+command on the last state is computed and recorded but never applied. A run equals a lockstep
+run recorded through the nodes to the last bit (`tests/lca_sim/analysis/test_closed_loop.py`);
+docs/control.md ("The composed closed loop") has the start, the order and the rounding.
 
 Pure: no ROS, no clock, no files. `lca_sim.batch.closed_loop_config` builds the config from the
 nodes' parameter files; `lca-hil run` (`lca_sim.cli.run`) writes the result.

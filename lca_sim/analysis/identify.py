@@ -2,35 +2,17 @@
 
 The paper identifies one efficiency coefficient per drive state and direction experimentally
 (Table 1) and announces an automatic procedure for it (section 7). This module is that procedure,
-as a pure function of sampled arrays: no ROS, no files, no clock.
-
-Eq. (10), per sample of a moving axis, motor side:
+as a pure function of sampled arrays: no ROS, no files, no clock. Eq. (10), per sample of a
+moving axis, motor side:
 
     eta_m tau_m = (J qddot_m)_axis + eta_l tau_l + tau_fv(qdot_m)
 
-* tau_m = k_t i from the measured armature current;
-* tau_l = N^-1 (C(q, qdot) qdot + Q(q)) from Pinocchio (eq. 8) at the measured pose;
-* (J qddot_m)_axis = J_m N qddot + N^-1 (A(q) qddot)_axis, the row of the coupled inertia
-  J = J_m + N^-1 A N^-1 (eq. 9-10, the off-diagonal terms kept) times the accelerations of all
-  axes, from an offline, zero-phase Savitzky-Golay differentiator of the measured velocities;
-* tau_fv from eq. (4) with the robot config's Coulomb and viscous coefficients.
-
-Friction is taken as known. A joint fit of a Coulomb offset with the efficiency is nearly
-collinear inside a state whose torque varies little (a constant-speed plateau gives tau_m ~ const,
-so eta tau_m and f_c cannot be told apart); eq. (4) is identified beforehand by the usual
-constant-speed tests and static friction does not enter eq. (10) for a moving axis.
-
-What is estimated in each state follows the power-flow rule of eq. (11) (docs/model.md): the
-coefficient belongs to the torque of the element that emits power, the other is 1.
-
-* load drives (`load: drives`: both motor-and-load states, load_driving): eta_l, with eta_m = 1;
-* else the motor drives (`motor: drives`: motor_driving): eta_m, with eta_l = 1;
-* neither (coasting): nothing is free, both are 1; the mean eq. (10) residual is reported as a
-  consistency check instead.
-
-Which samples enter (`lca_sim.analysis.identify_samples`: state labels, guards, end stops)
-and how an estimate, its interval and its verdict come about
-(`lca_sim.analysis.identify_estimate`) are said where they are done.
+with tau_m = k_t i, tau_l from Pinocchio (eq. 8), the coupled inertia row (eq. 9-10) times
+Savitzky-Golay accelerations, and the eq. (4) friction taken as known. By eq. (11) the free
+coefficient is the emitter's: eta_l where the load drives, eta_m where the motor drives, none
+when coasting (the mean residual is reported as a check). docs/tools.md ("lca-hil identify")
+has the procedure and why friction is not fitted; `lca_sim.analysis.identify_samples` picks
+the samples, `lca_sim.analysis.identify_estimate` makes each estimate and its verdict.
 """
 
 from __future__ import annotations

@@ -1,26 +1,17 @@
 """One drive state's coefficient from its samples: least squares, a block bootstrap, the verdict.
 
-One coefficient per state is a one-regressor least-squares problem through the origin,
-eta = sum(x z) / sum(x^2), with x the emitter's torque: it is well conditioned whenever that
-torque is not negligible, which is checked against the current noise.
-
-The 95 % confidence interval comes from a moving-block bootstrap of the (x, z) pairs in time
-order, with blocks three times the residuals' integrated autocorrelation time (and never shorter
-than the differentiator's window), so the serial correlation the smoothing and any slow model
-error introduce widens the interval instead of being mistaken for independent samples: the
-estimate +- t(blocks - 1) times the bootstrap standard deviation. It covers noise, not a wrong
+The coefficient is a one-regressor least-squares fit through the origin, eta = sum(x z) /
+sum(x^2), with x the emitter's torque (well conditioned when that torque is not negligible
+against the current noise, which is checked). Its 95 % interval is the estimate +- t(blocks - 1)
+times the standard deviation of a moving-block bootstrap of the (x, z) pairs in time order, the
+blocks three times the residuals' integrated autocorrelation time and never shorter than the
+differentiator's window, so serially correlated errors widen it. It covers noise, not a wrong
 friction, inertia or torque-constant value (those bias every estimate alike).
 
-Identifiability. An estimate is only written over the prior when its interval is narrow enough
-to say something: width (high - low) at most `ci_width_relative` (0.2, i.e. +-10 %) of the
-estimate clipped to [0, 1] -- the relative criterion -- or at most `ci_width_absolute` (0.1, i.e.
-+-0.05) -- the absolute criterion -- whichever is larger. The switch is at an estimate of 0.5, where
-both give 0.1, so the bound is continuous. Below it the absolute criterion judges: for the worm's
-reverse states (Table 1: 0.06, 0.16) +-10 % would be +-0.006, far below what the friction and
-inertia model can vouch for, while +-0.05 bounds the error of the torque passed through the gear
-to 5 % of the load torque, the same torque error +-10 % gives at 0.5. A wider interval is
-NOT_IDENTIFIABLE: the estimate and interval are reported, the prior is kept. The tests' noisy
-record gives widths up to 0.025, a record with 0.5 A current noise 0.1-0.5 in the short states.
+An estimate replaces the prior only when the interval's width is at most the larger of
+`ci_width_relative` (0.2) times the estimate clipped to [0, 1] and `ci_width_absolute` (0.1);
+else it is NOT_IDENTIFIABLE, reported with its interval, and the prior is kept. docs/tools.md
+("lca-hil identify", step 4) says why the absolute bound judges small efficiencies.
 """
 
 from __future__ import annotations
@@ -166,9 +157,10 @@ def estimate_state(
 def judge_interval(value: float, opts: IdentifyOptions) -> tuple[Criterion, float]:
     """The criterion an estimate's interval is judged by, and the widest interval it accepts.
 
-    Module docstring, Identifiability: the larger of `ci_width_relative` times the estimate
-    (clipped to [0, 1]: an efficiency is never above 1) and `ci_width_absolute`; the absolute
-    criterion wins for small efficiencies, where a relative bound is meaningless.
+    The module docstring's rule (docs/tools.md, "lca-hil identify" step 4): the larger of
+    `ci_width_relative` times the estimate (clipped to [0, 1]: an efficiency is never above 1)
+    and `ci_width_absolute`; the absolute criterion wins for small efficiencies, where a
+    relative bound is meaningless.
 
     Args:
         value: the estimate (clipped to the admissible range by the caller or here).

@@ -6,16 +6,9 @@ never from recorded eta values. Samples are left out when the axis is stopped (l
 does not hold), within a guard of a state change, a stop, a gap or the record's ends (where the
 differentiator smears a kink), and where the noise could flip a condition of the state table.
 
-End stops. A sample whose position of the identified axis is within `end_stop_margin_rad`
-(default 3 deg) of a joint limit of the URDF (the limits `Simulator.position_limits` reports), and
-every sample within the guard of one, is left out and counted (`n_end_stop`). Eq. (10) has no term
-for the stop's reaction: the impact is a velocity step the differentiator smears over half its
-window, and the state labels near it are computed from those smeared signals, so the guard
-around a label change does not reliably cover it (a run into the lower stop of the pivot gave
-eta_l = 0.29 for a true 0.06 from 186 samples just before the impact). The margin is wider than
-the smear at any speed the pivot reaches (0.4 rad/s covers 3 deg in 130 ms, the smear is 15 ms)
-and covers a real stop's bumper engaging a little before the nominal limit and the homing
-offset. Only the identified axis's limits are checked.
+End stops: a sample within `end_stop_margin_rad` (default 3 deg) of a URDF joint limit of the
+identified axis (`Simulator.position_limits`), and every sample within the guard of one, is left
+out and counted (`n_end_stop`); docs/tools.md ("lca-hil identify", step 1) says why and how wide.
 """
 
 from __future__ import annotations
@@ -190,7 +183,8 @@ def near_end_stop(
 ) -> BoolArray:
     """True where the axis is within `margin` of an end stop, or within `guard` samples of that.
 
-    The guard covers the differentiator's smear of the impact (module docstring, End stops).
+    The guard covers the differentiator's smear of the impact (docs/tools.md, "lca-hil identify"
+    step 1).
     """
     near = (position <= limits[0] + margin) | (position >= limits[1] - margin)
     if not np.any(near):

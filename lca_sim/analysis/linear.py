@@ -1,23 +1,17 @@
 """Linearised drive-chain models of one axis and its section 6 loops (Figs 12 and 14).
 
-The paper tunes its cascaded PI loops on "linear models of the pivot around different operating
-points". Here the full nonlinear simulator (Pinocchio dynamics, eq. 10 with the state machine's
-efficiencies, the armature equation) is linearised numerically, by central differences of
-`Simulator.derivative`, around a joint moving at constant velocity:
+The full nonlinear simulator (Pinocchio dynamics, eq. 10 with the state machine's efficiencies,
+the armature equation) is linearised by central differences of `Simulator.derivative` around a
+joint moving at constant velocity, the other axes held still (their irreversible gears lock them):
 
     x = [q, qdot, i] of the axis (joint side, armature current), u = armature voltage
     dx/dt ~= A (x - x0) + B (u - u0)
 
-with the other axes held still (their irreversible gears lock them). The operating point is an
-equilibrium: the current i0 makes the joint acceleration zero at (q0, qdot0), and the voltage
-u0 = R i0 + k_t N qdot0 makes di/dt zero. The drive state (motor driving, load driving, ...)
-follows from that equilibrium and is fixed for the linear model: its efficiencies enter A.
-
-Transfer functions (python-control):
-
-* current plant P_i(s) = I(s) / U(s), open loop L_i = C_i P_i (Fig. 12);
-* velocity plant P_v(s) = qdot(s) / I_ref(s) with the current loop closed by C_i, open loop
-  L_v = C_v P_v (Fig. 14); qdot is joint side, as the paper's velocity gains are.
+The operating point is an equilibrium (i0 makes the joint acceleration zero, u0 = R i0 + k_t N
+qdot0 makes di/dt zero); the drive state follows from it and its efficiencies enter A. Transfer
+functions (python-control): the current plant P_i = I/U with L_i = C_i P_i (Fig. 12), and the
+velocity plant P_v = qdot/I_ref with the current loop closed, L_v = C_v P_v (Fig. 14), qdot
+joint side as the paper's velocity gains are. docs/paper.md ("Linearisation") has the points.
 
 Pure: no ROS, no files.
 """

@@ -2,17 +2,14 @@
 
 A spec names a base run, the parameters to vary and the metrics to compute:
 
-    base:
-      kind: open_loop                  # closed_loop | open_loop | current_step
-      robot: default
-      scenario: fig9_open_loop_pivot
-    # closed_loop also takes faults: a fault schedule (docs/faults.md) on the run
+    base: {kind: open_loop, robot: default, scenario: fig9_open_loop_pivot}
+    # kind: closed_loop | open_loop | current_step; mode: set | scale | offset | blend
     parameters:
       - name: wear
         paths: [robot.axes.pivot.efficiency.load_driving.direct.eta_l]
-        mode: blend                    # set | scale | offset | blend (towards `to`)
+        mode: blend
         to: 1.0
-        values: [0.0, 0.5, 0.9]        # or range: {start, stop, num}, or distribution: {...}
+        values: [0.0, 0.5, 0.9]
     metrics:
       - {metric: peak_current_a, axis: pivot}
 

@@ -3,44 +3,14 @@
     lca-plot out/run1                 # PNGs next to the bag's metadata.yaml
     lca-plot out/run1 --out out/plots --namespace /robot1 --all-axes
 
-Reads a rosbag2 bag (MCAP or SQLite) with `rosbags`, deserializing with the ROS 2 Jazzy typestore,
-and writes, for each topic present:
-
-| file                | topic                | what |
-|---------------------|----------------------|------|
-| `positions.png`     | `joint_states`       | position per joint (deg; m for the `lift`) |
-| `velocities.png`    | `joint_states`       | velocity per joint (deg/s; m/s), beside reference* |
-| `currents.png`      | `motor_states`       | effort = armature current (A), beside reference* |
-| `drive_states.png`  | `drive_chain_states` | drive state per axis, the state names as y ticks |
-| `efficiencies.png`  | `drive_chain_states` | eta_m and eta_l per axis (gaps while stopped: nan) |
-
-*The references: `velocity_commands` (the setpoint the controller's velocity loop follows) and,
-if a user sent one, `velocity_reference`, dashed and dotted beside each velocity;
-`current_commands` dashed beside each current.
-
-On every panel of a joint: a dotted vertical line at each change of its drive state (from
-`drive_chain_states`, labelled with the new state; changes closer than a label's thickness share one
-label, "5 changes in 48 ms -> stop_motor_reverse"), y limits that hold the bulk of the samples with
-a spike beyond them clipped and marked (`lca_sim.cli.plotting`), and a shaded band over each time a
-status of that joint was above OK (WARN orange, ERROR or STALE red), labelled with the status
-message: on `/diagnostics` the statuses whose name ends in `/<joint>` (the simulator's
-`lca_hil/simulator/<joint>`: "back-driving", "end stop hit"), and `drive_chain/<joint>` itself when
-its level is above OK. An injected fault that reports on /diagnostics under its joint's name appears
-the same way. A status of no joint above OK (a node's own) is listed in a note.
-
-A reference topic missing from the bag (the controller publishes `velocity_commands` only while
-something subscribes to it, so a bag recorded without it has none) is said in the panel's legend
-and in a note, not left out silently. Command arrays (std_msgs/Float64MultiArray) carry no joint
-names: element i belongs to the i-th joint of `joint_states` (the controller's `joints`
-parameter, l_arm, pivot, c_arc, lift by default, is the robot's axis order).
-
-Axes that did not move, their `joint_states` position range at most `MOVE_THRESHOLD` (1e-4 rad;
-1e-4 m for the lift), are left out of every figure (listed in a note) unless `--all-axes`; if no
-axis moved, all are plotted.
-
-The time axis (`--time`): header stamps, the recorder's reception stamps, or `auto` (header
-stamps when every plotted state message has one); `lca_sim.ros.bag_read` reads the bag and says
-how the times are set. A missing topic skips its plots with a note.
+Reads a rosbag2 bag (MCAP or SQLite, through `lca_sim.ros.bag_read`) and writes, for the topics
+present, positions.png, velocities.png, currents.png (each signal beside its reference:
+`velocity_commands`, `velocity_reference`, `current_commands`), drive_states.png and
+efficiencies.png. Every panel of a joint marks its drive-state changes and shades the times a
+/diagnostics status of that joint was above OK; its y limits clip and mark a spike
+(`lca_sim.cli.plotting`). Axes whose position range is at most `MOVE_THRESHOLD` are left out
+unless `--all-axes`. A missing topic or reference is said in a note, not left out silently.
+docs/plotting.md ("lca-plot") has the files, the marks, the time axis (`--time`) and the units.
 
 Exit codes: 0 success, 2 the bag cannot be read (one line on stderr).
 """
@@ -353,7 +323,7 @@ class Plots:
 
 
 def write_plots(data: BagData, out_dir: Path, title: str, *, all_axes: bool = False) -> Plots:
-    """Write the PNG files of `data` into `out_dir` (see the module docstring).
+    """Write the PNG files of `data` into `out_dir` (docs/plotting.md, "lca-plot").
 
     Args:
         data: what `read_bag` read (or `run_data` made of a composed run).

@@ -5,24 +5,13 @@
 Starts the simulator (lockstep), the controller (the section 6 velocity PI replaying the
 Fig. 15 ramp) and the recorder as separate ROS 2 processes, shows the simulated time while they
 run, and writes the bag, its plots and a summary: where the pivot left motor driving (the paper
-has 55 deg), the velocity tracking error and the closed-loop steps per second.
-
-The run is the one `lca-hil run fig15` computes without ROS, to the last bit: both read the
-closed-loop scenario config/runs/fig15.yaml, so the nodes get its params files (initial pose,
-gains, ramp, command interface and control period) unchanged, and the tracking error is the
-one definition of `lca_sim.analysis.metrics.VelocityTracking`, on the references the controller
-core computes on the recorded states. The recorder takes `velocity_commands` too (the
-controller publishes it only while something subscribes), so the plots show the reference.
-
-The end of the run is the simulator's: it is started with `lockstep_end_s` = the duration, so
-its last state is stamped exactly the duration however slowly the machine runs, and it then
-reports `ended` in its /diagnostics status (see `lca_sim.ros.simulator_node`). This process
-waits for that report (its own /clock samples only drive the progress line and the rate), with
-a deadline of `END_WAIT_S + END_WAIT_PER_SIM_S * duration` of wall time, and fails with the
-node's name and log when a node exits before it. It then stops the recorder first, while the
-simulator still runs, so the recorder takes every state the middleware holds, then the
-controller and the simulator. summary.json is strict JSON: a figure the run could not give
-(no transition within a short run) is null, and its "reasons" object says why.
+has 55 deg), the velocity tracking error and the closed-loop steps per second. It is the run
+`lca-hil run fig15` computes without ROS, to the last bit (both read config/runs/fig15.yaml).
+The simulator ends the run at `lockstep_end_s` = the duration and reports `ended` on
+/diagnostics; this process waits for that (at most `END_WAIT_S + END_WAIT_PER_SIM_S * duration`
+of wall time), then stops the recorder first, the controller and the simulator after it.
+summary.json is strict JSON (a figure the run could not give is null, with its reason).
+docs/tools.md ("lca-hil fig15") says why each step is done so.
 """
 
 from __future__ import annotations

@@ -3,21 +3,13 @@
     lca-hil identify out/identify/result.csv                  # a result.csv of `lca-sim run`
     lca-hil identify out/run1 --axis pivot --out out/ident    # a bag folder of lca-record
 
-The paper's section 7 procedure, built on `lca_sim.analysis.identify` (eq. 10 by least squares per
-drive state and direction, the coefficient on the emitter's torque, eq. 11). INPUT is a result.csv
-(columns t_s, <axis>_position, <axis>_velocity, <axis>_current_a) or a rosbag2 folder (it has a
-metadata.yaml), of which joint_states (position, velocity) and motor_states (effort = armature
-current) are read and aligned on the joint_states stamps. Record the excitation of
-config/scenarios/identify_pivot.yaml, or the same kind of motion on a real robot.
-
-Prints a table (state, direction, estimate, confidence interval, samples, prior) and the states
-that could not be identified, and writes into --out (default: the CSV's folder, or the bag
-folder):
-
-* identified.yaml: a robot config, `base:` the robot used, whose `efficiency:` section holds the
-  estimates; a (state, direction) that was not identified keeps its prior value, marked so.
-  `load_robot` (and `lca-sim run --robot`) accept it.
-* identification.json: everything, machine-readable.
+The paper's section 7 procedure (`lca_sim.analysis.identify`). INPUT is a result.csv (columns
+t_s, <axis>_position, <axis>_velocity, <axis>_current_a) or a rosbag2 folder (joint_states and
+motor_states, aligned on the joint_states stamps). Prints a table of estimates with their
+confidence intervals and the states not identified, and writes into --out (default: the CSV's
+or the bag's folder) identified.yaml, a robot config `load_robot` and `lca-sim run --robot`
+accept (`base:` the robot used, unidentified states keep their prior, marked so), and
+identification.json. docs/tools.md ("lca-hil identify") has the procedure and what to record.
 
 Exit codes: 0 success, 2 bad input (one line on stderr), 130 interrupted.
 """

@@ -5,16 +5,11 @@
     lca-hil sweep SPEC --out DIR --scheduler tcp://127.0.0.1:8786          # an existing cluster
     lca-hil sweep --plot DIR                                               # PNGs of DIR's table
 
-The spec is validated whole, every point's configuration built, before anything runs: a bad
-spec is one error line naming its key (exit 2). Each point is keyed by a hash of its resolved
-configuration and the package version; DIR/points/ holds one small Parquet file per finished
-point, written as it finishes, so a rerun computes only the points without one (a failed point
-is computed again). At the end the points are merged into DIR/results.parquet (a row per point,
-by index: parameters, seed, metrics, status, error; no timing, so the same spec gives the same
-table on any number of workers) and DIR/trajectories.parquet when the spec keeps trajectories.
-Wall times and attempts go to DIR/run_log.json. A point that raises, or whose worker dies, is
-submitted once more, then recorded as failed with its reason; the sweep goes on (exit 1 if a
-point failed). docs/sweeps.md has the spec format and the metric library.
+The spec is validated and every point's configuration built before anything runs (a bad spec:
+one error line, exit 2). Finished points are kept in DIR/points/, so a rerun computes only the
+missing and failed ones; a failing point is retried once, then recorded as failed (exit 1).
+DIR/results.parquet holds a row per point, the same on any number of workers. docs/sweeps.md
+has the spec format, the metric library, the files written and how resuming works.
 """
 
 from __future__ import annotations

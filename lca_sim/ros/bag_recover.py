@@ -3,18 +3,13 @@
     lca-record --recover out/run1
 
 A recorder killed with SIGKILL (or by a power cut) never writes the MCAP summary, the footer or
-`metadata.yaml`, so no reader opens the bag. `lca-record` closes and flushes a small chunk every
-0.4 of `--flush-period-s` (see `lca_sim.ros.record_bag`), so the file holds every message received
-up to at most `--flush-period-s` before the kill, followed by at most one partly written chunk.
-
-Recovery reads the MCAP record by record (magic, then records of an opcode byte and a uint64
-length; a chunk is self-contained: it carries its schemas, channels and messages), keeps every
-schema, channel and message of the chunks that are complete (a chunk with a CRC must match it)
-and stops at the first record that runs past the end of the file. It then writes the bag anew
-with `rosbags` (the same writer the recorder uses: rosbag2 version 9, MCAP, message definitions
-and RIHS01 type hashes of the ROS 2 Jazzy typestore), so the summary, footer and
-`metadata.yaml` describe exactly the messages that were recovered, and replaces the damaged
-file. A bag that is complete already (footer and metadata.yaml present) is left alone.
+`metadata.yaml`, so no reader opens the bag; it holds every message received up to at most
+`--flush-period-s` before the kill (`lca_sim.ros.record_bag`), then at most one partly written
+chunk. Recovery reads the MCAP record by record, keeps every schema, channel and message of the
+complete chunks (a chunk with a CRC must match it), stops at the first record that runs past the
+end of the file, writes the bag anew with `rosbags` (as the recorder does) and replaces the
+damaged file. A complete bag (footer and metadata.yaml present) is left alone. The format
+details are in docs/plotting.md ("Recording a run"), the loss bound in docs/reliability.md.
 
 No ROS 2 here: the launcher runs it before rclpy is imported.
 """

@@ -4,24 +4,14 @@
     lca-record --all --max-duration-s 60 -o out/run2 --ros-args -p use_sim_time:=true
 
 Each topic is subscribed raw: its CDR bytes go into the bag unchanged, stamped with the node's
-clock at reception (`use_sim_time:=true` records simulated time). `BagRecorder` composes the
-topics (`lca_sim.ros.record_topics`: which, and with which QoS) and the bag
-(`lca_sim.ros.record_bag`); it prints `recording <topic> (<type>, <n> publishers)` once a
-subscription has matched a publisher, from when on nothing the topic publishes is lost
-(`BagRecorder.matched`; `--verbose` adds the counts every second).
-
-Crash safety: a recorder killed with SIGKILL loses at most `--flush-period-s` (0.25 s) of what
-it received (`lca_sim.ros.record_bag`); `lca-record --recover BAG` (`lca_sim.ros.bag_recover`,
-no ROS needed) rewrites such a bag from its complete chunks.
-
-Stopping: SIGINT, SIGTERM or `--max-duration-s`; the recorder takes the messages already
-received, closes the bag (metadata.yaml) and prints the counts per topic. Exit codes
-(`lca_sim.errors`): 0 stopped normally (also on a signal); 2 bad arguments, an existing output
-folder, or none of the named topics recorded. Embedding: `BagRecorder(node, out, topics)`,
-`start()`, spin the node's executor, `close()` returns the counts (docs/plotting.md: recording
-a run). Starved of CPU for longer than `--depth` messages of a topic, it loses the oldest of
-them (keep-last): give it a core at high rates (the console script spins rclpy's events
-executor when it can, `--executor`).
+clock at reception. `BagRecorder` composes the topics (`lca_sim.ros.record_topics`: which, and
+with which QoS) and the bag (`lca_sim.ros.record_bag`: a killed recorder loses at most
+`--flush-period-s`; `lca-record --recover BAG`, `lca_sim.ros.bag_recover`, rewrites its bag).
+It stops on SIGINT, SIGTERM or `--max-duration-s`, closes the bag and prints the counts per
+topic. Exit codes (`lca_sim.errors`): 0 stopped normally (also on a signal); 2 bad arguments, an
+existing output folder, or none of the named topics recorded. Embedding: `BagRecorder(node,
+out, topics)`, `start()`, spin the node's executor, `close()` returns the counts.
+docs/plotting.md ("Recording a run") has what it prints, when nothing is lost, and its limits.
 """
 
 from __future__ import annotations

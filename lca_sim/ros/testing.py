@@ -10,11 +10,9 @@ pytest runs) with, in the test module or the root conftest.py::
         assert lca_hil_loop.simulator.sim_time_s == pytest.approx(2.0)
 
 `lca_hil_loop` starts a lockstep simulator in this process and a controller (`lca-controller`,
-a child process) on their own ROS domain id (`lca_hil_domain_id`), once per test module, and
-resets them before each test: every test begins paused at simulated time 0 with the first
-command waiting; `step(n)` runs n control periods, `resume()` lets the loop run free. Override
-the fixtures `lca_hil_simulator_parameters`, `lca_hil_controller_parameters` or the domain id
-in your conftest; docs/simulation-control.md describes the services this is built on.
+a child process) on their own ROS domain id once per test module, and resets them before each
+test (paused at simulated time 0, the first command waiting). docs/simulation-control.md
+("The pytest fixture") has the fixtures to override, the helpers and the services behind them.
 """
 
 from __future__ import annotations
