@@ -10,15 +10,25 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 from collections.abc import Sequence
-from types import FrameType
 
 from lca_sim.canbus.relay import RelayServer
 from lca_sim.canbus.remote import INTERFACE_NAME
 from lca_sim.canbus.wire import DEFAULT_HOST, DEFAULT_PORT
-from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK
+from lca_sim.errors import EXIT_OK, fail
+from lca_sim.runtime import stop_signals
+
+
+def _port(text: str) -> int:
+    """A TCP port, 0-65535 (0: any free one)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a TCP port (0-65535), got {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port (0-65535), got {port}")
+    return port
 
 
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -36,7 +46,10 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help=f"address to bind (default {DEFAULT_HOST}; 0.0.0.0 exposes it to the network)",
     )
     parser.add_argument(
-        "--port", type=int, default=DEFAULT_PORT, help=f"TCP port, 0 = any (default {DEFAULT_PORT})"
+        "--port",
+        type=_port,
+        default=DEFAULT_PORT,
+        help=f"TCP port, 0 = any (default {DEFAULT_PORT})",
     )
     parser.add_argument(
         "--log-level", default="warning", choices=("debug", "info", "warning", "error")
@@ -51,23 +64,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         server = RelayServer(args.host, args.port)
     except OSError as exc:
+        return fail("lca-can-server", f"cannot listen on {args.host}:{args.port}: {exc}")
+    with stop_signals(lambda _name: server.stop()):
         print(
-            f"lca-can-server: error: cannot listen on {args.host}:{args.port}: {exc}",
+            f"lca-can-server: relaying on {server.url}; SIGINT or SIGTERM stops",
             file=sys.stderr,
+            flush=True,
         )
-        return EXIT_BAD_INPUT
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        server.stop()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    print(
-        f"lca-can-server: relaying on {server.url}; SIGINT or SIGTERM stops",
-        file=sys.stderr,
-        flush=True,
-    )
-    server.serve()
+        server.serve()
     print(f"lca-can-server: stopped; {server.stats}", file=sys.stderr, flush=True)
     return EXIT_OK
 

@@ -10,20 +10,18 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 from collections.abc import Sequence
 from dataclasses import replace
-from types import FrameType
 from typing import Any
 
 import can
 
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.config.rack import TIMING_MODES, load_faults, load_rack_config
-from lca_sim.errors import EXIT_BAD_INPUT, USER_ERRORS
-from lca_sim.runtime import GIL_SWITCH_INTERVAL_S
+from lca_sim.errors import USER_ERRORS, fail
+from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, stop_signals
 
 
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -68,48 +66,38 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.timing_mode is not None:
             config = replace(config, timing_mode=args.timing_mode)
     except USER_ERRORS as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(prog, str(exc))
     kwargs: dict[str, Any] = {} if args.bitrate is None else {"bitrate": args.bitrate}
     try:
         bus = can.Bus(interface=args.interface, channel=args.channel, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-        print(
-            f"{prog}: error: cannot open CAN interface {args.interface!r} "
-            f"channel {args.channel!r}: {exc}",
-            file=sys.stderr,
+        return fail(
+            prog, f"cannot open CAN interface {args.interface!r} channel {args.channel!r}: {exc}"
         )
-        return EXIT_BAD_INPUT
     # The rack answers each SYNC within a fraction of a period: a thread holding the GIL for
     # Python's default 5 ms would make it miss cycles (the bridge process sets the same).
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
     rack: VirtualDriveRack | None = None
-    try:
-        rack = VirtualDriveRack(bus, config)
-        rack.start()  # settles the heap first
-        nodes = ", ".join(f"{a.name}={a.node_id}" for a in config.axes)
-        print(
-            f"{prog}: nodes {nodes} on {args.interface} {args.channel} ({config.timing_mode}); "
-            "SIGINT or SIGTERM stops",
-            file=sys.stderr,
-            flush=True,
-        )
-        while not stop.wait(0.2):
-            pass
-    except USER_ERRORS as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    finally:
-        if rack is not None:
-            rack.stop()
-        bus.shutdown()
+    with stop_signals(lambda _name: stop.set()):
+        try:
+            rack = VirtualDriveRack(bus, config)
+            rack.start()  # settles the heap first
+            nodes = ", ".join(f"{a.name}={a.node_id}" for a in config.axes)
+            print(
+                f"{prog}: nodes {nodes} on {args.interface} {args.channel} "
+                f"({config.timing_mode}); SIGINT or SIGTERM stops",
+                file=sys.stderr,
+                flush=True,
+            )
+            while not stop.wait(0.2):
+                pass
+        except USER_ERRORS as exc:
+            return fail(prog, str(exc))
+        finally:
+            if rack is not None:
+                rack.stop()
+            bus.shutdown()
     return 0
 
 
