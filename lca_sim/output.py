@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from lca_sim.errors import OutputError
+
 REASONS_KEY = "reasons"  # where a strict JSON document says why a value is null
 
 
@@ -37,11 +39,33 @@ def cell(x: object) -> str:
     return number_cell(float(x)) if isinstance(x, float | np.floating) else str(x)
 
 
+def output_folder(folder: Path) -> Path:
+    """`folder`, made with its parents if missing.
+
+    Raises:
+        OutputError: it cannot be made (a file in the way, no permission, a read-only place).
+    """
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create {folder} ({exc.strerror or exc})") from None
+    return folder
+
+
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
-    """A temporary path next to `target`, renamed onto it only if the block succeeds."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    """A temporary path next to `target`, renamed onto it only if the block succeeds.
+
+    Raises:
+        OutputError: the folder cannot be made or written to.
+    """
+    output_folder(target.parent)
+    try:
+        fd, tmp_name = tempfile.mkstemp(
+            prefix=f".{target.name}.", suffix=".part", dir=target.parent
+        )
+    except OSError as exc:
+        raise OutputError(f"cannot write {target} ({exc.strerror or exc})") from None
     os.close(fd)
     tmp = Path(tmp_name)
     umask = os.umask(0)

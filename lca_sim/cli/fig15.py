@@ -45,7 +45,7 @@ from lca_sim.config.run_scenario import load_run_scenario
 from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
 from lca_sim.model.gantry import Gantry
-from lca_sim.output import write_json
+from lca_sim.output import output_folder, write_json
 from lca_sim.ros.bag_read import NS_PER_S, BagData, BagReadError, JointSeries, read_bag
 from lca_sim.ros.node_util import from_stamp
 
@@ -233,7 +233,7 @@ def run_fig15(out: Path, duration_s: float) -> int:
             `lca-hil run` words it), before anything starts or is written.
     """
     run = fig15_run(duration_s)
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out)
     bag = out / "bag"
     if bag.exists():
         print(f"lca-hil: error: {bag} exists; choose another --out", file=sys.stderr)

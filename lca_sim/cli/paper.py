@@ -51,7 +51,7 @@ from lca_sim.errors import EXIT_FAILED, USER_ERRORS, LcaHilError, OutputError, r
 from lca_sim.model.params import RobotParams
 from lca_sim.model.scenario import ScenarioResult, run_scenario
 from lca_sim.model.simulator import Simulator
-from lca_sim.output import write_json, write_table
+from lca_sim.output import output_folder, write_json, write_table
 
 PHASE_COLOURS = {
     "starting": "#dddddd",
@@ -485,7 +485,7 @@ def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     reversible = load_robot("reversible")
     sim = Simulator(robot)
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out)
     numbers: dict[str, Any] = {"robot": robot.name}
     pivot_models = functools.cache(lambda: linearise_points(sim))  # Figs 12/14 and the tuning
     steps: list[tuple[str, Callable[[], dict[str, Any]]]] = [
