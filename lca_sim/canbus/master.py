@@ -48,14 +48,15 @@ LATENCY_RECORDS = 4096
 class _BusWatch(can.Listener):
     """Counts every frame (for the bus load) and reports error frames."""
 
-    def __init__(self, bridge: Cia402Master) -> None:
-        self._bridge = bridge
+    def __init__(self, counters: Counters, on_error_frame: Callable[[int], None]) -> None:
+        self._counters = counters
+        self._on_error_frame = on_error_frame
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
-            self._bridge._watch.error_frame(int(msg.arbitration_id))
+            self._on_error_frame(int(msg.arbitration_id))
             return
-        c = self._bridge.counters
+        c = self._counters
         c.frames_received += 1
         c.bits_received += bus_load.frame_bits(int(msg.dlc))
         c.nominal_bits += bus_load.frame_bits_nominal(int(msg.dlc))
@@ -107,9 +108,9 @@ class Cia402Master:
             axis.mode = params.mode_of(k)
         if network.notifier is None:
             raise ValueError("the network must be connected (its notifier running)")
-        network.notifier.add_listener(_BusWatch(self))
         self._want = Want.DISABLED
         self._watch = SafetyWatch(params, self._axes, self.counters, self._lock, clock)
+        network.notifier.add_listener(_BusWatch(self.counters, self._watch.error_frame))
         self._setup = DriveSetup(network, params, self.counters, clock, self._mark_fresh)
         self._completed_cycle = -1  # the SYNC whose state went out last
         self._cycle = 0
