@@ -129,8 +129,6 @@ class Cia402Master:
         self._command_latencies_s: deque[float] = deque(maxlen=LATENCY_RECORDS)
         self._answered_cycle = 0
 
-    # --- configuration -------------------------------------------------------------------
-
     def init(self, sdo_timeout_s: float = 0.5) -> None:
         """Configure every drive over SDO in PRE-OPERATIONAL and start it (NMT OPERATIONAL).
 
@@ -155,6 +153,7 @@ class Cia402Master:
         self._initialized = True
 
     def _mark_fresh(self, axis: MasterAxis, bit: int, now: float) -> None:
+        """An every-SYNC TPDO came (notifier thread): hand on the state once the set is whole."""
         snapshot = None
         stalled_for = 0
         with self._lock:
@@ -272,8 +271,6 @@ class Cia402Master:
         """Why the axes are held (stopped or halted) until `recover()`, or ''."""
         return self._watch.latched_reason()
 
-    # --- the cycle -----------------------------------------------------------------------
-
     def start(self) -> None:
         """Start the cyclic thread (after init)."""
         if self._thread is not None:
@@ -370,8 +367,6 @@ class Cia402Master:
         self.counters.bits_sent += bus_load.frame_bits(len(data))
         self.counters.nominal_bits += bus_load.frame_bits_nominal(len(data))
 
-    # --- inspection ----------------------------------------------------------------------
-
     @property
     def joints(self) -> tuple[str, ...]:
         """Joint names in order."""
@@ -410,10 +405,9 @@ class Cia402Master:
     def command_silence(self, now: float) -> tuple[bool, str] | None:
         """What the controller's silence does to enabled drives: (latched, why), or None.
 
-        None while commands come in time, or while the drives are not wanted enabled (nobody
-        needs to command a disabled drive). `latched` is True after the quick stop, which holds
-        until `enable(True)` is asked again; the halt before it ends by itself when commands
-        return.
+        None while commands come in time, or while the drives are not wanted enabled. `latched`
+        is True after the quick stop, which holds until `enable(True)` is asked again; the halt
+        before it ends by itself when commands return.
         """
         with self._lock:
             if self._want is not Want.ENABLED:
@@ -451,8 +445,7 @@ class Cia402Master:
 
     def sdo_read(self, joint: str, index: int, subindex: int) -> int | float | str:
         """Read one object of a drive (any NMT state); raises canopen errors."""
-        var = self._var(joint, index, subindex)
-        value: int | float | str = var.raw
+        value: int | float | str = self._var(joint, index, subindex).raw
         return value
 
     def sdo_write(self, joint: str, index: int, subindex: int, value: int | float) -> None:

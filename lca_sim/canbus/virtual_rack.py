@@ -2,10 +2,8 @@
 
 Four `canopen.LocalNode`s (SDO server, NMT slave, EMCY producer) on one python-can bus, all
 backed by ONE `CommandedPlant(interface="current")` of one `Simulator`, so the axes stay coupled
-through the gantry model. The drive logic is `lca_sim.cia402.device`, the objects
-`lca_sim.cia402.objects`, their scaling `lca_sim.cia402.codec`. docs/can.md, "The virtual drive
-rack", is the contract a master relies on (boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and
-0, watchdogs, fault injection, remapping).
+through the gantry model. docs/can.md, "The virtual drive rack", is the contract a master relies
+on (boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and 0, watchdogs, fault injection).
 
     rack = VirtualDriveRack(bus, load_rack_config(None))   # lca_sim.config.rack
     with rack: rack.power_state("pivot")                     # start() ... stop()
@@ -245,8 +243,6 @@ class VirtualDriveRack:
     ) -> None:
         self.stop()
 
-    # --- inspection ------------------------------------------------------------------------
-
     @property
     def simulator(self) -> Simulator:
         """The plant's simulator (read it under `plant_state` from other threads)."""
@@ -394,12 +390,9 @@ class VirtualDriveRack:
         self._pdos.service_event_tpdos(done)
         self._watchdogs.last_sync_done_s = done
 
-    def _cycle_period_s(self) -> float:
-        return max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
-
     def _advance(self, now: float, stamp_s: float) -> None:
         """Command the torque demands and run the plant one SYNC's span."""
-        period_s = self._cycle_period_s()
+        period_s = max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
         if self._lockstep:
             # The master is the clock: each SYNC is one 0x1006 period, however fast it comes.
             span_s = period_s
@@ -430,8 +423,6 @@ class VirtualDriveRack:
             self._plant.advance(steps)
             self._steps_done += steps
 
-    # --- transmission ----------------------------------------------------------------------
-
     def _send(self, cob_id: int, data: bytes) -> bool:
         try:
             self._network.send_message(cob_id, data)
@@ -456,8 +447,6 @@ class VirtualDriveRack:
             self._warn_once("emcy", f"EMCY send failed: {exc}")
             return
         self._counters.emcy_sent += 1
-
-    # --- watchdogs -------------------------------------------------------------------------
 
     def _monitor(self) -> None:
         due = time.monotonic() + MONITOR_PERIOD_S
