@@ -1,21 +1,14 @@
 """python-can's in-process `virtual` bus, with frames between linked buses handed over directly.
 
-The CAN bridge with `interface: virtual` runs the virtual rack in its own process. On python-can's
-`VirtualBus` every frame is deep-copied for each other bus of the channel, put in its queue, and
-taken out by that bus's notifier thread: per frame a copy, a queue hand-over, a thread wake-up
-and a GIL hand-over, about ten times a cycle in each direction (docs/can-transport.md, "Where a
-cycle's time goes"). A `LinkedVirtualBus` is a `VirtualBus` on the same channels (other
-`virtual` buses, a test's probe, see every frame as before), but a frame for another linked bus
-whose listeners are attached (`attach`) is handed to them at once, in the sender's thread: the
-rack handles the master's SYNC, and the master its TPDOs, inside the `send` that sent it, as if
-the bus and the other node's controller took no time.
+A `LinkedVirtualBus` is a `VirtualBus` on the same channels (other `virtual` buses, a test's
+probe, see every frame as before), but a frame for another linked bus whose listeners are
+attached (`attach`) is handed to them at once, in the sender's thread: no copy, no queue, no
+thread hand-over (docs/can-transport.md, "where a cycle's time went").
 
-The message handed over is the sender's own object (no copy: the senders here, canopen's
-`Network.send_message`, build one per frame), stamped and marked received for the receiver; a
-listener that keeps messages must copy them. Listeners that are called this way must not send
-on the bus they were called for while their caller holds a lock they need; the master never
-sends from its receive callbacks, and the rack's sends go to the master's callbacks, which do
-not send: no lock is taken twice.
+The message handed over is the sender's own object, stamped and marked received; a listener
+that keeps messages must copy them. Listeners called this way must not send on the bus they
+were called for while their caller holds a lock they need: the master never sends from its
+receive callbacks, and the rack's sends go to the master's callbacks, which do not send.
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ class BridgeParams:
         max_send_failures: consecutive failed sends after which the axes halt.
         pdo_layout: "compact": `init()` maps every drive's PDOs for this cycle
             (`configure_compact_pdos`: a 4-axis 1 kHz cycle fits 1 Mbit/s); "drive": use the
-            mapping the drive has (it must map what `_bind_pdos` needs).
+            mapping the drive has (it must map what `DriveSetup` binds).
         modes: per joint, "cst" (cyclic synchronous torque: the current command becomes the
             target torque) or "csv" (cyclic synchronous velocity: the velocity command becomes
             the target velocity 0x60FF and the drive closes the velocity loop); empty: all CST.

@@ -21,7 +21,8 @@ from lca_sim.cia402 import cia301
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import Cia402AxisState
-from lca_sim.config.rack import FAULT_KINDS, FaultEntry
+from lca_sim.config.rack import FAULT_KINDS, FAULT_VALUE_RANGE, FaultEntry
+from lca_sim.errors import UnknownNameError
 
 # CiA 301 EMCY 0x8140 "recovered from bus off": sent when a node is back on the bus, and the
 # 0x603F code of the bus-off while it lasts (as CANopenNode's CO_EM_CAN_TX_BUS_OFF reports it).
@@ -108,6 +109,21 @@ class RackFaults:
                     axis.faults.bus_off_until_step = self._steps() + self._step_of(value * 1e-3)
 
             self._network.after_send[cia301.SDO_RESPONSE_COB_BASE + axis.config.node_id] = go_off
+
+    def set_checked(self, axis: Drive, kind: str, value: int) -> None:
+        """`set` from the API, after checking the kind and its value's range (`FAULT_KINDS`).
+
+        Raises:
+            UnknownNameError: an unknown kind.
+            ValueError: a value out of the kind's range.
+        """
+        if kind not in FAULT_KINDS:
+            raise UnknownNameError("fault kind", kind, tuple(FAULT_KINDS))
+        high = FAULT_VALUE_RANGE[kind][1]
+        if isinstance(value, bool) or not 0 <= value <= high:
+            raise ValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
+        with self._lock:
+            self.set(axis, kind, value, "api", self._clock())
 
     def set(self, axis: Drive, kind: str, value: int, source: str, now: float) -> None:
         """Switch one fault of one drive on (value != 0) or off (0), and log it."""

@@ -5,11 +5,17 @@ docs/can.md, "Fault injection" and "Lockstep".
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import can
 import canopen
+
+from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
+from lca_sim.cia402 import cia301
+
+logger = logging.getLogger(__name__)
 
 
 class NullTask:
@@ -52,22 +58,89 @@ class RackListener(can.Listener):
     """The rack's only listener: filters every frame, then feeds canopen's services and the rack.
 
     It replaces canopen's own `MessageListener`, which hands any frame to the SDO server and
-    the NMT slave, 29-bit and CAN FD ones included (`VirtualDriveRack._on_message`).
+    the NMT slave, 29-bit and CAN FD ones included. The nodes are classical CANopen nodes with
+    11-bit identifiers (CiA 301 uses CAN base frames; a 29-bit or a CAN FD frame is not
+    CANopen CC traffic even when its identifier looks like an SDO or NMT one): those, remote
+    frames (no object of these nodes answers RTR: TPDO COB-IDs carry bit 30) and error frames
+    are counted and go no further.
+
+    Args:
+        network: the rack's network (canopen's services are fed through it).
+        counters: the rack's counters.
+        sdo_servers: SDO request COB-ID (0x600 + id) -> its drive.
+        on_frame: the rack's handling of a frame that passed (after canopen's).
+        warn_once: logs a warning the first time its key comes: (key, message).
     """
 
     def __init__(
-        self, on_message: Callable[[can.Message], None], on_error: Callable[[Exception], None]
+        self,
+        network: RackNetwork,
+        counters: RackCounters,
+        sdo_servers: Mapping[int, Drive],
+        on_frame: Callable[[can.Message], None],
+        warn_once: Callable[[str, str], None],
     ) -> None:
-        self._on_message = on_message
-        self._on_error = on_error
+        self._network = network
+        self._counters = counters
+        self._sdo_servers = sdo_servers
+        self._on_frame = on_frame
+        self._warn_once = warn_once
 
     def on_message_received(self, msg: can.Message) -> None:
-        """Hand the frame to the rack."""
-        self._on_message(msg)
+        """Filter the frame, then canopen's services, then the rack; never raises."""
+        counters = self._counters
+        if not self._is_classical_data_frame(msg):
+            return
+        cob = msg.arbitration_id
+        if len(msg.data) > 8:
+            counters.bad_frames += 1
+            return
+        sdo_server = self._sdo_servers.get(cob)
+        if sdo_server is not None:
+            if len(msg.data) != 8:
+                counters.bad_frames += 1  # CiA 301: an SDO request is 8 bytes; ignored otherwise
+                return
+            if sdo_server.nmt == NMT_STOPPED:
+                # CiA 301 7.3.2.2 (NMT state machine, table of services per state): in STOPPED
+                # only NMT and node guarding / heartbeat are active, so SDO is not answered.
+                counters.sdo_ignored_stopped += 1
+                return
+        # An NMT frame of the wrong length goes to the rack (which counts it) only: canopen's
+        # NMT slave would act on the first two bytes of a longer one.
+        if cob != cia301.NMT_COB_ID or len(msg.data) == 2:
+            try:
+                self._network.notify(cob, msg.data, msg.timestamp)
+            except Exception:
+                counters.handler_errors += 1
+                logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
+        self._on_frame(msg)
+
+    def _is_classical_data_frame(self, msg: can.Message) -> bool:
+        """An 11-bit classical CAN data frame; anything else is counted by its kind."""
+        counters = self._counters
+        if msg.is_error_frame:
+            counters.error_frames += 1
+        elif msg.is_fd:
+            counters.fd_frames += 1
+        elif msg.is_extended_id:
+            counters.extended_frames += 1
+        elif msg.is_remote_frame:
+            counters.remote_frames += 1
+        else:
+            return True
+        return False
 
     def on_error(self, exc: Exception) -> None:
-        """Hand the bus layer's error to the rack (it counts it)."""
-        self._on_error(exc)
+        """The bus layer raised in the receive thread (a malformed datagram): count it, go on.
+
+        The notifier's thread survives because this listener handles the error; the exception
+        it keeps is cleared so that the next send does not re-raise it (`RackNetwork.check`).
+        """
+        self._counters.bus_errors += 1
+        notifier = self._network.notifier
+        if notifier is not None:
+            notifier.exception = None
+        self._warn_once(f"bus-error-{type(exc).__name__}", f"CAN receive error: {exc!r}")
 
     def stop(self) -> None:
         """Nothing to release."""
@@ -80,7 +153,7 @@ class RackNetwork(canopen.Network):
     `notifier.exception` even when a listener handled it, and `canopen.Network.check()`, called
     after every send, re-raises it: one malformed datagram from the bus layer would make every
     later SDO answer, heartbeat and TPDO fail until a restart. The rack's listener counts the
-    error and clears it (`VirtualDriveRack._on_bus_error`); this check only clears one that a
+    error and clears it (`RackListener.on_error`); this check only clears one that a
     send saw before the listener did (both run on different threads).
     """
 

@@ -1,4 +1,4 @@
-"""The rack's PDO engine: every drive's PDOs configured over SDO, RPDOs routed, TPDOs sent.
+"""The rack's PDO engine: every drive's PDOs configured over SDO, RPDOs received, TPDOs sent.
 
 A part of the virtual drive rack that owns the PDO configuration and the RPDO routing table;
 the frames go out through the rack's `send`, which counts what fails. Remapping the standard
@@ -10,10 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import can
 from canopen import SdoAbortedError
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
 from lca_sim.canbus.rack_state import NMT_OPERATIONAL, Drive, Pdo, RackCounters, number_format
+from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import cia301
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
@@ -27,6 +29,10 @@ class PdoEngine:
         axes: the rack's drives (each holds its PDOs).
         counters: the rack's counters.
         send: sends one frame (COB-ID, data); False when the send failed (counted there).
+        write: applies a received value: (drive, index, subindex, value, now); raises
+            SdoAbortedError to refuse it.
+        emcy: sends an EMCY from a drive: (drive, code).
+        warn_once: logs a warning the first time its key comes: (key, message).
     """
 
     def __init__(
@@ -34,10 +40,17 @@ class PdoEngine:
         axes: Sequence[Drive],
         counters: RackCounters,
         send: Callable[[int, bytes], bool],
+        *,
+        write: Callable[[Drive, int, int, int, float], None],
+        emcy: Callable[[Drive, int], None],
+        warn_once: Callable[[str, str], None],
     ) -> None:
         self._axes = axes
         self._counters = counters
         self._send = send
+        self._write = write
+        self._emcy = emcy
+        self._warn_once = warn_once
         # RPDO COB-ID -> the PDOs it feeds; replaced whole, so the receive thread reads it
         # without the lock.
         self.rpdo_table: dict[int, list[tuple[Drive, Pdo]]] = {}
@@ -173,10 +186,71 @@ class PdoEngine:
                     table.setdefault(pdo.cob_id, []).append((axis, pdo))
         self.rpdo_table = table  # replaced whole: the receive thread reads it without the lock
 
+    # --- reception -----------------------------------------------------------------------
+
+    def receive(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
+        """An RPDO frame: latched until the next SYNC (synchronous types) or applied now."""
+        if axis.faults.bus_off:
+            return  # its controller takes no frame
+        self._counters.rpdos_received += 1
+        if axis.nmt != NMT_OPERATIONAL or not pdo.valid:
+            self._counters.pdos_ignored_not_operational += 1
+            return
+        if len(data) != pdo.size_bytes:
+            # CiA 301 EMCY error codes: 0x8210 "PDO not processed due to length error", 0x8220
+            # "PDO length exceeded". The frame is not applied; one EMCY per run of wrong frames
+            # (each is counted), so that a flood of them does not flood the bus with EMCYs.
+            self._counters.bad_frames += 1
+            code = (
+                cia402.EMCY_PDO_LENGTH
+                if len(data) < pdo.size_bytes
+                else cia402.EMCY_PDO_LENGTH_EXCEEDED
+            )
+            if pdo.length_error != code:
+                pdo.length_error = code
+                self._emcy(axis, code)
+            self._warn_once(
+                f"rpdo-length-{axis.config.node_id}-{pdo.number}",
+                f"node {axis.config.node_id} RPDO{pdo.number}: {len(data)} bytes, "
+                f"mapping has {pdo.size_bytes}; dropped",
+            )
+            return
+        pdo.length_error = 0
+        pdo.last_rx_s = now
+        if pdo.transmission_type <= cia402.SYNC_TRANSMISSION_MAX:
+            pdo.latched = data
+        else:
+            self._apply(axis, pdo, data, now)
+
+    def apply_latched(self, axis: Drive, now: float) -> None:
+        """At a SYNC: the synchronous RPDOs received since the previous one (the latest wins)."""
+        for pdo in axis.rpdos:
+            if pdo.latched is not None:
+                latched, pdo.latched = pdo.latched, None
+                self._apply(axis, pdo, latched, now)
+
+    def _apply(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
+        for obj, value in zip(pdo.objects, pdo.frame.unpack(data), strict=True):
+            try:
+                self._write(axis, obj.index, obj.subindex, int(value), now)
+            except SdoAbortedError:
+                self._counters.rpdo_values_rejected += 1
+        self._counters.rpdos_applied += 1
+
     # --- transmission --------------------------------------------------------------------
 
-    def send_sync_tpdos(self, axis: Drive, now: float) -> None:
-        """At a SYNC: type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
+    def send_sync_tpdos(self, axes: Sequence[Drive], now: float, bus: can.BusABC | None) -> None:
+        """At a SYNC: the synchronous TPDOs of `axes`; over lca_remote, in one write."""
+        try:
+            with batched_sends(bus):
+                for axis in axes:
+                    self._send_sync_tpdos(axis, now)
+        except (can.CanError, OSError) as exc:  # the batch's one write failed
+            self._counters.send_errors += 1
+            self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
+
+    def _send_sync_tpdos(self, axis: Drive, now: float) -> None:
+        """Type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
         for pdo in axis.tpdos:
             if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
                 continue

@@ -1,4 +1,4 @@
-"""The rack's watchdogs: heartbeat consumer, RPDO deadline, SYNC loss, SYNC rate, freeze discount.
+"""The rack's watchdogs: heartbeat consumer, RPDO deadline, SYNC loss and rate, freeze discount.
 
 A part of the virtual drive rack that owns the deadlines' bookkeeping and the stalls of this
 process; what a fired watchdog does to a drive (0x603F, EMCY, 0x6007, 0x1029) is the rack's,
@@ -51,11 +51,12 @@ class RackWatchdogs:
         self._warn_once = warn_once
         self.freeze_watch = FreezeWatch(max_stall_discount_s)  # 0x2020, 0x2021
         self.last_sync_done_s = -math.inf  # the end of the last SYNC's handling
-        # The SYNC rate check (`sync_verdict`): the period it runs for, its parameters for
+        # The SYNC rate check (`sync_in_time`): the period it runs for, its parameters for
         # that period, and the judge's state (`lca_sim.cia402.sync_rate`).
         self._sync_period_s = 0.0
         self._sync_rate: sync_rate.SyncRateParams | None = None
         self._sync_judge = sync_rate.SyncRateState()
+        self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
 
     def tick(self, late_s: float, now: float) -> None:
         """A monitor tick `late_s` after it was due: discount a freeze, then check the deadlines."""
@@ -137,7 +138,56 @@ class RackWatchdogs:
                 self._counters.sync_losses += 1
                 self._on_expired(axis, cia402.EMCY_SYNC_LOSS, now)
 
-    def sync_verdict(self, period_s: float, stamp_s: float) -> sync_rate.SyncVerdict:
+    def heard(self, producer: int, data: bytes, now: float) -> None:
+        """A heartbeat from node `producer`: re-arm every consumer that watches it (0x1016)."""
+        if len(data) != 1:
+            self._counters.bad_frames += 1
+            return
+        for axis in self._axes:
+            node_id, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
+            if node_id == producer and time_ms and not axis.faults.bus_off:
+                axis.heartbeat_last_rx_s = now
+
+    def sync_length_ok(self, data: bytes) -> bool:
+        """CiA 301: a SYNC carries no data, or the 1-byte counter.
+
+        Anything else is EMCY 0x8240 "unexpected SYNC data length" from each consumer (once per
+        run of them), counted, and not a SYNC.
+        """
+        if len(data) <= 1:
+            self._sync_length_error = False
+            return True
+        self._counters.bad_frames += 1
+        if not self._sync_length_error:
+            self._sync_length_error = True
+            for axis in self._axes:
+                self._emcy(axis, cia402.EMCY_SYNC_LENGTH, b"")
+        return False
+
+    def sync_in_time(self, period_s: float, stamp_s: float) -> bool:
+        """Whether this SYNC may advance the plant a period (0x1006 > 0), or comes too early.
+
+        SYNCs faster than 0x1006 (a second producer, a master whose cycle does not match what
+        it wrote there) would run the plant faster than the wall clock. The excess SYNCs are
+        handled as any SYNC (RPDOs applied, TPDOs sent) but do not advance the plant; each is
+        counted (`syncs_too_fast`), and every node sends EMCY 0x8100 once per episode (over
+        after a window without excess).
+        """
+        verdict = self._sync_verdict(period_s, stamp_s)
+        if verdict is sync_rate.SyncVerdict.IN_TIME:
+            return True
+        self._counters.syncs_too_fast += 1
+        if verdict is sync_rate.SyncVerdict.TOO_FAST_REPORT:
+            self._warn_once(
+                "sync-too-fast",
+                f"SYNCs faster than 0x1006 ({period_s * 1e6:.0f} us), a second SYNC producer? "
+                "The excess ones do not advance the plant",
+            )
+            for axis in self._axes:
+                self._emcy(axis, cia402.EMCY_SYNC_TOO_FAST, b"")
+        return False
+
+    def _sync_verdict(self, period_s: float, stamp_s: float) -> sync_rate.SyncVerdict:
         """Whether this SYNC, stamped `stamp_s` by the bus, comes in time for 0x1006 = `period_s`.
 
         CiA 301 7.2.5 gives a network one SYNC producer, 0x1006 (7.5.2.6) its period. The pure

@@ -1,24 +1,11 @@
 """One encode/decode pair for every scaled CANopen quantity (pure: no bus, no file, no clock).
 
-Each scaled object of `lca_sim.cia402.objects` is linear in its raw integer:
-
-    SI value = raw x quantum        (quantum: SI units per count)
-
-with the quantum fixed (efficiency 1e-3, voltage 0.01 V, 0x6075 1 mA, ...) or taken from the
-drive (`DriveUnits`: per mille of the rated torque 0x6076 or current 0x6075, encoder increments
-of 0x608F). A `Codec` holds the quantum, the CiA 301 data type, what happens beyond the type's
-range and the "undefined" marker:
-
-* `encode` rounds to the nearest count (half to even) and then, beyond the type's range,
-  saturates (process values: a drive's register saturates), wraps (the position counter,
-  two's complement as an encoder counter overflows) or raises `CodecError` (configuration
-  values such as 0x6076, which must fit). NaN encodes to the undefined marker where the object
-  has one (0x2012 / 0x2013: 0xFFFF) and raises `CodecError` elsewhere. The marker itself is
-  never produced by a finite value: saturation stops one count short of it.
-* `decode` multiplies, and maps the undefined marker back to NaN.
-
-So decode(encode(x)) is within half a quantum of x inside the range, and NaN survives where a
-marker exists. The rack (encoding its TPDOs) and the bridge (decoding them) use the same codec.
+Each scaled object of `lca_sim.cia402.objects` is linear in its raw integer, SI value = raw x
+quantum, the quantum fixed or taken from the drive (`DriveUnits`: 0x6075, 0x6076, 0x608F). A
+`Codec` holds the quantum, the CiA 301 data type, what happens beyond the type's range
+(saturate, wrap, or `CodecError`) and the "undefined" marker that decodes to NaN; the rack
+(encoding its TPDOs) and the bridge (decoding them) share it. docs/can.md, "Object dictionary
+(the EDS)", gives the rules and each object's scaling.
 
     units = DriveUnits(rated_torque_nm=1.2, rated_current_a=10.0, increments_per_rev=65536)
     torque(units).encode(0.3)        # 250 (per mille of 1.2 N m)

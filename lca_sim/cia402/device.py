@@ -1,19 +1,11 @@
-"""CiA 402 drive logic: the power state machine, statusword, CST torque demand (pure core).
+"""CiA 402 drive logic: the power state machine, statusword, torque demand (pure core).
 
 What a CiA 402 servo drive decides, with no bus and no clock: how a controlword moves the power
-state machine (CiA 402-2 / IEC 61800-7-201, figure "state machine", transitions 0-16), what the
-statusword reports, and what torque the drive may apply in cyclic synchronous torque (CST)
-mode. Also the two small CiA 301 codecs the drive needs: PDO mapping entries and
-heartbeat-consumer entries. The objects themselves (indices, types, defaults) are declared in
-`lca_sim.cia402.objects`, and their units (per mille, increments, ...) in
-`lca_sim.cia402.codec`.
-
-`lca_sim.canbus.virtual_rack` is the shell around this: it owns the CANopen nodes and the
-plant, turns frames into calls here, and times the watchdogs. Nothing here imports can,
-canopen or rclpy, reads a clock or touches a file: states are frozen values and every function
-returns a new one.
-
-State of one drive axis::
+state machine (CiA 402-2 transitions 0-16), what the statusword reports, the modes 0x6060 may
+select (0, 9 = CSV, 10 = CST) and the torque the drive may apply; also the CiA 301 PDO mapping
+and heartbeat-consumer entries. States are frozen values; every function returns a new one.
+The rack (`lca_sim.canbus.virtual_rack`) is the shell around it (docs/can.md, "The virtual
+drive rack").
 
     state = settle(Cia402AxisState(), standstill=True, quick_stop_option=2)  # SWITCH_ON_DISABLED
     state = apply_controlword(state, 0x06, quick_stop_option=2)          # -> READY_TO_SWITCH_ON

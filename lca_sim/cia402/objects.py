@@ -1,22 +1,15 @@
 """The CANopen object dictionary of lca_hil, declared once (pure: no bus, no file, no clock).
 
-Every object the virtual drive holds (config/can/lca_drive.eds) and the bridge reads or writes,
-one `ObjectEntry` per variable: index, sub-index, name, CiA 301 data type, access, PDO mapping,
-the SI unit and scaling of its value, its default and its "undefined" marker where it has one.
-`lca_sim.cia402.codec` turns the scaling into numbers; the rack (`lca_sim.canbus.virtual_rack`),
-the bridge (`lca_sim.canbus.master`) and the EDS test read this table instead of repeating it.
-
-Standard objects cite their definition: CiA 301 (communication profile, 0x1000-0x1FFF) or
-CiA 402-2 (drive profile, 0x6000-0x67FF). 0x2010-0x2030 are lca_hil's, in the
-manufacturer-specific area 0x2000-0x5FFF (CiA 301): the drive-chain state of the lca_sim plant
-(0x2010-0x2016), the virtual drive's health (0x2020-0x2021) and its fault injection (0x2030),
-which only the virtual drive has.
+One `ObjectEntry` per variable the virtual drive holds (config/can/lca_drive.eds) and the
+bridge reads or writes: index, sub-index, name, CiA 301 data type, access, PDO mapping, SI unit
+and scaling, default and "undefined" marker; standard objects cite CiA 301 or CiA 402-2,
+0x2010-0x2030 are lca_hil's (docs/can.md, "Object dictionary (the EDS)"). The rack, the bridge
+and the EDS test read this table instead of repeating it.
 
     from lca_sim.cia402 import objects as od
 
     od.entry(od.TARGET_TORQUE).data_type      # DataType.INTEGER16
     od.entry(od.ETA_M).undefined              # 0xFFFF: decodes to NaN
-    od.entry(od.TPDO_MAPPING + 3, 1).default  # 0x20140010: TPDO4 maps 0x2014, 16 bits
 """
 
 from __future__ import annotations

@@ -1,31 +1,11 @@
 """The SYNC-rate judge: whether a SYNC may advance the plant one 0x1006 period (pure core).
 
-CiA 301 7.2.5 (SYNC) gives a network one SYNC producer, and 0x1006 (communication cycle
-period, 7.5.2.6) is the time between its SYNCs. A drive whose plant advances one 0x1006 per
-SYNC would run faster than the wall clock if SYNCs came faster (a second producer, or a master
-whose cycle does not match what it wrote to 0x1006). This judge decides, from the SYNCs' bus
-stamps alone, which SYNCs are beyond the rate: the shell handles those as any SYNC (RPDOs
-applied, TPDOs sent) but does not advance the plant for them, counts them and reports an
-episode once (EMCY 0x8100).
-
-The SYNCs are judged against the time that passed, over a window (`SyncRateParams.window_s`):
-
-* every SYNC's stamp earns the time since the previous SYNC, x (1 + `tolerance`), in
-  periods; every SYNC that advances the plant spends one period. A SYNC is too fast when it
-  would leave the balance more than `burst_syncs` periods in debt.
-* within a window nothing earned is lost: a late SYNC's surplus is there for the next early
-  one, and a stall's gap (up to `max_gap_s`) pays for the burst of queued SYNCs that ends
-  it. So stamp jitter never counts, nor does a stall up to `max_gap_s` (one before the first
-  SYNC: up to the burst allowance).
-* at the end of a window the credit that stood above `burst_syncs` throughout it expires:
-  slack nobody needed for a whole window must not hide a second producer that starts later.
-  Credit earned late in the window (a stall whose burst is still arriving) stays, and a debt
-  is carried whole, so the plant's long-run rate stays within `tolerance` of the wall clock
-  however the windows fall.
-
-A second producer at the same rate is caught after about 2 x `burst_syncs` + `tolerance` x
-window / period extra SYNCs: 0.11 s at 250 Hz, 0.035 s at 1 kHz with the shipped rack.yaml.
-docs/can.md ("Timing on the bus") has the figures. Nothing here reads a clock or does I/O.
+CiA 301 gives a network one SYNC producer, 0x1006 its period; SYNCs that come faster (a second
+producer, a master whose cycle does not match 0x1006) must not run the plant faster than the
+wall clock. The judge decides from the SYNCs' bus stamps alone, by a balance of periods earned
+and spent over a window, so that jitter and stalls with their catch-up bursts never count;
+the shell handles an excess SYNC as any other but does not advance the plant for it.
+docs/can.md, "Timing on the bus", has the rules and the figures. Nothing here reads a clock.
 
     params = sync_rate_params(period_s=0.002, sync_loss_periods=10.0)
     state = SyncRateState()

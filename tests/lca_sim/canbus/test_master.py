@@ -21,9 +21,9 @@ import pytest
 from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim.canbus import emcy
-from lca_sim.canbus.master import CAN_ERR_BUSOFF
 from lca_sim.canbus.master_params import BridgeError
 from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.master_watch import CAN_ERR_BUSOFF
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir

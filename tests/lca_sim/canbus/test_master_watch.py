@@ -1,4 +1,4 @@
-"""The bridge's master notices a drive's lost heartbeat and lost TPDOs (issues 14 and 16).
+"""The master's safety watches: lost heartbeats and TPDOs on a rack (issues 14 and 16), and alone.
 
 Each fault is injected by the master's own SDO write to the virtual drive's 0x2030 (docs/can.md,
 "Fault injection") on python-can's in-process `virtual` bus. The master must report it within a
@@ -17,12 +17,17 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import cast
 
 import can
+import canopen
 import pytest
 from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
+from lca_sim.canbus.master_axis import MasterAxis
+from lca_sim.canbus.master_state import Counters
+from lca_sim.canbus.master_watch import SafetyWatch
 from lca_sim.cia402 import objects as od
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -271,3 +276,41 @@ def test_a_heartbeat_with_an_undefined_state_does_not_stop_init(rig: Rig) -> Non
     wait_until(lambda: rig.bridge.silent_heartbeats() == (), "pivot's heartbeat again")
     rig.bridge.recover()
     rig.enable()
+
+
+def _watch(**overrides: float) -> tuple[SafetyWatch, list[MasterAxis], Counters]:
+    """A SafetyWatch over four drives without a bus, its clock at 0."""
+    params = bridge_params(None, **overrides)
+    axes = [MasterAxis(j, cast("canopen.RemoteNode", None), 1.0, 1.0) for j in params.joints]
+    counters = Counters()
+    return SafetyWatch(params, axes, counters, threading.Lock(), lambda: 0.0), axes, counters
+
+
+def test_send_failures_in_a_row_halt_until_recover() -> None:
+    """`max_send_failures` failed sends in a row halt the axes; a success between resets the run."""
+    watch, _, counters = _watch(max_send_failures=3)
+    for _ in range(2):
+        watch.send_failed(can.CanError("no buffer"))
+    watch.send_ok()
+    watch.send_failed(can.CanError("no buffer"))
+    assert not watch.halted
+    watch.send_failed(can.CanError("no buffer"))
+    watch.send_failed(can.CanError("no buffer"))
+    assert watch.halted and "3 send failures in a row" in watch.latched_reason()
+    assert counters.send_failures == 5
+    watch.recover(now=1.0, cycle=10)
+    assert not watch.halted and watch.latched_reason() == ""
+
+
+def test_a_silent_enabled_drive_is_latched_stale_and_recover_rearms_it() -> None:
+    """No TPDO beyond stale_timeout_s while enabled: latched; recover starts the watch again."""
+    watch, axes, _ = _watch(stale_timeout_s=0.1)  # heartbeats: 0.3 s, not yet due
+    watch.arm(now=0.0, cycle=0)
+    for axis in axes[1:]:
+        axis.last_tpdo_t = 0.2
+    watch.command(0.2)
+    watch.check(0.2, cycle=1, enabled=True)
+    assert watch.stop_reason() == f"stale drive {axes[0].joint}"
+    watch.recover(now=0.2, cycle=1)
+    watch.check(0.25, cycle=2, enabled=True)
+    assert watch.stop_reason() == ""

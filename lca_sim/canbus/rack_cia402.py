@@ -1,0 +1,167 @@
+"""The rack's CiA 402 side: each drive's power state, errors, torque demand and CSV loop.
+
+A part of the virtual drive rack over the pure logic of `lca_sim.cia402.device`: it applies a
+controlword, a lost connection's 0x6007 reaction and the error objects (0x603F, 0x1001), and
+turns the targets into the current the plant follows. docs/can.md, "The virtual drive rack".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from lca_sim.canbus.rack_state import Drive
+from lca_sim.cia402 import device as cia402
+from lca_sim.cia402 import objects as od
+from lca_sim.cia402.device import Cia402AxisState, PowerState
+
+
+class DriveControl:
+    """The CiA 402 state of every drive of a rack, over the plant's read-only arrays.
+
+    Args:
+        state, modes: the simulator's state and mode arrays (views it updates in place).
+        emcy: sends an EMCY from a drive: (drive, code).
+        reset_raised_emcy: switches off an injected EMCY at a fault reset: (drive, now).
+    """
+
+    def __init__(
+        self,
+        state: Any,
+        modes: Any,
+        emcy: Callable[[Drive, int], None],
+        reset_raised_emcy: Callable[[Drive, float], None],
+    ) -> None:
+        self._state = state
+        self._modes = modes
+        self._emcy = emcy
+        self._reset_raised_emcy = reset_raised_emcy
+
+    # --- what the drive makes of its targets ---------------------------------------------
+
+    def torque_actual_permille(self, axis: Drive) -> int:
+        """0x6077: k_t x the plant's current, per mille of 0x6076."""
+        current_a = float(self._state[2, axis.plant_index])
+        return axis.torque.encode(axis.torque_constant_nm_per_a * current_a)
+
+    def demand(self, axis: Drive) -> cia402.TorqueDemand:
+        """The torque demand of the drive's mode (CST: 0x6071; CSV: the velocity loop's)."""
+        target = axis.csv_permille if axis.drive.mode == cia402.MODE_CSV else None
+        return cia402.torque_demand(
+            axis.drive,
+            axis.value(od.TARGET_TORQUE) if target is None else target,
+            axis.value(od.MAX_TORQUE),
+        )
+
+    def velocity_loop(self, axis: Drive, dt_s: float) -> None:
+        """CSV (CiA 402-2 mode 9): the drive's velocity PI turns 0x60FF into its torque demand.
+
+        Runs once per SYNC that advances the plant, over that period, on the joint velocity
+        (0x60FF and 0x606C are the motor's, / the gear ratio), with lca_control's PI. Its
+        output, a current, is the demand in per mille of 0x6075, clamped to 0x6072 like a CST
+        target. Outside operation enabled, or halted, the loop starts again from 0.
+        """
+        loop = axis.velocity_loop
+        assert loop is not None
+        drive = axis.drive
+        if drive.power is not PowerState.OPERATION_ENABLED or drive.halted:
+            loop.reset()
+            axis.csv_permille = 0
+            return
+        if dt_s <= 0.0:
+            return
+        target_rad_s = axis.velocity.decode(axis.value(od.TARGET_VELOCITY)) / axis.gear_ratio
+        current_a = loop.update(target_rad_s, float(self._state[1, axis.plant_index]), dt_s)
+        axis.csv_permille = axis.current.encode(current_a)
+
+    def currents_a(self, axes: Sequence[Drive], span_s: float) -> list[float] | None:
+        """Every drive's current setpoint, A, in plant order, after `span_s` of the CSV loops.
+
+        None when every power stage is off (the plant then holds zero current).
+        """
+        currents_a = [0.0] * len(axes)
+        any_enabled = False
+        for axis in axes:
+            if axis.drive.mode == cia402.MODE_CSV:
+                self.velocity_loop(axis, span_s)
+            # Rated torque is k_t x rated current: a torque in per mille of 0x6076 is the same
+            # per mille of 0x6075 (CiA 402-2 0x6071 / 0x6075), the drive's current setpoint.
+            currents_a[axis.joint_index] = axis.current.decode(self.demand(axis).permille)
+            any_enabled = any_enabled or axis.drive.power is PowerState.OPERATION_ENABLED
+        return currents_a if any_enabled else None
+
+    def statusword(self, axis: Drive) -> int:
+        """0x6041, with target reached (0x6077 within the window of the demand) and limit."""
+        demand = self.demand(axis)
+        reached = (
+            axis.drive.power is PowerState.OPERATION_ENABLED
+            and abs(self.torque_actual_permille(axis) - demand.permille)
+            <= cia402.TARGET_TORQUE_WINDOW_PERMILLE
+        )
+        return cia402.statusword(axis.drive, target_reached=reached, internal_limit=demand.limited)
+
+    # --- state changes -------------------------------------------------------------------
+
+    def set_drive(self, axis: Drive, state: Cia402AxisState, now: float) -> None:
+        """Settle and store a new CiA 402 state; entering operation enabled arms SYNC loss."""
+        state = cia402.settle(
+            state,
+            standstill=bool(self._modes[0, axis.plant_index] == 0.0),
+            quick_stop_option=axis.value(od.QUICK_STOP_OPTION),
+        )
+        enabled = PowerState.OPERATION_ENABLED
+        if state.power is enabled and axis.drive.power is not enabled:
+            axis.sync_armed_s = now  # SYNC loss is watched from here on
+            axis.sync_loss_reported = False
+        axis.drive = state
+
+    def apply_controlword(self, axis: Drive, controlword: int, now: float) -> None:
+        """A write of 0x6040: the state machine's transition, a fault reset's clearing."""
+        persisting = axis.faults.drive_fault  # an injected drive fault whose cause lasts
+        if cia402.is_fault_reset_edge(controlword, axis.drive.controlword) and not persisting:
+            self._clear_errors(axis)
+            if axis.faults.emcy_code:  # the raised EMCY is reset with the other errors
+                self._reset_raised_emcy(axis, now)
+        state = cia402.apply_controlword(axis.drive, controlword, axis.value(od.QUICK_STOP_OPTION))
+        if persisting:
+            # CiA 402-2: a fault reset leaves FAULT only once the fault's cause is gone.
+            state = cia402.fault(state)
+        self.set_drive(axis, state, now)
+
+    def _clear_errors(self, axis: Drive) -> None:
+        if axis.value(od.ERROR_REGISTER) or axis.value(od.ERROR_CODE):
+            axis.values[(od.ERROR_REGISTER, 0)] = 0
+            axis.values[(od.ERROR_CODE, 0)] = 0
+            self._emcy(axis, cia402.EMCY_ERROR_RESET)
+
+    def _set_error(self, axis: Drive, code: int) -> None:
+        """A communication error: 0x603F, 0x1001 (generic + communication), then its EMCY."""
+        axis.values[(od.ERROR_CODE, 0)] = code
+        axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | (
+            cia402.ERROR_REGISTER_GENERIC | cia402.ERROR_REGISTER_COMMUNICATION
+        )
+        self._emcy(axis, code)  # not in STOPPED
+
+    def connection_lost(self, axis: Drive, code: int | None, now: float) -> None:
+        """A watchdog fired (or NMT stop): error code, EMCY, then the 0x6007 reaction."""
+        if code is not None:
+            self._set_error(axis, code)
+        state = cia402.abort_connection(
+            axis.drive,
+            axis.value(od.ABORT_CONNECTION_OPTION),
+            axis.value(od.QUICK_STOP_OPTION),
+        )
+        self.set_drive(axis, state, now)
+
+    def nmt_reaction(self, axis: Drive, now: float) -> None:
+        """The master took the node out of OPERATIONAL, stopped or reset it: the 0x6007 reaction.
+
+        CiA 402-2 0x6007 covers the NMT master stopping the node as well as a lost connection.
+        Where the reaction acted (the drive could produce torque), 0x603F and 0x1001 say so
+        with `EMCY_LEFT_OPERATIONAL`, and the EMCY goes out unless the node is now STOPPED
+        (CiA 301: no EMCY there).
+        """
+        before = axis.drive.power
+        self.connection_lost(axis, None, now)
+        if axis.drive.power is not before:
+            self._set_error(axis, cia402.EMCY_LEFT_OPERATIONAL)
