@@ -53,6 +53,7 @@ from lca_sim.config.rack import (
 from lca_sim.errors import ConfigError, UnknownNameError
 from lca_sim.model.commanded_plant import CURRENT, CommandedPlant
 from lca_sim.model.params import RobotParams
+from lca_sim.model.plant import PlantConfig, build_plant
 from lca_sim.model.simulator import InputError, PlantState, Simulator
 from lca_sim.runtime import (
     settle_heap,
@@ -477,20 +478,16 @@ def _build_plant(
         ConfigError: an axis the robot does not have, or an initial position outside its end
             stops.
     """
-    sim = Simulator(robot, dt_s=config.dt_s, rigid_body_update_steps=config.rigid_body_update_steps)
+    axis_names = robot.axis_names
     for axis_config in config.axes:
-        if axis_config.name not in sim.axis_names:
+        if axis_config.name not in axis_names:
             raise ConfigError(
                 config.source,
                 f"axes.{axis_config.name}",
-                f"the robot has no such axis (axes: {', '.join(sim.axis_names)})",
+                f"the robot has no such axis (axes: {', '.join(axis_names)})",
             )
-    try:
-        sim.reset({a.name: a.initial_position for a in config.axes})
-    except InputError as exc:
-        raise ConfigError(config.source, "axes", f"expected a valid pose ({exc})") from exc
     k_t = {
-        a.name: robot.axes[sim.axis_names.index(a.name)].motor.torque_constant_nm_per_a
+        a.name: robot.axes[axis_names.index(a.name)].motor.torque_constant_nm_per_a
         for a in config.axes
     }
     units = {a.name: drive_units(config, a, k_t[a.name]) for a in config.axes}
@@ -499,14 +496,24 @@ def _build_plant(
     peak_current_a = max(
         codec.current(units[a.name]).decode(a.max_torque_permille) for a in config.axes
     )
-    plant = CommandedPlant(
-        sim=sim,
-        joints=config.axis_names,
-        interface=CURRENT,
-        current_pi=PIParams(config.current_kp_v_per_a, config.current_ti_s, -1.0, 1.0),
-        max_abs_command=2.0 * peak_current_a,
-        current_limit_a=peak_current_a,
+    built = build_plant(
+        PlantConfig(
+            robot=robot,
+            dt_s=config.dt_s,
+            rigid_body_update_steps=config.rigid_body_update_steps,
+            joints=config.axis_names,
+            interface=CURRENT,
+            current_kp_v_per_a=config.current_kp_v_per_a,
+            current_ti_s=config.current_ti_s,
+            max_abs_command=2.0 * peak_current_a,
+            current_limit_a=peak_current_a,
+        )
     )
+    sim, plant = built.sim, built.commanded
+    try:
+        sim.reset({a.name: a.initial_position for a in config.axes})
+    except InputError as exc:
+        raise ConfigError(config.source, "axes", f"expected a valid pose ({exc})") from exc
     return sim, plant, k_t, units
 
 
