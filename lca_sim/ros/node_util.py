@@ -8,6 +8,7 @@ import signal
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 import rclpy
@@ -23,6 +24,11 @@ from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import remove_ros_args
 
 from lca_control.parameters import ParameterTable
+from lca_sim.config.params_file import (
+    params_file_arguments,
+    read_ros_params_file,
+    sections_for_node,
+)
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS, LcaHilError
 from lca_sim.runtime import settle_heap
 
@@ -209,20 +215,34 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
     def _on_signal(signum: int, _frame: object) -> None:
         stop["requested"] = True
 
+    argv = list(args) if args is not None else list(sys.argv)
+    try:
+        params_files = [(path, read_ros_params_file(path)) for path in params_file_arguments(argv)]
+    except USER_ERRORS as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     # Our handlers go in before rclpy.init, and rclpy installs none: a signal during start-up
     # then only asks for a clean stop instead of invalidating the context under the build.
     signal.signal(signal.SIGTERM, _on_signal)
     signal.signal(signal.SIGINT, _on_signal)
-    rclpy.init(
-        args=list(args) if args is not None else None,
-        signal_handler_options=SignalHandlerOptions.NO,
-    )
+    try:
+        rclpy.init(
+            args=list(args) if args is not None else None,
+            signal_handler_options=SignalHandlerOptions.NO,
+        )
+    except Exception as exc:  # rcl refused the ROS arguments (RCLError and kin)
+        print(f"{prog}: error: cannot start ROS: {first_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     node: Node | None = None
     try:
         try:
             node = build()
         except USER_ERRORS as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        unused = _params_files_for_others(node, params_files)
+        if unused:
+            print(f"{prog}: error: {unused}", file=sys.stderr)
             return EXIT_BAD_INPUT
         executor = make_executor()
         executor.add_node(node)
@@ -237,6 +257,25 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
             node.destroy_node()
         if rclpy_ok():
             rclpy.shutdown()
+
+
+def _params_files_for_others(
+    node: Node, params_files: Sequence[tuple[Path, Mapping[str, Any]]]
+) -> str:
+    """Why a `--params-file` would set nothing on this node ("" when every one applies).
+
+    rcl applies only the sections that name the node; a file of another node's (the
+    controller's file given to the simulator) would leave every parameter at its default.
+    """
+    name = node.get_fully_qualified_name()
+    for path, document in params_files:
+        if not sections_for_node(document, name):
+            others = ", ".join(str(key) for key in document)
+            return (
+                f"{path}: no parameters for node {name} (the file has {others}); "
+                "nothing in it would be set"
+            )
+    return ""
 
 
 def other_publishers(node: Node, topics: Sequence[str]) -> list[str]:

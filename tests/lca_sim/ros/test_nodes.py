@@ -21,7 +21,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import SetBool, Trigger
-from support import spin_until
+from support import CONFIG, spin_until
 
 from lca_control.cascade import CONTROL_PERIOD_S
 from lca_sim.ros.controller_node import ControllerNode
@@ -262,6 +262,32 @@ def test_bad_start_parameter_is_a_parameter_error() -> None:
 
     with ros_context() as (ctx, _), pytest.raises(ParameterError, match=r"^timing_mode: expected"):
         SimulatorNode(context=ctx, parameter_overrides=_params(timing_mode="sideways"))
+
+
+@pytest.mark.parametrize(
+    ("params_file", "said"),
+    [
+        # rcl itself: a traceback for a missing file, silence for a file that sets nothing.
+        ("missing.yaml", "file not found"),
+        ("ros/controller.yaml", "no parameters for node /simulator (the file has controller)"),
+    ],
+)
+def test_a_params_file_that_would_set_nothing_stops_the_node_with_the_reason(
+    params_file: str, said: str
+) -> None:
+    """The simulator given another node's params file (or none at all): exit 2, one line."""
+    result = support.run_tool(
+        "lca-simulator",
+        "--ros-args",
+        "--params-file",
+        str(CONFIG / params_file),
+        domain_id=97,
+        timeout_s=60.0,
+    )
+    errors = [line for line in result.stderr.splitlines() if "error" in line.lower()]
+    assert result.returncode == 2, result.stderr
+    assert len(errors) == 1 and said in errors[0], result.stderr
+    assert errors[0].startswith("lca-simulator: error:") and "Traceback" not in result.stderr
 
 
 def test_reset_and_enable_services() -> None:
