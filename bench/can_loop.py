@@ -686,7 +686,7 @@ class Scenario:
 
 def ros_yaml_value(path: Path, node: str, key: str) -> Any:
     """One parameter of a `--params-file` YAML."""
-    from lca_sim.config.loader import read_yaml
+    from lca_sim.config.yaml_files import read_yaml
 
     return read_yaml(path)[node]["ros__parameters"][key]
 

@@ -699,7 +699,7 @@ def role_argv(
 
 def simulator_yaml_value(name: str) -> Any:
     """One parameter of config/ros/simulator.yaml (what the simulator runs with by default)."""
-    from lca_sim.config.loader import read_yaml
+    from lca_sim.config.yaml_files import read_yaml
 
     return read_yaml(SIMULATOR_YAML)["simulator"]["ros__parameters"][name]
 

@@ -17,13 +17,13 @@ from lca_sim.batch.runner import SweepPlan, run_plan
 from lca_sim.batch.spec import SweepSpec, parse_spec
 from lca_sim.batch.tasks import build_tasks
 from lca_sim.batch.version import package_version
-from lca_sim.config.loader import read_yaml
 from lca_sim.config.sweep_base import (
     base_fault_schedule,
     base_node_files,
     base_robot,
     base_scenario,
 )
+from lca_sim.config.yaml_files import read_yaml
 
 
 def load_spec(spec_path: Path) -> tuple[SweepSpec, Documents]:

@@ -11,7 +11,8 @@ import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
 
-from lca_sim.config.loader import file_ref, read_yaml, resolve
+from lca_sim.config.loader import file_ref, resolve
+from lca_sim.config.yaml_files import read_yaml
 from lca_sim.errors import ConfigError, unknown_key
 
 SCENARIO_KEYS = ("description", "controller", "simulator", "robot", "faults", "duration_s")

@@ -24,7 +24,7 @@ from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import remove_ros_args
 
 from lca_control.parameters import ParameterTable
-from lca_sim.config.params_file import (
+from lca_sim.config.ros_params import (
     params_file_arguments,
     read_ros_params_file,
     sections_for_node,

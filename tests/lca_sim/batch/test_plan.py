@@ -9,8 +9,8 @@ import yaml
 from support import CONFIG
 
 from lca_sim.batch.plan import load_spec, plan_sweep
-from lca_sim.config.loader import read_yaml
 from lca_sim.config.params_file import node_parameters
+from lca_sim.config.yaml_files import read_yaml
 
 FREEZE_YAML = CONFIG / "faults" / "pivot_encoder_freeze.yaml"
 

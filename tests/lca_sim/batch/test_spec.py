@@ -29,7 +29,7 @@ from lca_sim.batch.tasks import CurrentStepRun, PointTask, build_task, build_tas
 from lca_sim.batch.version import package_version
 from lca_sim.batch.worker import timed_point
 from lca_sim.cli import hil
-from lca_sim.config.loader import read_yaml
+from lca_sim.config.yaml_files import read_yaml
 from lca_sim.errors import EXIT_BAD_INPUT, ConfigError
 from lca_sim.model.params import RobotParams
 

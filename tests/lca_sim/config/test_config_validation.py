@@ -1031,8 +1031,8 @@ def test_a_missing_yaml_reads_file_not_found(tmp_path: Path) -> None:
 
     On the file that names a missing one, `file not found: PATH` (robot.urdf, above).
     """
-    from lca_sim.config.loader import read_yaml
     from lca_sim.config.params_file import node_parameters
+    from lca_sim.config.yaml_files import read_yaml
 
     missing = tmp_path / "missing.yaml"
     for read in (read_yaml, lambda path: node_parameters(path, "simulator")):

@@ -9,7 +9,6 @@ import pytest
 import yaml
 from support import CONFIG
 
-from lca_sim.config.loader import read_yaml
 from lca_sim.config.params_file import node_parameters
 from lca_sim.config.sweep_base import (
     base_fault_schedule,
@@ -17,6 +16,7 @@ from lca_sim.config.sweep_base import (
     base_robot,
     base_scenario,
 )
+from lca_sim.config.yaml_files import read_yaml
 from lca_sim.errors import ConfigError
 
 SIMULATOR_YAML = CONFIG / "ros" / "simulator.yaml"
