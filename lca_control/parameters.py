@@ -169,7 +169,7 @@ class ParameterTable:
     def __post_init__(self) -> None:
         by_name = {spec.name: spec for spec in self.specs}
         if len(by_name) != len(self.specs):
-            raise ValueError("a parameter table names a parameter twice")
+            raise ControlParamError("a parameter table names a parameter twice")
         object.__setattr__(self, "_by_name", by_name)
 
     def __iter__(self) -> Iterator[ParamSpec]:

@@ -77,6 +77,13 @@ class UnknownNameError(LcaHilError):
         super().__init__(f"unknown {kind} {name!r}; valid: {', '.join(self.valid)}")
 
 
+class InvalidValueError(LcaHilError, ValueError):
+    """A value the project cannot take: out of range, malformed, or inconsistent with another.
+
+    Also a ValueError, for callers that handle bad values of any origin alike.
+    """
+
+
 class OutputError(LcaHilError):
     """The --out folder cannot take the results."""
 

@@ -30,6 +30,7 @@ rclpy and the ROS message packages, as on a machine without ROS 2.
 from __future__ import annotations
 
 import ast
+import builtins
 import graphlib
 import json
 import os
@@ -852,3 +853,28 @@ def test_every_project_error_derives_from_its_package_base() -> None:
         if not issubclass(cls, LcaHilError if rel.startswith("lca_sim/") else ControlParamError)
     ]
     assert not outside, "errors outside their package's base:\n" + "\n".join(outside)
+
+
+# Builtins the project may raise itself: for its own bugs only (an invariant broken, a wrong
+# argument type), which must not look like a user's error. A bad value gets a project error.
+# AttributeError: a module's PEP 562 __getattr__ must raise it.
+BUG_EXCEPTIONS = frozenset(
+    {"RuntimeError", "TypeError", "NotImplementedError", "AssertionError", "AttributeError"}
+)
+
+
+def test_bad_values_raise_project_errors_not_builtins() -> None:
+    """`raise ValueError(...)` and kin are project errors (`InvalidValueError` is a ValueError)."""
+    builtin = {name for name in dir(builtins) if name.endswith("Error")} | {"Exception"}
+    assert {"ValueError", "KeyError", "OSError"} <= builtin
+    found = []
+    for rel, path in _sources():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if (
+                isinstance(node, ast.Raise)
+                and isinstance(node.exc, ast.Call)
+                and isinstance(node.exc.func, ast.Name)
+                and node.exc.func.id in builtin - BUG_EXCEPTIONS
+            ):
+                found.append(f"{rel}:{node.lineno}: raise {node.exc.func.id}")
+    assert not found, "builtin errors raised for bad values:\n" + "\n".join(found)

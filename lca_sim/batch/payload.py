@@ -10,13 +10,13 @@ from typing import Any
 import numpy as np
 
 from lca_sim.batch.checks import finite_number, mapping_of
-from lca_sim.errors import ConfigError
+from lca_sim.errors import ConfigError, InvalidValueError
 
 
 def _floats(text: str | None, n: int, what: str) -> list[float]:
     values = [float(x) for x in (text or " ".join(["0"] * n)).split()]
     if len(values) != n:
-        raise ValueError(f"expected {n} numbers in {what}")
+        raise InvalidValueError(f"expected {n} numbers in {what}")
     return values
 
 

@@ -25,7 +25,7 @@ from lca_sim.analysis.metrics import TRACKING_METRICS
 from lca_sim.batch.payload import add_payload, payload_of
 from lca_sim.batch.point import Documents, Point, apply_point, expand_points, point_key
 from lca_sim.batch.spec import Scalar, SweepSpec, Trajectories
-from lca_sim.errors import ConfigError
+from lca_sim.errors import ConfigError, InvalidValueError
 from lca_sim.model.params import RobotParams, parse_robot
 from lca_sim.model.scenario import Scenario, parse_scenario
 
@@ -157,7 +157,7 @@ def build_run(
     robot = robot_of(spec, documents)
     if spec.kind == "closed_loop":
         if closed_loop is None:
-            raise ValueError("a closed-loop sweep needs its config builder")
+            raise InvalidValueError("a closed-loop sweep needs its config builder")
         return closed_loop(documents, robot)
     if spec.kind == "open_loop":
         source = str(documents.base.get("scenario", "scenario"))

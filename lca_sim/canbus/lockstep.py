@@ -12,6 +12,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from lca_sim.errors import InvalidValueError
+
 
 class CycleClock:
     """Simulated time of a lockstep CAN loop: SYNC k (k = 0, 1, ...) is at k / cycle_hz.
@@ -22,7 +24,7 @@ class CycleClock:
 
     def __init__(self, period_s: float) -> None:
         if not period_s > 0.0:
-            raise ValueError(f"period_s must be > 0, got {period_s!r}")
+            raise InvalidValueError(f"period_s must be > 0, got {period_s!r}")
         self.period_s = period_s
         self.syncs = 0  # SYNCs sent; the last one was SYNC syncs - 1
 

@@ -38,6 +38,7 @@ from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import bus_load, cia301
 from lca_sim.cia402.controlword import Want
 from lca_sim.cia402.device import MODE_CSV, PowerState
+from lca_sim.errors import InvalidValueError, UnknownNameError
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,7 @@ class Cia402Master:
         for k, axis in enumerate(self._axes):
             axis.mode = params.mode_of(k)
         if network.notifier is None:
-            raise ValueError("the network must be connected (its notifier running)")
+            raise InvalidValueError("the network must be connected (its notifier running)")
         self._want = Want.DISABLED
         self._watch = SafetyWatch(params, self._axes, self.counters, self._lock, clock)
         network.notifier.add_listener(_BusWatch(self.counters, self._watch.error_frame))
@@ -460,4 +461,4 @@ class Cia402Master:
         for axis in self._axes:
             if axis.joint == joint:
                 return axis
-        raise KeyError(f"unknown joint {joint!r}; joints are {list(self.params.joints)}")
+        raise UnknownNameError("joint", joint, self.params.joints)

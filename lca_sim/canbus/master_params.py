@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from lca_sim.cia402 import device
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CST, MODE_CSV
-from lca_sim.errors import LcaHilError
+from lca_sim.errors import InvalidValueError, LcaHilError
 
 PDO_LAYOUTS = ("compact", "drive")
 # CiA 402-2 cyclic synchronous modes the bridge runs an axis in: 0x6060 value, target object.
@@ -103,28 +103,32 @@ class BridgeParams:
     def __post_init__(self) -> None:
         n = len(self.joints)
         if n == 0 or len(set(self.joints)) != n:
-            raise ValueError(f"joints must be distinct and not empty, got {list(self.joints)}")
+            raise InvalidValueError(
+                f"joints must be distinct and not empty, got {list(self.joints)}"
+            )
         for name, values in (
             ("node_ids", self.node_ids),
             ("torque_constants_nm_per_a", self.torque_constants_nm_per_a),
             ("gear_ratios", self.gear_ratios),
         ):
             if len(values) != n:
-                raise ValueError(f"{name} needs {n} values (one per joint), got {len(values)}")
+                raise InvalidValueError(
+                    f"{name} needs {n} values (one per joint), got {len(values)}"
+                )
         ids = [*self.node_ids, self.master_node_id]
         if any(not 1 <= i <= 127 for i in ids) or len(set(ids)) != len(ids):
-            raise ValueError(f"node ids must be distinct, in 1..127, got {ids}")
+            raise InvalidValueError(f"node ids must be distinct, in 1..127, got {ids}")
         if not 1.0 <= self.cycle_hz <= 2000.0:
-            raise ValueError(f"cycle_hz must be in 1..2000, got {self.cycle_hz!r}")
+            raise InvalidValueError(f"cycle_hz must be in 1..2000, got {self.cycle_hz!r}")
         for name in ("command_timeout_s", "quick_stop_after_s", "stale_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} must be > 0, got {value!r}")
+                raise InvalidValueError(f"{name} must be > 0, got {value!r}")
         if self.max_send_failures < 1:
-            raise ValueError("max_send_failures must be >= 1")
+            raise InvalidValueError("max_send_failures must be >= 1")
         if not (math.isfinite(self.heartbeat_loss_periods) and self.heartbeat_loss_periods > 1.0):
             # CiA 301 7.2.8.3.2.2: the consumer time must exceed the producer time
-            raise ValueError(
+            raise InvalidValueError(
                 f"heartbeat_loss_periods must be > 1, got {self.heartbeat_loss_periods!r}"
             )
         self._check_pdo_layout()
@@ -133,10 +137,14 @@ class BridgeParams:
         if self.modes and (
             len(self.modes) != len(self.joints) or not set(self.modes) <= set(MODES)
         ):
-            raise ValueError(
+            raise InvalidValueError(
                 f"modes must give one of {sorted(MODES)} per joint, got {list(self.modes)}"
             )
         if self.pdo_layout not in PDO_LAYOUTS:
-            raise ValueError(f"pdo_layout must be one of {PDO_LAYOUTS}, got {self.pdo_layout!r}")
+            raise InvalidValueError(
+                f"pdo_layout must be one of {PDO_LAYOUTS}, got {self.pdo_layout!r}"
+            )
         if not (math.isfinite(self.slow_tpdo_rate_hz) and self.slow_tpdo_rate_hz > 0.0):
-            raise ValueError(f"slow_tpdo_rate_hz must be > 0, got {self.slow_tpdo_rate_hz!r}")
+            raise InvalidValueError(
+                f"slow_tpdo_rate_hz must be > 0, got {self.slow_tpdo_rate_hz!r}"
+            )

@@ -15,6 +15,7 @@ from lca_sim.canbus.master_state import AXIS_FIELDS, AxisState
 from lca_sim.cia402 import codec, device
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import DriveUnits
+from lca_sim.errors import InvalidValueError
 
 # TPDO objects a drive must map: what joint_states needs (CiA 402-2 0x6041, 0x6064, 0x606C,
 # 0x6078). Everything else a TPDO maps is decoded if the object table knows it.
@@ -192,7 +193,7 @@ def compile_apply(
         )
     for i, target in enumerate(targets):
         if not (1 <= len(target.fields) <= 2) or not set(target.fields) <= AXIS_FIELDS:
-            raise ValueError(f"not AxisState fields: {target.fields}")
+            raise InvalidValueError(f"not AxisState fields: {target.fields}")
         if target.decode is not None:
             namespace[f"decode{i}"] = target.decode
             lines.append(f"    v{i} = decode{i}(v{i})")

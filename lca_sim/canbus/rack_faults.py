@@ -22,7 +22,7 @@ from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import Cia402AxisState
 from lca_sim.config.rack import FAULT_KINDS, FAULT_VALUE_RANGE, FaultEntry
-from lca_sim.errors import UnknownNameError
+from lca_sim.errors import InvalidValueError, UnknownNameError
 
 # CiA 301 EMCY 0x8140 "recovered from bus off": sent when a node is back on the bus, and the
 # 0x603F code of the bus-off while it lasts (as CANopenNode's CO_EM_CAN_TX_BUS_OFF reports it).
@@ -121,7 +121,7 @@ class RackFaults:
             raise UnknownNameError("fault kind", kind, tuple(FAULT_KINDS))
         high = FAULT_VALUE_RANGE[kind][1]
         if isinstance(value, bool) or not 0 <= value <= high:
-            raise ValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
+            raise InvalidValueError(f"{kind}: expected a value in [0, {high}], got {value!r}")
         with self._lock:
             self.set(axis, kind, value, "api", self._clock())
 

@@ -18,7 +18,7 @@ from urllib.parse import urlsplit
 
 import can
 
-from lca_sim.errors import LcaHilError
+from lca_sim.errors import InvalidValueError, LcaHilError
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 54701  # python-can-remote's default port
@@ -58,7 +58,7 @@ def encode_message(msg: can.Message) -> bytes:
 def decode_message(payload: bytes | bytearray, timestamp: float) -> can.Message:
     """A binary payload back into a frame, stamped `timestamp`; ValueError if it is not one."""
     if len(payload) < HEADER.size or payload[0] != MESSAGE_TYPE:
-        raise ValueError(f"not a CAN frame message ({len(payload)} bytes)")
+        raise InvalidValueError(f"not a CAN frame message ({len(payload)} bytes)")
     _type, _sent, arbitration_id, dlc, flags = HEADER.unpack_from(payload)
     return can.Message(
         timestamp=timestamp,
@@ -152,7 +152,7 @@ def channel_url(channel: object) -> tuple[str, int, str]:
         text = "ws://" + text
     parts = urlsplit(text)
     if parts.scheme != "ws":
-        raise ValueError(f"channel {channel!r}: only ws:// is supported")
+        raise InvalidValueError(f"channel {channel!r}: only ws:// is supported")
     host = parts.hostname or DEFAULT_HOST
     port = parts.port or DEFAULT_PORT
     return host, port, f"ws://{host}:{port}{parts.path or '/'}"

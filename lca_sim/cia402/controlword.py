@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from lca_sim.cia402 import codec
 from lca_sim.cia402.device import CW_FAULT_RESET, PowerState, power_state_of
+from lca_sim.errors import InvalidValueError
 
 # Whole controlwords a master sends (CiA 402, "device control commands"); the single bits
 # (CW_FAULT_RESET, CW_HALT, ...) are lca_sim.cia402.device's.
@@ -88,11 +89,13 @@ class TorqueScale:
 
     def __post_init__(self) -> None:
         if not (self.torque_constant_nm_per_a > 0.0 and math.isfinite(self.rated_torque_nm)):
-            raise ValueError("k_t must be > 0 and the rated torque finite")
+            raise InvalidValueError("k_t must be > 0 and the rated torque finite")
         if not self.rated_torque_nm > 0.0:
-            raise ValueError(f"rated torque must be > 0 N m, got {self.rated_torque_nm!r}")
+            raise InvalidValueError(f"rated torque must be > 0 N m, got {self.rated_torque_nm!r}")
         if not 0 < self.max_torque_permille <= 32767:
-            raise ValueError(f"max torque must be 1..32767 per mille: {self.max_torque_permille}")
+            raise InvalidValueError(
+                f"max torque must be 1..32767 per mille: {self.max_torque_permille}"
+            )
         # 0x6071's codec: per mille of 0x6076 (the other two references do not enter it).
         units = codec.DriveUnits(self.rated_torque_nm, rated_current_a=1.0, increments_per_rev=1.0)
         object.__setattr__(self, "_torque", codec.torque(units))

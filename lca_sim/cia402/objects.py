@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from lca_sim.errors import LcaHilError
+from lca_sim.errors import InvalidValueError, LcaHilError
 
 # --- object indices ----------------------------------------------------------------------------
 # CiA 301 communication profile area
@@ -277,13 +277,13 @@ class ObjectEntry:
     def __post_init__(self) -> None:
         where = f"0x{self.index:04X} sub {self.subindex}"
         if not (0 <= self.index <= 0xFFFF and 0 <= self.subindex <= 0xFF):
-            raise ValueError(f"{where}: index or sub-index out of range")
+            raise InvalidValueError(f"{where}: index or sub-index out of range")
         lo, hi = self.data_type.min_raw, self.data_type.max_raw
         for what, value in (("default", self.default), ("undefined", self.undefined)):
             if value is not None and not lo <= value <= hi:
-                raise ValueError(f"{where}: {what} {value} outside {self.data_type.name}")
+                raise InvalidValueError(f"{where}: {what} {value} outside {self.data_type.name}")
         if self.undefined is not None and self.undefined not in (lo, hi):
-            raise ValueError(f"{where}: an undefined marker must be the type's min or max")
+            raise InvalidValueError(f"{where}: an undefined marker must be the type's min or max")
 
     @property
     def key(self) -> tuple[int, int]:

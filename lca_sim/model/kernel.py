@@ -26,6 +26,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from numba.np.numpy_support import carray, farray
 
+from lca_sim.errors import InvalidValueError
 from lca_sim.model import rigid_body
 
 FloatArray = npt.NDArray[np.float64]
@@ -551,7 +552,7 @@ def make_frame(
     )
     for array, shape, in_layout, layout in layouts:
         if array.dtype != np.float64 or array.shape != shape or not in_layout:
-            raise ValueError(
+            raise InvalidValueError(
                 f"expected a {layout} float64 array of shape {shape}, "
                 f"got {array.dtype} {array.shape}"
             )

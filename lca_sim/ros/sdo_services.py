@@ -17,6 +17,7 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.node import Node
 
 from lca_sim.canbus.master import Cia402Master
+from lca_sim.errors import InvalidValueError
 
 SDO_ERRORS = (ValueError, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError)
 
@@ -25,11 +26,11 @@ def parse_object_name(name: str) -> tuple[str, int, int]:
     """`pivot/0x6041` or `lift/0x1400/5` -> (joint, index, subindex)."""
     parts = name.split("/")
     if len(parts) not in (2, 3):
-        raise ValueError(f"expected <joint>/<index>[/<subindex>], got {name!r}")
+        raise InvalidValueError(f"expected <joint>/<index>[/<subindex>], got {name!r}")
     index = int(parts[1], 0)
     subindex = int(parts[2], 0) if len(parts) == 3 else 0
     if not (0 <= index <= 0xFFFF and 0 <= subindex <= 0xFF):
-        raise ValueError(f"index or subindex out of range in {name!r}")
+        raise InvalidValueError(f"index or subindex out of range in {name!r}")
     return parts[0], index, subindex
 
 
@@ -68,7 +69,9 @@ class SdoServices:
         """The master; ValueError (an SDO error to the caller) while unconfigured."""
         master = self._master()
         if master is None:
-            raise ValueError(f"node {self._lifecycle_state()}: configure it first (lifecycle)")
+            raise InvalidValueError(
+                f"node {self._lifecycle_state()}: configure it first (lifecycle)"
+            )
         return master
 
     def _read(
@@ -96,7 +99,7 @@ class SdoServices:
                 elif v.type == ParameterType.PARAMETER_DOUBLE:
                     self._configured().sdo_write(joint, index, subindex, float(v.double_value))
                 else:
-                    raise ValueError("only integer or double values can be written")
+                    raise InvalidValueError("only integer or double values can be written")
             except SDO_ERRORS as exc:
                 result = SetParametersResult(successful=False, reason=str(exc))
             res.results.append(result)
