@@ -226,10 +226,7 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
     signal.signal(signal.SIGTERM, _on_signal)
     signal.signal(signal.SIGINT, _on_signal)
     try:
-        rclpy.init(
-            args=list(args) if args is not None else None,
-            signal_handler_options=SignalHandlerOptions.NO,
-        )
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # rcl refused the ROS arguments (RCLError and kin)
         print(f"{prog}: error: cannot start ROS: {first_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT

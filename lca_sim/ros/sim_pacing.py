@@ -166,13 +166,11 @@ class SimPacing:
         steps are counted (`overrun_steps`). Also called by the diagnostics before they
         report, so a stall shows in the period it happened.
         """
-        self.clock.publish_rate_hz = self._params().publish_rate_hz  # a live parameter
         return self.clock.due(time.monotonic())
 
-    def set_realtime_factor(self, old: float, new: float) -> None:
+    def set_realtime_factor(self, realtime_factor: float) -> None:
         """Realtime: simulated time goes on from where it is, at the new pace."""
-        self.clock.realtime_factor = old
-        self.clock.set_realtime_factor(new, time.monotonic())
+        self.clock.set_realtime_factor(realtime_factor, time.monotonic())
 
     def timing_health(self, values: dict[str, object]) -> tuple[bytes, str] | None:
         """Realtime: the stamp lag and the time skipped; a WARN for a period with a stall.
@@ -182,7 +180,6 @@ class SimPacing:
         """
         if self.lockstep:
             return None
-        self.clock.publish_rate_hz = self._params().publish_rate_hz
         window = self.clock.window(time.monotonic())
         values["stamp_lag_s"] = window.stamp_lag_s
         values["skipped_s"] = window.skipped_s

@@ -388,8 +388,9 @@ class SimulatorNode(Node):
         if new.enabled != old.enabled:
             self.plant.set_enabled(new.enabled)
         if new.realtime_factor != old.realtime_factor and not self._lockstep:
-            self.pacing.set_realtime_factor(old.realtime_factor, new.realtime_factor)
+            self.pacing.set_realtime_factor(new.realtime_factor)
         if new.publish_rate_hz != old.publish_rate_hz and not self._lockstep:
+            self.pacing.clock.publish_rate_hz = new.publish_rate_hz  # sets the catch-up cap
             self.destroy_timer(self._tick_timer)
             self._tick_timer = self.create_timer(1.0 / new.publish_rate_hz, self._realtime_tick)
         if new.lockstep_end_s != old.lockstep_end_s:
