@@ -10,8 +10,9 @@ vocabularies (`UNKNOWN` for a code the backend has no report of) and numbers in 
 
 Cost: the messages are built once, as templates whose fields are rewritten in place each
 publish, and a message nobody subscribes to is not built at all (a subscriber that joins later
-gets it from its first match on). joint_states always goes out: it is what a controller waits
-for, so it goes first, then motor_states, /clock and the drive chain.
+gets it from its first match on: the optional topics' subscribers are counted from rmw's
+matched events, not asked of the graph on every cycle). joint_states always goes out: it is
+what a controller waits for, so it goes first, then motor_states, /clock and the drive chain.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -43,6 +45,23 @@ _FAULTS_AT = pc.DRIVE_STATE_KEYS.index("faults")
 
 # The topics only the plant publishes: a second publisher of any of them is a second plant.
 STATE_TOPICS = (pc.JOINT_STATES, pc.MOTOR_STATES, pc.DRIVE_CHAIN_STATES)
+
+
+class _Subscribers:
+    """A publisher's subscriber count, kept from its matched events (executor thread).
+
+    Asking the graph (`get_subscription_count`, a call into rmw, about 6 us) for three optional
+    topics on every publish was 4 % of a 500 Hz CAN cycle.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def on_matched(self, info: QoSPublisherMatchedInfo) -> None:
+        self.count = info.current_count
+
+    def callbacks(self) -> PublisherEventCallbacks:
+        return PublisherEventCallbacks(matched=self.on_matched)
 
 
 class SnapshotError(LcaHilError):
@@ -117,19 +136,38 @@ class PlantPublisher:
         self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
         self._other_publishers: tuple[str, ...] = ()
         state_qos = qos_profile(pc.STATE_QOS)
+        self._motor_subs, self._drive_subs = _Subscribers(), _Subscribers()
+        self._clock_subs, self._extra_subs = _Subscribers(), _Subscribers()
         self.joint_pub: Publisher = node.create_publisher(JointState, pc.JOINT_STATES, state_qos)
-        self.motor_pub: Publisher = node.create_publisher(JointState, pc.MOTOR_STATES, state_qos)
+        self.motor_pub: Publisher = node.create_publisher(
+            JointState, pc.MOTOR_STATES, state_qos, event_callbacks=self._motor_subs.callbacks()
+        )
         self.drive_pub: Publisher = node.create_publisher(
-            DiagnosticArray, pc.DRIVE_CHAIN_STATES, state_qos
+            DiagnosticArray,
+            pc.DRIVE_CHAIN_STATES,
+            state_qos,
+            event_callbacks=self._drive_subs.callbacks(),
         )
         self.diagnostics_pub: Publisher = node.create_publisher(
             DiagnosticArray, pc.DIAGNOSTICS, qos_profile(pc.DIAGNOSTICS_QOS)
         )
         self.clock_pub: Publisher | None = (
-            node.create_publisher(Clock, pc.CLOCK, qos_profile(pc.CLOCK_QOS)) if clock else None
+            node.create_publisher(
+                Clock,
+                pc.CLOCK,
+                qos_profile(pc.CLOCK_QOS),
+                event_callbacks=self._clock_subs.callbacks(),
+            )
+            if clock
+            else None
         )
         self.extra_joint_pub: Publisher | None = (
-            node.create_publisher(JointState, joint_state_topic, state_qos)
+            node.create_publisher(
+                JointState,
+                joint_state_topic,
+                state_qos,
+                event_callbacks=self._extra_subs.callbacks(),
+            )
             if joint_state_topic
             else None
         )
@@ -156,19 +194,19 @@ class PlantPublisher:
         joint.effort = snap.effort.tolist()
         self.joint_pub.publish(joint)
         extra = self.extra_joint_pub
-        if extra is not None and extra.get_subscription_count():  # ros2_control listens
+        if extra is not None and self._extra_subs.count:  # ros2_control listens
             extra.publish(joint)
 
-        if self.motor_pub.get_subscription_count():
+        if self._motor_subs.count:
             motor = self._motor_msg
             motor.header.stamp = stamp
             motor.position = snap.motor_position_rad.tolist()
             motor.velocity = snap.motor_velocity_rad_s.tolist()
             motor.effort = snap.current_a.tolist()
             self.motor_pub.publish(motor)
-        if self.clock_pub is not None and self.clock_pub.get_subscription_count():
+        if self.clock_pub is not None and self._clock_subs.count:
             self.clock_pub.publish(Clock(clock=stamp))
-        if self.drive_pub.get_subscription_count():
+        if self._drive_subs.count:
             drive = self._drive_msg
             drive.header.stamp = stamp
             fill_drive_chain(drive, snap)

@@ -24,7 +24,7 @@ from pathlib import Path
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import Executor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -40,7 +40,7 @@ from support import (
 )
 
 from lca_control import contract as pc
-from lca_sim.ros.node_util import from_stamp
+from lca_sim.ros.node_util import from_stamp, make_executor
 
 SIMULATOR_DOMAIN_ID = 230
 BRIDGE_DOMAIN_ID = 231
@@ -103,11 +103,17 @@ class HealthProbe:
 
 
 @contextmanager
-def probe_on(domain_id: int) -> Iterator[tuple[HealthProbe, SingleThreadedExecutor]]:
-    """A HealthProbe on its own node and Context on `domain_id` (loopback only), torn down."""
+def probe_on(domain_id: int) -> Iterator[tuple[HealthProbe, Executor]]:
+    """A HealthProbe on its own node and Context on `domain_id` (loopback only), torn down.
+
+    The probe takes joint_states and drive_chain_states at the plant's rate (500 Hz on the CAN
+    bridge) on the same two cores as the loop it watches: on rclpy's events executor (about
+    half the CPU per message of SingleThreadedExecutor, node_util.make_executor) so that the
+    watching does not make the loop late.
+    """
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
-    executor = SingleThreadedExecutor(context=ctx)
+    executor = make_executor(ctx)
     node = Node("health_probe", context=ctx)
     probe = HealthProbe()
     probe.listen(node)
