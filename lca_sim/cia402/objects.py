@@ -46,6 +46,8 @@ FRICTION_TORQUE = 0x2015  # motor side, per mille of 0x6076
 VOLTAGE = 0x2016  # amplifier output voltage, 10 mV
 PROCESS_STALLS = 0x2020  # how often the virtual drive's process stood still (count)
 LONGEST_STALL = 0x2021  # the longest such stall, ms
+HOMING_STOP_CURRENT = 0x2040  # homing on a mechanical stop: |current| pressing it, per mille
+HOMING_STOP_TIME = 0x2041  # ... for this long, ms
 # lca_hil fault injection (virtual drive only): a RECORD, SDO-writable, one sub per fault kind
 FAULT_INJECTION = 0x2030
 FAULT_LOST_TPDOS = 1  # UNSIGNED8: bit n - 1 set = TPDO n is not sent
@@ -59,10 +61,36 @@ ERROR_CODE = 0x603F
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
 QUICK_STOP_OPTION = 0x605A
+HALT_OPTION = 0x605D
 MODES_OF_OPERATION = 0x6060
 MODES_OF_OPERATION_DISPLAY = 0x6061
+POSITION_DEMAND = 0x6062  # increments
 POSITION_ACTUAL = 0x6064  # increments
+FOLLOWING_ERROR_WINDOW = 0x6065  # increments
+FOLLOWING_ERROR_TIME = 0x6066  # ms
+POSITION_WINDOW = 0x6067  # increments
+POSITION_WINDOW_TIME = 0x6068  # ms
 VELOCITY_ACTUAL = 0x606C  # increments/s
+VELOCITY_WINDOW = 0x606D  # increments/s
+VELOCITY_WINDOW_TIME = 0x606E  # ms
+VELOCITY_THRESHOLD = 0x606F  # increments/s
+VELOCITY_THRESHOLD_TIME = 0x6070  # ms
+TARGET_POSITION = 0x607A  # increments (PP, CSP)
+HOME_OFFSET = 0x607C  # increments
+SOFTWARE_POSITION_LIMIT = 0x607D  # sub 1 min, sub 2 max, increments
+MAX_PROFILE_VELOCITY = 0x607F  # increments/s
+PROFILE_VELOCITY = 0x6081  # increments/s
+PROFILE_ACCELERATION = 0x6083  # increments/s^2
+PROFILE_DECELERATION = 0x6084  # increments/s^2
+QUICK_STOP_DECELERATION = 0x6085  # increments/s^2
+MOTION_PROFILE_TYPE = 0x6086
+HOMING_METHOD = 0x6098
+HOMING_SPEEDS = 0x6099  # sub 1 search for switch, sub 2 search for zero, increments/s
+HOMING_ACCELERATION = 0x609A  # increments/s^2
+VELOCITY_OFFSET = 0x60B1  # increments/s (CSP)
+TORQUE_OFFSET = 0x60B2  # per mille of rated torque (CSP)
+FOLLOWING_ERROR_ACTUAL = 0x60F4  # increments
+MAX_SLIPPAGE = 0x60F8  # increments/s (PV)
 TARGET_TORQUE = 0x6071  # per mille of rated torque
 TARGET_VELOCITY = 0x60FF  # increments/s (CSV, mode 9)
 MAX_TORQUE = 0x6072
@@ -207,6 +235,7 @@ class Scaling(enum.Enum):
     PERMILLE_RATED_CURRENT = "per mille of 0x6075"  # CiA 402-2 0x6078
     INCREMENTS = "increments (0x608F)"  # CiA 402-2 0x6064: motor encoder counts
     INCREMENTS_PER_S = "increments/s (0x608F)"  # CiA 402-2 0x606C
+    INCREMENTS_PER_S2 = "increments/s^2 (0x608F)"  # CiA 402-2 0x6083
     PERMILLE = "per mille"
     MILLI = "1e-3"  # mA, mN m, ms
     MICRO = "1e-6"  # us
@@ -369,6 +398,76 @@ PDO_COB_ID_INVALID = 1 << 31  # CiA 301 PDO communication sub 1: the PDO does no
 PDO_COB_ID_NO_RTR = 1 << 30  # CiA 301 TPDO communication sub 1: no RTR allowed
 
 
+_INC, _INC_S, _INC_S2 = Scaling.INCREMENTS, Scaling.INCREMENTS_PER_S, Scaling.INCREMENTS_PER_S2
+_REV = 65536  # increments per motor revolution of the shipped 0x608F: the defaults below
+
+# CiA 402-2 objects of the profile and cyclic position modes (PP 1, PV 3, HM 6, CSP 8), motor
+# side, factor group off (position units = increments). docs/can-modes.md gives each default
+# in joint units; the rack stores them until the modes are wired in.
+_MODE_OBJECTS: tuple[ObjectEntry, ...] = (
+    ObjectEntry(HALT_OPTION, 0, "Halt option code", _I16, _RW, False, _cia402(HALT_OPTION),
+                default=1),  # 1 slow-down ramp 0x6084, 2 quick-stop ramp 0x6085
+    ObjectEntry(POSITION_DEMAND, 0, "Position demand value", _I32, _RO, True,
+                _cia402(POSITION_DEMAND), "rad", _INC, Overflow.WRAP, default=0),
+    ObjectEntry(FOLLOWING_ERROR_WINDOW, 0, "Following error window", _U32, _RW, False,
+                _cia402(FOLLOWING_ERROR_WINDOW), "rad", _INC, _SAT, default=10 * _REV),
+    ObjectEntry(FOLLOWING_ERROR_TIME, 0, "Following error time out", _U16, _RW, False,
+                _cia402(FOLLOWING_ERROR_TIME), "s", Scaling.MILLI, default=10),
+    ObjectEntry(POSITION_WINDOW, 0, "Position window", _U32, _RW, False,
+                _cia402(POSITION_WINDOW), "rad", _INC, _SAT, default=_REV // 8),
+    ObjectEntry(POSITION_WINDOW_TIME, 0, "Position window time", _U16, _RW, False,
+                _cia402(POSITION_WINDOW_TIME), "s", Scaling.MILLI, default=10),
+    ObjectEntry(VELOCITY_WINDOW, 0, "Velocity window", _U16, _RW, False,
+                _cia402(VELOCITY_WINDOW), "rad/s", _INC_S, _SAT, default=_REV // 8),
+    ObjectEntry(VELOCITY_WINDOW_TIME, 0, "Velocity window time", _U16, _RW, False,
+                _cia402(VELOCITY_WINDOW_TIME), "s", Scaling.MILLI, default=10),
+    ObjectEntry(VELOCITY_THRESHOLD, 0, "Velocity threshold", _U16, _RW, False,
+                _cia402(VELOCITY_THRESHOLD), "rad/s", _INC_S, _SAT, default=_REV // 8),
+    ObjectEntry(VELOCITY_THRESHOLD_TIME, 0, "Velocity threshold time", _U16, _RW, False,
+                _cia402(VELOCITY_THRESHOLD_TIME), "s", Scaling.MILLI, default=10),
+    ObjectEntry(TARGET_POSITION, 0, "Target position", _I32, _RWW, True,
+                _cia402(TARGET_POSITION), "rad", _INC, _SAT, default=0),
+    ObjectEntry(HOME_OFFSET, 0, "Home offset", _I32, _RW, False, _cia402(HOME_OFFSET), "rad",
+                _INC, _SAT, default=0),
+    ObjectEntry(SOFTWARE_POSITION_LIMIT, 0, "Highest sub-index supported", _U8, _RO, False,
+                _cia402(SOFTWARE_POSITION_LIMIT), default=2),
+    ObjectEntry(SOFTWARE_POSITION_LIMIT, 1, "Min position limit", _I32, _RW, False,
+                _cia402(SOFTWARE_POSITION_LIMIT), "rad", _INC, _SAT, default=-(2**31)),
+    ObjectEntry(SOFTWARE_POSITION_LIMIT, 2, "Max position limit", _I32, _RW, False,
+                _cia402(SOFTWARE_POSITION_LIMIT), "rad", _INC, _SAT, default=2**31 - 1),
+    ObjectEntry(MAX_PROFILE_VELOCITY, 0, "Max profile velocity", _U32, _RW, False,
+                _cia402(MAX_PROFILE_VELOCITY), "rad/s", _INC_S, _SAT, default=100 * _REV),
+    ObjectEntry(PROFILE_VELOCITY, 0, "Profile velocity", _U32, _RW, False,
+                _cia402(PROFILE_VELOCITY), "rad/s", _INC_S, _SAT, default=10 * _REV),
+    ObjectEntry(PROFILE_ACCELERATION, 0, "Profile acceleration", _U32, _RW, False,
+                _cia402(PROFILE_ACCELERATION), "rad/s^2", _INC_S2, _SAT, default=10 * _REV),
+    ObjectEntry(PROFILE_DECELERATION, 0, "Profile deceleration", _U32, _RW, False,
+                _cia402(PROFILE_DECELERATION), "rad/s^2", _INC_S2, _SAT, default=10 * _REV),
+    ObjectEntry(QUICK_STOP_DECELERATION, 0, "Quick stop deceleration", _U32, _RW, False,
+                _cia402(QUICK_STOP_DECELERATION), "rad/s^2", _INC_S2, _SAT, default=50 * _REV),
+    ObjectEntry(MOTION_PROFILE_TYPE, 0, "Motion profile type", _I16, _RW, False,
+                _cia402(MOTION_PROFILE_TYPE), default=0),  # linear ramp (trapezoidal)
+    ObjectEntry(HOMING_METHOD, 0, "Homing method", _I8, _RW, False, _cia402(HOMING_METHOD),
+                default=37),  # the present position is home
+    ObjectEntry(HOMING_SPEEDS, 0, "Highest sub-index supported", _U8, _RO, False,
+                _cia402(HOMING_SPEEDS), default=2),
+    ObjectEntry(HOMING_SPEEDS, 1, "Speed during search for switch", _U32, _RW, False,
+                _cia402(HOMING_SPEEDS), "rad/s", _INC_S, _SAT, default=5 * _REV),
+    ObjectEntry(HOMING_SPEEDS, 2, "Speed during search for zero", _U32, _RW, False,
+                _cia402(HOMING_SPEEDS), "rad/s", _INC_S, _SAT, default=_REV),
+    ObjectEntry(HOMING_ACCELERATION, 0, "Homing acceleration", _U32, _RW, False,
+                _cia402(HOMING_ACCELERATION), "rad/s^2", _INC_S2, _SAT, default=10 * _REV),
+    ObjectEntry(VELOCITY_OFFSET, 0, "Velocity offset", _I32, _RWW, True,
+                _cia402(VELOCITY_OFFSET), "rad/s", _INC_S, _SAT, default=0),
+    ObjectEntry(TORQUE_OFFSET, 0, "Torque offset", _I16, _RWW, True, _cia402(TORQUE_OFFSET),
+                "N m", Scaling.PERMILLE_RATED_TORQUE, _SAT, default=0),
+    ObjectEntry(FOLLOWING_ERROR_ACTUAL, 0, "Following error actual value", _I32, _RO, True,
+                _cia402(FOLLOWING_ERROR_ACTUAL), "rad", _INC, _SAT, default=0),
+    ObjectEntry(MAX_SLIPPAGE, 0, "Max slippage", _I32, _RW, False, _cia402(MAX_SLIPPAGE),
+                "rad/s", _INC_S, _SAT, default=2**31 - 1),  # the largest: off
+)  # fmt: skip
+
+
 # --- the variables ------------------------------------------------------------------------------
 
 _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
@@ -428,6 +527,12 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
     ObjectEntry(PROCESS_STALLS, 0, "Process stalls", _U32, _RO, True, "lca_hil", default=0),
     ObjectEntry(LONGEST_STALL, 0, "Longest process stall", _U16, _RO, True, "lca_hil", "s",
                 Scaling.MILLI, _SAT, default=0),
+    # lca_hil: homing methods -1 / -2 (the mechanical stop, docs/can-modes.md "Homing"): home
+    # is where |current| has stayed >= 0x2040 with the speed within 0x606F for 0x2041.
+    ObjectEntry(HOMING_STOP_CURRENT, 0, "Homing stop current", _U16, _RW, False, "lca_hil",
+                "A", Scaling.PERMILLE_RATED_CURRENT, default=800),
+    ObjectEntry(HOMING_STOP_TIME, 0, "Homing stop time", _U16, _RW, False, "lca_hil", "s",
+                Scaling.MILLI, default=100),
     # lca_hil: fault injection (docs/can.md "Fault injection"). Written by SDO (or by the rack's
     # `faults:` schedule); reads give what is active. Not PDO-mappable: a test harness sets it.
     ObjectEntry(FAULT_INJECTION, 0, "Highest sub-index supported", _U8, _RO, False, "lca_hil",
@@ -479,8 +584,11 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
                 _cia402(POSITION_ENCODER_RESOLUTION), default=65536),
     ObjectEntry(POSITION_ENCODER_RESOLUTION, 2, "Motor revolutions", _U32, _RO, False,
                 _cia402(POSITION_ENCODER_RESOLUTION), default=1),
+    # 0x00000300: bits 8, 9 = CSV, CST. 0x000003A5 (bits 0, 2, 5, 7 too: PP, PV, HM, CSP)
+    # once device.PROFILE_MODES_WIRED; the tests hold this, the EDS and device together.
     ObjectEntry(SUPPORTED_DRIVE_MODES, 0, "Supported drive modes", _U32, _RO, False,
-                _cia402(SUPPORTED_DRIVE_MODES), default=0x00000300),  # bits 8, 9: CSV, CST
+                _cia402(SUPPORTED_DRIVE_MODES), default=0x00000300),
+    *_MODE_OBJECTS,
 )  # fmt: skip
 
 
