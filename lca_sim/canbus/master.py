@@ -37,7 +37,7 @@ from lca_sim.canbus.master_watch import SafetyWatch
 from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import bus_load, cia301
 from lca_sim.cia402.controlword import Want
-from lca_sim.cia402.device import MODE_CSV, PowerState
+from lca_sim.cia402.device import PowerState
 from lca_sim.errors import InvalidValueError, UnknownNameError
 
 log = logging.getLogger(__name__)
@@ -199,6 +199,10 @@ class Cia402Master:
         """
         return self._take("velocities", velocities, "command_rad_s", now)
 
+    def set_positions(self, positions: Sequence[float], now: float | None = None) -> str | None:
+        """Take a position command (joint rad or m, joint order) for the CSP axes (0x607A)."""
+        return self._take("positions", positions, "command_rad", now)
+
     def _take(
         self, what: str, values: Sequence[float], field: str, now: float | None
     ) -> str | None:
@@ -221,11 +225,6 @@ class Cia402Master:
             self._answered_cycle = self._cycle
             self._command_latencies_s.append(time.monotonic() - self._sync_mono_s)
         self._watch.command(now)
-
-    @property
-    def velocity_axes(self) -> tuple[str, ...]:
-        """The joints run in CSV (they take `set_velocities`)."""
-        return tuple(a.joint for a in self._axes if a.mode == MODE_CSV)
 
     def enable(self, on: bool) -> str:
         """Walk every drive to operation enabled (or back to ready to switch on)."""

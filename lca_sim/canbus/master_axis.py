@@ -5,6 +5,7 @@ docs/can.md, "The PDO layout the bridge maps (compact)" and "Watchdogs and safet
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -15,7 +16,7 @@ from lca_sim.canbus.master_state import AxisState
 from lca_sim.cia402 import controlword as ctl
 from lca_sim.cia402.codec import Codec, DriveUnits
 from lca_sim.cia402.controlword import TorqueScale, Want
-from lca_sim.cia402.device import CW_HALT, MODE_CST, MODE_CSV, PowerState
+from lca_sim.cia402.device import CW_HALT, MODE_CSP, MODE_CST, MODE_CSV, PowerState
 
 
 @dataclass(slots=True)
@@ -29,10 +30,14 @@ class MasterAxis:
     scale: TorqueScale | None = None
     units: DriveUnits | None = None  # 0x6075, 0x6076, 0x608F as read by init()
     velocity: Codec | None = None  # motor rad/s <-> increments/s, from `units` (0x60FF)
+    position: Codec | None = None  # motor rad <-> increments, from `units` (0x607A, 0x6064)
     state: AxisState = field(default_factory=AxisState)
     controlword: int = 0
     command_a: float = 0.0
     command_rad_s: float = 0.0  # CSV: the joint velocity command
+    # CSP: the joint position command (rad, m); NaN: none since the drive was enabled, so the
+    # target is the drive's own position (a CSP target never jumps at enabling).
+    command_rad: float = math.nan
     mode: int = MODE_CST  # 0x6060 as init() wrote it
     last_tpdo_t: float = 0.0
     fresh: int = 0  # a bit per every-SYNC TPDO that arrived this cycle
@@ -70,8 +75,12 @@ class MasterAxis:
         controlword = ctl.next_controlword(state, want, axis.controlword)
         target = 0
         running = want is Want.ENABLED and state is PowerState.OPERATION_ENABLED
+        if axis.mode == MODE_CSP and axis.position is not None:
+            target = axis.csp_target(running and not halted)
         if running and halted:
             controlword |= CW_HALT
+        elif axis.mode == MODE_CSP:
+            pass  # the position target above, in every state
         elif running and axis.mode == MODE_CSV and axis.velocity is not None:
             target = axis.velocity.encode(axis.command_rad_s * axis.gear)
         elif running and axis.scale is not None:
@@ -93,3 +102,18 @@ class MasterAxis:
                 frames.append((axis.cw_cob_id, cw_data))
         frames.append((axis.rpdo_cob_id, target_data))
         return frames, clamped
+
+    def csp_target(self, commanded: bool) -> int:
+        """0x607A of a CSP drive, increments: the command, or where the drive is.
+
+        Sent in every state, not only while enabled: the drive latches it at the SYNC, and the
+        cycle in which it becomes enabled must not find a stale or zero target (CiA 402-2: in
+        CSP the drive follows 0x607A from the moment it is enabled). Not commanded (halted,
+        not enabled): its own position, and the command is forgotten, so a drive enabled
+        again holds until the next position command.
+        """
+        assert self.position is not None
+        if not commanded:
+            self.command_rad = math.nan
+        joint_rad = self.command_rad if math.isfinite(self.command_rad) else self.state.position
+        return self.position.encode(joint_rad * self.gear)

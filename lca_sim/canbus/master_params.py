@@ -10,13 +10,17 @@ from dataclasses import dataclass
 
 from lca_sim.cia402 import device
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.device import MODE_CST, MODE_CSV
+from lca_sim.cia402.device import MODE_CSP, MODE_CST, MODE_CSV
 from lca_sim.errors import InvalidValueError, LcaHilError
 
 PDO_LAYOUTS = ("compact", "drive")
 # CiA 402-2 cyclic synchronous modes the bridge runs an axis in: 0x6060 value, target object.
-MODES = {"cst": MODE_CST, "csv": MODE_CSV}
-MODE_TARGETS = {MODE_CST: od.TARGET_TORQUE, MODE_CSV: od.TARGET_VELOCITY}
+MODES = {"cst": MODE_CST, "csv": MODE_CSV, "csp": MODE_CSP}
+MODE_TARGETS = {
+    MODE_CST: od.TARGET_TORQUE,
+    MODE_CSV: od.TARGET_VELOCITY,
+    MODE_CSP: od.TARGET_POSITION,
+}
 
 
 class BridgeError(LcaHilError, RuntimeError):
@@ -52,8 +56,10 @@ class BridgeParams:
             (`configure_compact_pdos`: a 4-axis 1 kHz cycle fits 1 Mbit/s); "drive": use the
             mapping the drive has (it must map what `DriveSetup` binds).
         modes: per joint, "cst" (cyclic synchronous torque: the current command becomes the
-            target torque) or "csv" (cyclic synchronous velocity: the velocity command becomes
-            the target velocity 0x60FF and the drive closes the velocity loop); empty: all CST.
+            target torque), "csv" (cyclic synchronous velocity: the velocity command becomes
+            the target velocity 0x60FF and the drive closes the velocity loop) or "csp"
+            (cyclic synchronous position: the position command becomes the target position
+            0x607A and the drive closes the position and velocity loops); empty: all CST.
         slow_tpdo_rate_hz: compact layout: the rate of the TPDOs that are not needed every
             cycle (statusword and current, the drive-chain extras): every n-th SYNC with
             n = round(cycle_hz / this), at least 1.

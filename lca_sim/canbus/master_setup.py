@@ -109,6 +109,7 @@ class DriveSetup:
             )
             axis.scale = TorqueScale(axis.k_t, axis.units.rated_torque_nm, max_permille)
             axis.velocity = codec.velocity(axis.units)
+            axis.position = codec.position(axis.units)
         except (CodecError, ValueError) as exc:
             raise BridgeError(f"drive {axis.joint} (node {node.id}): {exc}") from exc
         self._bind_pdos(axis)

@@ -54,9 +54,10 @@ CAN_BRIDGE_PARAMETERS = ParameterTable(
         ParamSpec("master_node_id", INT, 127, "the bridge's own node id (its heartbeat)",
                   1, 127, live=False),
         ParamSpec("modes", ParamKind.STRING_ARRAY, [],
-                  "per joint: cst (current commands -> target torque) or csv (velocity_commands "
-                  "-> target velocity, the drive's velocity loop); empty: all cst",
-                  choices=("cst", "csv"), live=False),
+                  "per joint: cst (current commands -> target torque), csv (velocity_commands "
+                  "-> target velocity, the drive's velocity loop) or csp (position_commands -> "
+                  "target position, the drive's position and velocity loops); empty: all cst",
+                  choices=("cst", "csv", "csp"), live=False),
         ParamSpec("command_interface", S, "current",
                   "only current (A): target torque = k_t i (CiA 402 torque mode)",
                   choices=("current",), live=False),

@@ -1,6 +1,7 @@
-"""The CAN bridge's command inputs: current, velocity and JointState commands to the drives.
+"""The CAN bridge's command inputs: current, velocity, position and JointState commands.
 
 `BridgeCommands` subscribes to `current_commands`, `velocity_commands` (csv axes only),
+`position_commands` (csp axes only),
 `voltage_commands` (refused: CiA 402 drives take torque) and the JointState command topic
 (docs/ros2_control.md), hands the values to the master while the node is active, and in
 lockstep lets the controller's answer release the next SYNC. docs/can.md has the whole story.
@@ -50,12 +51,14 @@ class BridgeCommands:
         self._active = active
         self._lifecycle_state = lifecycle_state
         self.velocity_axes = tuple(j for j, m in zip(p.joints, p.modes, strict=False) if m == "csv")
+        self.position_axes = tuple(j for j, m in zip(p.joints, p.modes, strict=False) if m == "csp")
         self.wrong_interface = 0
         self.ignored_inactive = 0  # commands that came while not active
         # ros2_control's topic-based interface: the commands in force, joint order, so a
         # JointState naming some joints leaves the others as they are.
         self._held_current_a = [0.0] * len(p.joints)
         self._held_velocity = [0.0] * len(p.joints)
+        self._held_position = [0.0] * len(p.joints)
         self.joint_commands = JointCommandAdapter(
             p.joints,
             effort_scales(robot, p.joints, p.joint_command_effort),
@@ -72,6 +75,10 @@ class BridgeCommands:
         if self.velocity_axes:  # CSV axes close their velocity loop in the drive
             node.create_subscription(
                 Float64MultiArray, pc.VELOCITY_COMMANDS, self._on_velocity, qos
+            )
+        if self.position_axes:  # CSP axes close position and velocity loops in the drive
+            node.create_subscription(
+                Float64MultiArray, pc.POSITION_COMMANDS, self._on_position, qos
             )
         if p.joint_command_topic:
             node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
@@ -93,7 +100,7 @@ class BridgeCommands:
         master = self._commanding()
         if master is not None:
             self._set_currents(master, list(msg.data))
-            if not self.velocity_axes:
+            if not (self.velocity_axes or self.position_axes):
                 self._answered()
 
     def _answered(self) -> None:
@@ -101,7 +108,8 @@ class BridgeCommands:
 
         The answer is the last message the controller sends per state: current_commands, or
         with CSV axes the velocity_commands it publishes after them (the currents are then in
-        force already), or one JointState command.
+        force already), with CSP axes the position_commands of a controller whose
+        command_interface is position (its only message per state), or one JointState command.
         """
         loop = self._drives.loop
         if loop is not None:
@@ -121,7 +129,24 @@ class BridgeCommands:
         master = self._commanding()
         if master is not None:
             self._set_velocities(master, list(msg.data))
+            if not self.position_axes:
+                self._answered()
+
+    def _on_position(self, msg: Float64MultiArray) -> None:
+        master = self._commanding()
+        if master is not None:
+            self._set_positions(master, list(msg.data))
             self._answered()
+
+    def _set_positions(self, master: Cia402Master, positions: list[float]) -> None:
+        reason = master.set_positions(positions)
+        if reason is None:
+            self._held_position[:] = positions
+        else:
+            self._log.warning(
+                f"position command rejected ({master.counters.commands_rejected} so far): {reason}",
+                throttle_duration_sec=1.0,
+            )
 
     def _set_velocities(self, master: Cia402Master, velocities: list[float]) -> None:
         reason = master.set_velocities(velocities)
