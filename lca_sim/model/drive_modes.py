@@ -76,6 +76,11 @@ class JointDriveLoops:
         """The loops, joint order (read their state; command through this class)."""
         return tuple(self._loops)
 
+    @property
+    def velocity_targets(self) -> tuple[float, ...]:
+        """The velocity target in force per joint (0 for the others), rad/s (m/s)."""
+        return tuple(self._velocity_target)
+
     def set_target(self, joint: int, value: float) -> None:
         """A position (rad, m) or velocity (rad/s, m/s) target, by the joint's mode; runs again.
 
