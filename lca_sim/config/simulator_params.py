@@ -13,8 +13,17 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from lca_control.cascade import CONTROL_PERIOD_S
+from lca_control.cascade import (
+    CONTROL_PERIOD_S,
+    PAPER_VELOCITY_KP_A_PER_RAD_S,
+    PAPER_VELOCITY_TI_S,
+)
 from lca_control.contract import ROBOT_JOINT_COMMANDS, ROBOT_JOINT_STATES
+from lca_control.drive_loops import (
+    DEFAULT_POSITION_KP_PER_S,
+    DEFAULT_VELOCITY_LIMIT,
+    DriveLoopParams,
+)
 from lca_control.parameters import (
     ParameterError,
     ParameterTable,
@@ -23,6 +32,9 @@ from lca_control.parameters import (
     non_negative,
     positive,
 )
+from lca_control.pi import PIParams
+from lca_sim.errors import InvalidValueError
+from lca_sim.model.drive_modes import DRIVE_MODE_NAMES, VOLTAGE_MODE, check_drive_modes
 from lca_sim.model.params import AXIS_NAMES, RobotParams
 from lca_sim.model.plant import PlantConfig
 
@@ -66,6 +78,23 @@ SIMULATOR_PARAMETERS = ParameterTable(
         ParamSpec("command_interface", S, "voltage",
                   "voltage (V, both loops in the controller) or current (A)",
                   choices=COMMAND_INTERFACES, live=False),
+        ParamSpec("drive_modes", ParamKind.STRING_ARRAY, [],
+                  "drive mode per joint, joints order: position (position_commands), velocity "
+                  "(velocity_commands), current, voltage (not mixed with the others); empty: "
+                  "command_interface for every joint (docs/simulator.md)",
+                  choices=DRIVE_MODE_NAMES, live=False),
+        positive("drive_loop_period_s", CONTROL_PERIOD_S,
+                 "the drive's position and velocity loops run every this long, s (a whole "
+                 "multiple of dt_s)", high=1.0, live=False),
+        non_negative("drive_position_kp_per_s", DEFAULT_POSITION_KP_PER_S,
+                     "drive position loop gain, velocity per position error, 1/s", high=1000.0,
+                     live=False),
+        non_negative("drive_velocity_kp_a_per_rad_s", PAPER_VELOCITY_KP_A_PER_RAD_S,
+                     "drive velocity PI gain, A per rad/s (per m/s for the lift)", live=False),
+        positive("drive_velocity_ti_s", PAPER_VELOCITY_TI_S,
+                 "drive velocity PI integral time, s", high=10.0, live=False),
+        positive("drive_velocity_limit", DEFAULT_VELOCITY_LIMIT,
+                 "drive |velocity setpoint| cap, rad/s (m/s for the lift)", live=False),
         positive("dt_s", 1e-4, "model integration step, s", high=0.01, live=False),
         positive("rigid_body_period_s", 1e-3,
                  "Pinocchio's A(q), C qdot + Q evaluated every this long, s: a whole multiple "
@@ -114,6 +143,12 @@ class SimulatorNodeParams:
     joints: tuple[str, ...]
     timing_mode: str
     command_interface: str
+    drive_modes: tuple[str, ...]
+    drive_loop_period_s: float
+    drive_position_kp_per_s: float
+    drive_velocity_kp_a_per_rad_s: float
+    drive_velocity_ti_s: float
+    drive_velocity_limit: float
     dt_s: float
     rigid_body_period_s: float
     publish_rate_hz: float
@@ -134,6 +169,24 @@ class SimulatorNodeParams:
     diagnostics_period_s: float
     realtime_factor: float
     step_periods: int
+
+    @property
+    def joint_drive_modes(self) -> tuple[str, ...]:
+        """Each joint's drive mode: `drive_modes`, or `command_interface` for every joint."""
+        return self.drive_modes or (self.command_interface,) * len(self.joints)
+
+    def drive_loop_params(self, current_limit_a: float) -> DriveLoopParams:
+        """The drive loops' gains and limits (`lca_control.drive_loops`), +-current_limit_a."""
+        return DriveLoopParams(
+            PIParams(
+                self.drive_velocity_kp_a_per_rad_s,
+                self.drive_velocity_ti_s,
+                -current_limit_a,
+                current_limit_a,
+            ),
+            position_kp_per_s=self.drive_position_kp_per_s,
+            velocity_limit=self.drive_velocity_limit,
+        )
 
     @property
     def substeps_per_period(self) -> int:
@@ -200,13 +253,33 @@ def validate_simulator_params(values: Mapping[str, Any]) -> SimulatorNodeParams:
         raise ParameterError(
             "initial_position", f"{len(AXIS_NAMES)} positions ({', '.join(AXIS_NAMES)})", initial
         )
-    for name in ("control_period_s", "rigid_body_period_s"):
+    for name in ("control_period_s", "rigid_body_period_s", "drive_loop_period_s"):
         _whole_multiple(name, v[name], dt_s)
+    if v["drive_modes"]:
+        _check_drive_modes(v["drive_modes"], joints, v["command_interface"])
     if v["lockstep_end_s"] > 0.0:
         _whole_multiple("lockstep_end_s", v["lockstep_end_s"], dt_s)
     for name in ("joint_command_topic", "joint_state_topic"):
         check_topic(name, v[name])
     return SimulatorNodeParams(**v)
+
+
+def _check_drive_modes(modes: tuple[str, ...], joints: tuple[str, ...], interface: str) -> None:
+    """One mode per joint, voltage for all or none, and the interface the modes run on.
+
+    Raises:
+        ParameterError: drive_modes, with the reason.
+    """
+    try:
+        check_drive_modes(modes, joints)
+    except InvalidValueError as exc:
+        raise ParameterError("drive_modes", str(exc).removeprefix("drive_modes: "), modes) from None
+    voltage = modes[0] == VOLTAGE_MODE
+    if voltage != (interface == "voltage"):
+        need = "voltage" if voltage else "current (the in-drive current loop runs them)"
+        raise ParameterError(
+            "drive_modes", f"modes that fit command_interface {interface}: it must be {need}", modes
+        )
 
 
 def check_topic(name: str, topic: str) -> str:

@@ -2,8 +2,10 @@
 
 `CommandedPlant` sits between a transport (the simulator node, later the virtual CAN drive) and the
 `Simulator`: it validates command arrays, holds the last good command, runs the current loop "in
-the drive" at the model rate when the commands are currents, and advances the model. No ROS, no
-clock: callers say how many steps to take.
+the drive" at the model rate when the commands are currents, and advances the model. With drive
+modes (`use_drive_modes`), joints in position or velocity mode get their current setpoint from
+the drive's own loops (`lca_sim.model.drive_modes`) once per drive cycle. No ROS, no clock:
+callers say how many steps to take.
 """
 
 from __future__ import annotations
@@ -16,8 +18,11 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from lca_control.drive_loops import DriveLoopParams, DriveMode
 from lca_control.pi import PIParams, pi_law, pi_rebase
+from lca_sim.errors import InvalidValueError
 from lca_sim.model import kernel
+from lca_sim.model.drive_modes import VOLTAGE_MODE, JointDriveLoops, check_drive_modes
 from lca_sim.model.faults import FaultInjector
 from lca_sim.model.simulator import Simulator
 
@@ -141,6 +146,7 @@ class CommandedPlant:
     enabled: bool = True
     counters: CommandCounters = field(default_factory=CommandCounters)
     faults: FaultInjector | None = None  # injected faults (lca_sim.model.faults); None: none
+    drive: JointDriveLoops | None = None  # position / velocity joints (`use_drive_modes`)
 
     def __post_init__(self) -> None:
         self._index = [self.sim.axis_names.index(j) for j in self.joints]
@@ -174,23 +180,71 @@ class CommandedPlant:
         view.flags.writeable = False
         return view
 
-    def command(self, values: Sequence[float]) -> str | None:
-        """Take a command array in `joints` order; return None, or why it was refused.
+    def use_drive_modes(
+        self, modes: Sequence[str], params: DriveLoopParams, period_s: float
+    ) -> None:
+        """Run each joint in its drive mode (`joints` order): position, velocity, current, voltage.
 
-        The last good command stays in force when one is refused.
+        All voltage needs the voltage interface, the others the current interface; all current
+        is the plain current interface. The loops run every `period_s` (a whole multiple of
+        the model's dt) and start halted (0 A) until their first target.
+
+        Raises:
+            InvalidValueError: modes that do not fit the joints or the interface, or a period
+                that is not a whole multiple of dt.
         """
+        checked = check_drive_modes(modes, self.joints)
+        voltage = checked[0] == VOLTAGE_MODE
+        if voltage != (self.interface == VOLTAGE):
+            raise InvalidValueError(
+                f"drive_modes {list(checked)} need the {VOLTAGE if voltage else CURRENT} "
+                f"interface, the plant takes {self.interface}"
+            )
+        steps = round(period_s / self.sim.dt_s)
+        if steps < 1 or abs(period_s - steps * self.sim.dt_s) > 1e-9 * period_s:
+            raise InvalidValueError(
+                f"drive loop period {period_s:g} s: expected a whole multiple of dt "
+                f"{self.sim.dt_s:g} s"
+            )
+        drive_modes = [DriveMode.parse(m) for m in checked] if not voltage else []
+        if voltage or all(m is DriveMode.CURRENT for m in drive_modes):
+            self.drive = None
+            return
+        self.drive = JointDriveLoops(drive_modes, params, steps)
+
+    def _takes(self, mode: DriveMode) -> tuple[int, ...]:
+        """Indices (joints order) of the joints whose command arrays of `mode` count."""
+        if self.drive is None:
+            return tuple(range(len(self.joints))) if mode is DriveMode.CURRENT else ()
+        return self.drive.joints_in(mode)
+
+    def _check(self, values: Sequence[float], taken: Sequence[int]) -> str | None:
+        """Why this array is refused (counted), or None: length, then the taken entries."""
         if len(values) != len(self.joints):
             self.counters.rejected_length += 1
             return (
                 f"expected {len(self.joints)} values ({', '.join(self.joints)}), got {len(values)}"
             )
-        if not all(math.isfinite(v) for v in values):
+        if not all(math.isfinite(values[j]) for j in taken):
             self.counters.rejected_nonfinite += 1
             return f"values must be finite, got {list(values)}"
-        if any(abs(v) > self.max_abs_command for v in values):
+        if any(abs(values[j]) > self.max_abs_command for j in taken):
             self.counters.rejected_absurd += 1
             return f"|value| above {self.max_abs_command:g}: {list(values)}"
-        for joint_index, axis in enumerate(self._index):
+        return None
+
+    def command(self, values: Sequence[float]) -> str | None:
+        """Take a command array in `joints` order; return None, or why it was refused.
+
+        The last good command stays in force when one is refused. With drive modes only the
+        current joints' entries count; the others are ignored (any value, NaN too).
+        """
+        taken = self._takes(DriveMode.CURRENT)
+        reason = self._check(values, taken)
+        if reason is not None:
+            return reason
+        for joint_index in taken:
+            axis = self._index[joint_index]
             value = float(values[joint_index])
             limit = (
                 self._voltage_limits[axis] if self.interface == VOLTAGE else self.current_limit_a
@@ -202,12 +256,45 @@ class CommandedPlant:
         self.counters.accepted += 1
         return None
 
+    def command_targets(self, mode: DriveMode, values: Sequence[float]) -> str | None:
+        """Position (rad, m) or velocity (rad/s, m/s) targets, `joints` order; None or why not.
+
+        Only the entries of the joints in `mode` count (the others are ignored, NaN too). A
+        position beyond a joint's end stops is saturated to it (counted): the drive's software
+        position limits; a velocity beyond the loops' velocity_limit is capped by them (counted
+        as well). Without a joint in `mode` the array is refused.
+        """
+        taken = self._takes(mode) if mode is not DriveMode.CURRENT else ()
+        if self.drive is None or not taken:
+            self.counters.rejected_length += 1
+            return f"no joint runs {mode.value} mode (drive_modes)"
+        reason = self._check(values, taken)
+        if reason is not None:
+            return reason
+        for joint_index in taken:
+            value = float(values[joint_index])
+            if mode is DriveMode.POSITION:
+                low, high = self.sim.position_limits[self._index[joint_index]]
+                if not low <= value <= high:
+                    self.counters.saturated += 1
+                    value = min(max(value, low), high)
+            elif abs(value) > self.drive.loops[joint_index].params.velocity_limit:
+                self.counters.saturated += 1  # the loop caps it
+            self.drive.set_target(joint_index, value)
+        self.counters.accepted += 1
+        return None
+
     def hold_zero(self, timed_out: bool = False) -> None:
-        """Drop the command to zero (command timeout, disable): the gear holds the load."""
+        """Drop the command to zero (command timeout, disable): the gear holds the load.
+
+        The drive loops halt (0 A) until their next target.
+        """
         if timed_out:
             self.counters.timeouts += 1
         self._target[:] = 0.0
         self._loops[[_L_INTEGRAL, _L_OUTPUT, _L_LAST_ERROR]] = 0.0
+        if self.drive is not None:
+            self.drive.halt()
 
     def set_enabled(self, enabled: bool) -> None:
         """Amplifiers on or off; off means 0 V on every axis and reset current loops."""
@@ -248,13 +335,40 @@ class CommandedPlant:
                 )
             sim.advance(n_steps, volts)
             return
-        loops = self._loops
-        gains = self._gains
+        drive = self.drive
+        if drive is None:
+            self._advance_current(n_steps)
+            return
+        while n_steps > 0:
+            if drive.steps_to_cycle == 0:
+                self._drive_cycle(drive)
+            chunk = min(n_steps, drive.steps_to_cycle)
+            self._advance_current(chunk)
+            drive.steps_to_cycle -= chunk
+            n_steps -= chunk
+
+    def _drive_cycle(self, drive: JointDriveLoops) -> None:
+        """The drive loops on the joints' state now: their currents become the setpoints (A)."""
+        state = self.sim.state_array
+        index = self._index
+        currents = drive.cycle(
+            state[kernel.X_POSITION, index].tolist(),
+            state[kernel.X_VELOCITY, index].tolist(),
+            drive.period_steps * self.sim.dt_s,
+        )
+        for joint_index, current_a in enumerate(currents):
+            if current_a is not None:
+                limit = self.current_limit_a
+                self._target[index[joint_index]] = min(max(current_a, -limit), limit)
+        drive.steps_to_cycle = drive.period_steps
+
+    def _advance_current(self, n_steps: int) -> None:
+        """`advance` of the current interface: the in-drive current loops, faults if any."""
         if self.faults is not None and self.faults.any_active:
             self._advance_faulted(n_steps, self.faults)
             return
-        loops[_L_TARGET_A] = self._target
-        sim.advance_with(n_steps, _current_loops_steps, volts, loops, gains)
+        self._loops[_L_TARGET_A] = self._target
+        self.sim.advance_with(n_steps, _current_loops_steps, self._volts, self._loops, self._gains)
 
     def _advance_faulted(self, n_steps: int, faults: FaultInjector) -> None:
         """`advance` of the current interface with injected faults in force.

@@ -1,20 +1,24 @@
-"""The simulator's command inputs: voltage or current arrays, and JointState commands.
+"""The simulator's command inputs: voltage, current, velocity, position arrays, JointState.
 
 `SimCommands` subscribes to the command topic of `command_interface` (and counts what comes
-on the other one), and to the JointState command topic (docs/ros2_control.md); it puts each
-command in force on the plant and, in lockstep, hands it on as the period's command. A refused
-command still runs its period in lockstep, so the loop goes on with the last good command.
+on the other one), to `velocity_commands` / `position_commands` when a joint runs that drive
+mode (`drive_modes`), and to the JointState command topic (docs/ros2_control.md); it puts each
+command in force on the plant and, in lockstep, hands the controller's answer on as the
+period's command. A refused command still runs its period in lockstep, so the loop goes on
+with the last good command.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from lca_control import contract as pc
+from lca_control.drive_loops import DriveMode
 from lca_sim.config.simulator_params import SimulatorNodeParams
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.params import RobotParams
@@ -58,17 +62,33 @@ class SimCommands:
             if p.command_interface == "voltage"
             else (pc.CURRENT_COMMANDS, pc.VOLTAGE_COMMANDS)
         )
+        modes = p.joint_drive_modes
+        velocity_joints = tuple(j for j, m in zip(p.joints, modes, strict=True) if m == "velocity")
+        # Lockstep: the controller's answer is the last topic it sends per state (current or
+        # voltage, then velocity, then position), as on the CAN bridge; the others are put
+        # in force when they come and run no period.
+        self.answer_topic = self.topic
         node.create_subscription(Float64MultiArray, self.topic, self.on_command, qos)
         node.create_subscription(Float64MultiArray, other, self._on_wrong_interface, qos)
-        # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N).
+        for mode, topic in (
+            (DriveMode.VELOCITY, pc.VELOCITY_COMMANDS),
+            (DriveMode.POSITION, pc.POSITION_COMMANDS),
+        ):
+            if mode.value in modes:
+                callback = partial(self._on_targets, mode, topic)
+                node.create_subscription(Float64MultiArray, topic, callback, qos)
+                self.answer_topic = topic
+        # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N); the
+        # velocity entry for velocity-mode joints.
         self._joint_index = [axis_names.index(j) for j in p.joints]
         self.joint_commands = JointCommandAdapter(
             p.joints,
             effort_scales(robot, p.joints, p.joint_command_effort),
+            velocity_joints=velocity_joints,
             takes_effort=p.command_interface != "voltage",
             velocity_refused=lambda j: (
-                f"velocity commands for {j}: the simulator has no velocity loop (command "
-                "effort, or use the CAN bridge with the axis in csv mode)"
+                f"velocity commands for {j}: not in velocity mode (drive_modes); command "
+                "effort, or run the joint in velocity mode"
             ),
             effort_refused=lambda _: (
                 "effort refused: the simulator takes voltages (command_interface)"
@@ -80,37 +100,56 @@ class SimCommands:
 
     def on_command(self, msg: Float64MultiArray) -> None:
         """A command array on the interface's topic (joints order)."""
-        self._take(list(msg.data))
+        self._take(list(msg.data), self._plant.command, self.answer_topic == self.topic)
+
+    def _on_targets(self, mode: DriveMode, topic: str, msg: Float64MultiArray) -> None:
+        """velocity_commands or position_commands (joints order; other joints' entries ignored)."""
+        apply = partial(self._plant.command_targets, mode)
+        self._take(list(msg.data), apply, self.answer_topic == topic)
 
     def _on_joint(self, msg: JointState) -> None:
-        """A JointState command (docs/ros2_control.md): effort per joint, by name.
+        """A JointState command (docs/ros2_control.md): effort or velocity per joint, by name.
 
         Effort is this node's command (A, or joint torque per `joint_command_effort`) on the
-        joints named with a finite entry; every other joint keeps its command. The simulator
-        has no velocity loop, so a non-zero velocity entry is refused (counted, warned); a
-        zero one is what the interface sends for a velocity interface no controller claims.
-        In voltage mode effort has no meaning here and the message is refused. In lockstep
-        the message is the period's command either way, as a refused array is.
+        joints named with a finite entry; velocity the target of velocity-mode joints; every
+        other joint keeps its command. A non-zero velocity entry for a joint not in velocity
+        mode is refused (counted, warned); a zero one is what the interface sends for a
+        velocity interface no controller claims. In voltage mode effort has no meaning here
+        and the message is refused. In lockstep the message is the period's command either
+        way, as a refused array is.
         """
         adapter = self.joint_commands
         cmd = adapter.read(msg.name, msg.velocity, msg.effort)
-        values = None
-        if cmd.accepted:
-            values = adapter.fill(self._plant.target[self._joint_index].tolist(), cmd.effort)
         if cmd.problems:
             self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
-        self._take(values)
+        if not cmd.accepted:
+            self._take(None, self._plant.command, answers=True)
+            return
+        plant = self._plant
+        if cmd.velocity and plant.drive is not None:
+            held = list(plant.drive.velocity_targets)
+            apply = partial(plant.command_targets, DriveMode.VELOCITY)
+            self._take(adapter.fill(held, cmd.velocity), apply, answers=not cmd.effort)
+        if cmd.effort:
+            held = plant.target[self._joint_index].tolist()
+            self._take(adapter.fill(held, cmd.effort), plant.command, answers=True)
 
-    def _take(self, values: list[float] | None) -> None:
+    def _take(
+        self,
+        values: list[float] | None,
+        apply: Callable[[list[float]], str | None],
+        answers: bool,
+    ) -> None:
         """One command array (joints order): in force, and in lockstep the period's command.
 
+        Only a command that `answers` the state runs the period (the last topic sent).
         None: a refused JointState command, which in lockstep still runs the period (in
         realtime it is no command: the timeout runs on).
         """
         pacing = self._pacing
         if values is None and not pacing.lockstep:
             return
-        reason = None if values is None else self._plant.command(values)
+        reason = None if values is None else apply(values)
         if reason is not None:
             self._log.warning(
                 f"command rejected ({self._plant.counters.rejected} so far): {reason}",
@@ -119,6 +158,10 @@ class SimCommands:
             if not pacing.lockstep:
                 return
             # In lockstep the loop must go on: the last good command stays in force.
+        if not answers:
+            if reason is None:
+                pacing.command_came()  # the command timeout counts from here
+            return
         pacing.command_came()
         if pacing.lockstep and pacing.started:
             if pacing.paused and not pacing.admit_paused_command():

@@ -48,7 +48,7 @@ LOCKSTEP_TICK_S = 0.05
 
 
 class SimulatorNode(Node):
-    """Publishes the simulated robot's states and takes voltage or current commands."""
+    """Publishes the simulated robot's states; takes each joint's command by its drive mode."""
 
     def __init__(self, node_name: str = "simulator", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
@@ -65,6 +65,12 @@ class SimulatorNode(Node):
         # Injected faults (docs/faults.md): parameters faults.<joint>.<kind>, a schedule.
         plant = build_plant(plant_config(p, robot, fault_period_s=p.control_period_s))
         self.sim, self.plant = plant.sim, plant.commanded
+        # Position / velocity joints: the drive's loops in the model (docs/simulator.md).
+        self.plant.use_drive_modes(
+            p.joint_drive_modes,
+            p.drive_loop_params(self.plant.current_limit_a),
+            p.drive_loop_period_s,
+        )
         assert plant.faults is not None  # fault_period_s given
         self.faults = plant.faults
         self._fault_params = FaultParameters(
@@ -92,9 +98,10 @@ class SimulatorNode(Node):
             irreversible=self._irreversible,
         )
         active = self._create_interfaces(p, robot)
+        modes = f", drive modes {list(p.drive_modes)}" if p.drive_modes else ""
         self.get_logger().info(
             f"robot {robot.name}, {p.timing_mode}, {p.command_interface} commands on "
-            f"{active} for {list(p.joints)}, dt {p.dt_s:g} s"
+            f"{active} for {list(p.joints)}{modes}, dt {p.dt_s:g} s"
         )
 
     def _create_interfaces(self, p: SimulatorNodeParams, robot: RobotParams) -> str:
