@@ -37,6 +37,7 @@ VOLTAGE_COMMANDS = "voltage_commands"
 CURRENT_COMMANDS = "current_commands"
 VELOCITY_REFERENCE = "velocity_reference"
 VELOCITY_COMMANDS = "velocity_commands"
+POSITION_COMMANDS = "position_commands"
 # ros2_control's topic-based hardware interface (joint_state_topic_hardware_interface,
 # topic_based_ros2_control/TopicBasedSystem): the defaults its code uses; docs/ros2_control.md.
 ROBOT_JOINT_COMMANDS = "/robot_joint_commands"
@@ -104,6 +105,7 @@ PLANT_SUBSCRIBES: tuple[TopicSpec, ...] = (
     TopicSpec(CURRENT_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
     TopicSpec(VOLTAGE_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS),
     TopicSpec(VELOCITY_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS, required=False),
+    TopicSpec(POSITION_COMMANDS, FLOAT64_MULTI_ARRAY_TYPE, COMMAND_QOS, required=False),
     TopicSpec(ROBOT_JOINT_COMMANDS, JOINT_STATE_TYPE, COMMAND_QOS, required=False),
 )
 
