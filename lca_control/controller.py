@@ -209,6 +209,8 @@ class JointController:
         self._topic_reference_t_s = -math.inf
         self.last_velocity_reference = [0.0] * len(self.params.joints)
         self._setpoints = None
+        if self.params.command_interface == "position":
+            self._last_commands = None  # set-points of the old plant's pose mean nothing now
 
     def set_topic_reference(self, values: Sequence[float], t_s: float) -> str | None:
         """Take a velocity reference array (joint order); return why it was refused, if so."""

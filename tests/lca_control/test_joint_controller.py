@@ -251,6 +251,7 @@ def test_position_interface_restarts_like_a_new_controller() -> None:
     after = _run(ctl, 0.0, 100)
     assert after == _run(_controller(command_interface="position"), 0.0, 100)
     assert ctl.plant_restarts == 1
+    assert ctl.update(-5.0, [math.nan, 0.6, 0.0, 0.0], [0.0] * 4, None) is None  # none yet
 
 
 @pytest.mark.parametrize("kp_per_s", [0.0, 2.0])
