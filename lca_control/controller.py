@@ -2,7 +2,9 @@
 
 `JointController` is what the controller node runs on every new plant state: it picks each
 joint's velocity reference (topic, built-in profile, or hold), runs the cascades and returns the
-command array in joint order, in volts or in amps.
+command array in joint order, in volts or in amps. With the velocity or the position interface
+the loops are closed in the drive: the array is the velocity references (rad/s, m/s) or the
+position set-points (rad, m), and no cascade runs (docs/control.md).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ REFERENCE_SOURCES = ("topic", "ramp", "trapezoid", "hold")
 # A stamp older than the last one by more than this is a plant that restarted (its time began
 # again), not a late message: 1 us is above the float rounding of wall-clock stamps (~0.2 us).
 PLANT_TIME_TOLERANCE_S = 1e-6
-COMMAND_INTERFACES = ("voltage", "current")
+COMMAND_INTERFACES = ("voltage", "current", "velocity", "position")
 
 D = ParamKind.DOUBLE
 
@@ -47,7 +49,8 @@ CONTROLLER_PARAMETERS = ParameterTable(
         ParamSpec("joints", ParamKind.STRING_ARRAY, ["l_arm", "pivot", "c_arc", "lift"],
                   "joint order of commands and references", live=False),
         ParamSpec("command_interface", ParamKind.STRING, "voltage",
-                  "voltage (both loops here) or current (current loop in the drive)",
+                  "voltage (both loops here), current (current loop in the drive), velocity "
+                  "or position (velocity / position set-points; every loop in the drive)",
                   choices=COMMAND_INTERFACES, live=False),
         ParamSpec("reference_source", ParamKind.STRING, "topic",
                   "topic (velocity_reference), ramp, trapezoid or hold",
@@ -159,6 +162,11 @@ class JointController:
         # sent again and the loops are not updated, so one bad sample cannot poison an integral.
         self.bad_states = 0
         self._last_commands: list[float] | None = None
+        # Position interface: the set-points sent last (rad, m), and the pose the reference
+        # source moves from; None: taken again from the last set-points at the next state.
+        self._setpoints: list[float] | None = None
+        self._anchor: list[float] | None = None
+        self.last_position_setpoint: list[float] = [0.0] * len(params.joints)
 
     @property
     def elapsed_s(self) -> float:
@@ -169,14 +177,22 @@ class JointController:
 
     def set_params(self, params: ControllerParams) -> None:
         """Apply new gains or references without a bump."""
+        old = self.params
+        if (old.reference_source, old.profile_joint, old.profile) != (
+            params.reference_source,
+            params.profile_joint,
+            params.profile,
+        ):
+            self._anchor = None  # a new reference moves on from the set-points in force
         self.params = params
         for cascade in self.cascades:
             cascade.set_params(params.cascade)
 
     def reset(self) -> None:
-        """Zero the integrators (on enable)."""
+        """Zero the integrators (on enable); position set-points move on from where they are."""
         for cascade in self.cascades:
             cascade.reset()
+        self._anchor = None
 
     def _restart(self) -> None:
         """Begin again as on the very first state: the plant's time has restarted.
@@ -192,6 +208,9 @@ class JointController:
         self._hold_position = None
         self._topic_reference_t_s = -math.inf
         self.last_velocity_reference = [0.0] * len(self.params.joints)
+        self._setpoints = None
+        if self.params.command_interface == "position":
+            self._last_commands = None  # set-points of the old plant's pose mean nothing now
 
     def set_topic_reference(self, values: Sequence[float], t_s: float) -> str | None:
         """Take a velocity reference array (joint order); return why it was refused, if so."""
@@ -226,6 +245,44 @@ class JointController:
             for i, cascade in enumerate(self.cascades)
         ]
 
+    def position_setpoints(
+        self, t_s: float, positions: Sequence[float], dt_s: float
+    ) -> list[float]:
+        """Each joint's position set-point at plant time t_s (rad, m): the position interface.
+
+        A built-in profile adds its displacement (`Profile.displacement`) to the pose it
+        starts from; hold keeps that pose; a topic velocity reference is integrated, one
+        period of dt_s at a time (a stale one counts as zero, the set-point then stands).
+        The pose is the measured one at the first state, and the set-points in force after
+        a re-enable or a new reference source, so no set-point jumps. Sets
+        `last_velocity_reference` to the references the set-points move with.
+        """
+        p = self.params
+        n = len(p.joints)
+        last = list(positions) if self._setpoints is None else self._setpoints
+        velocity = [0.0] * n
+        t_rel = t_s - (self._t0_s if self._t0_s is not None else t_s)
+        if p.reference_source == "topic":
+            if t_s - self._topic_reference_t_s <= p.reference_timeout_s:
+                velocity = list(self._topic_reference)
+            step_s = 0.0 if self._setpoints is None else dt_s
+            setpoints = [s + v * step_s for s, v in zip(last, velocity, strict=True)]
+            self._anchor = None
+        else:
+            k = p.joints.index(p.profile_joint) if p.profile is not None else -1
+            if self._anchor is None:
+                self._anchor = list(last)
+                if p.profile is not None:
+                    self._anchor[k] -= p.profile.displacement(t_rel)
+            setpoints = list(self._anchor)
+            if p.profile is not None:
+                setpoints[k] += p.profile.displacement(t_rel)
+                velocity[k] = p.profile.velocity(t_rel)
+        self._setpoints = setpoints
+        self.last_position_setpoint = list(setpoints)
+        self.last_velocity_reference = velocity
+        return list(setpoints)
+
     def update(
         self,
         t_s: float,
@@ -244,23 +301,22 @@ class JointController:
         control step across the gap would wind the integrators up by the whole gap.
 
         Returns the command array in joint order: volts (voltage interface, needs the
-        currents) or amps (current interface).
+        currents), amps (current interface), the velocity references (velocity interface,
+        rad/s or m/s) or the position set-points (position interface, rad or m:
+        `position_setpoints`; disabled, the measured positions, so the drive holds where the
+        joint is). With the velocity and position interfaces no cascade runs.
         """
         p = self.params
         if p.command_interface == "voltage" and currents_a is None:
             return None  # the current loop needs the measured currents
-        if self._last_t_s is not None:
-            if (
-                t_s < self._last_t_s - PLANT_TIME_TOLERANCE_S
-                or t_s > self._last_t_s + p.plant_timeout_s
-            ):
-                self._restart()
-            elif t_s <= self._last_t_s:
-                return None
+        if self._stale(t_s):
+            return None
         readings = [*positions, *velocities, *(currents_a or ())]
         if not all(math.isfinite(v) for v in readings):
             self.bad_states += 1
             self._last_t_s = t_s
+            if self._last_commands is None and p.command_interface == "position":
+                return None  # no set-point yet: a zero would send every joint to 0
             return list(self._last_commands or [0.0] * len(p.joints))
         dt_s = p.nominal_period_s if self._last_t_s is None else t_s - self._last_t_s
         if self._t0_s is None:
@@ -269,15 +325,52 @@ class JointController:
         n = len(p.joints)
         if not p.enabled:
             self.last_velocity_reference = [0.0] * n  # a drive closing the loop holds still
+            if p.command_interface == "position":
+                return self._hold_here(positions)
             return [0.0] * n
-        references = self.velocity_references(t_s, positions)
-        self.last_velocity_reference = references
+        if p.command_interface == "position":
+            commands = self.position_setpoints(t_s, positions, dt_s)
+        else:
+            references = self.velocity_references(t_s, positions)
+            self.last_velocity_reference = references
+            if p.command_interface == "velocity":
+                commands = list(references)
+            else:
+                commands = self._cascade_commands(references, velocities, currents_a, dt_s)
+        self._last_commands = commands
+        return commands
+
+    def _stale(self, t_s: float) -> bool:
+        """A repeated or slightly older stamp; a restart (`update`) begins here instead."""
+        last_s = self._last_t_s
+        if last_s is None:
+            return False
+        if t_s < last_s - PLANT_TIME_TOLERANCE_S or t_s > last_s + self.params.plant_timeout_s:
+            self._restart()
+            return False
+        return t_s <= last_s
+
+    def _cascade_commands(
+        self,
+        references: Sequence[float],
+        velocities: Sequence[float],
+        currents_a: Sequence[float] | None,
+        dt_s: float,
+    ) -> list[float]:
+        """The cascades' step: amps (no currents: the drive closes the current loop) or volts."""
         commands = []
         for i, cascade in enumerate(self.cascades):
             current_ref = cascade.current_command(references[i], velocities[i], dt_s)
-            if currents_a is None:  # current interface: the drive closes the current loop
+            if currents_a is None:
                 commands.append(current_ref)
             else:
                 commands.append(cascade.voltage_command(current_ref, currents_a[i], dt_s))
-        self._last_commands = commands
         return commands
+
+    def _hold_here(self, positions: Sequence[float]) -> list[float]:
+        """Disabled on the position interface: the measured positions are the set-points."""
+        self._setpoints = list(positions)
+        self._anchor = None
+        self.last_position_setpoint = list(positions)
+        self._last_commands = list(positions)
+        return list(positions)

@@ -2,7 +2,12 @@
 
 Runs the paper's cascaded PI loops over topics only, so it drives the simulator node and the CAN
 bridge alike. Every new plant state (joint_states; with voltage commands also motor_states of the
-same stamp, for the currents) yields one command. The period is the difference of the state
+same stamp, for the currents) yields one command, on the topic of `command_interface`
+(`COMMAND_TOPICS`). With current or voltage it is followed by the velocity references on
+velocity_commands when a plant subscribes them (CSV axes), and that is the last message per
+state, the one that releases a lockstep plant; with velocity (velocity_commands) or position
+(position_commands: the profile's position set-points, every loop in the drive) the one
+command array is the only message per state. The period is the difference of the state
 stamps, never the node clock, so the loop runs on simulated time exactly in lockstep without
 `use_sim_time` (which then only changes the stamps of the controller's diagnostics).
 
@@ -46,6 +51,14 @@ from lca_sim.ros.node_util import (
     status,
 )
 
+# The topic of each command interface: the plant contract's command topics (docs/contract.md).
+COMMAND_TOPICS = {
+    "voltage": pc.VOLTAGE_COMMANDS,
+    "current": pc.CURRENT_COMMANDS,
+    "velocity": pc.VELOCITY_COMMANDS,
+    "position": pc.POSITION_COMMANDS,
+}
+
 
 class ControllerNode(Node):
     """Cascaded PI control of the LCA axes over topics."""
@@ -75,16 +88,17 @@ class ControllerNode(Node):
         self._restarts_logged = 0
         state_qos = QoSProfile(depth=pc.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         command_qos = QoSProfile(depth=pc.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-        topic = (
-            pc.VOLTAGE_COMMANDS if params.command_interface == "voltage" else pc.CURRENT_COMMANDS
-        )
+        topic = COMMAND_TOPICS[params.command_interface]
         self._command_pub = self.create_publisher(Float64MultiArray, topic, command_qos)
         # The topics no other node may publish: a second controller would fight this one.
-        self._own_topics = (topic, pc.VELOCITY_COMMANDS)
+        self._own_topics: tuple[str, ...] = (topic,)
         self._other_publishers: tuple[str, ...] = ()
-        self._velocity_pub = self.create_publisher(
-            Float64MultiArray, pc.VELOCITY_COMMANDS, command_qos
-        )
+        self._velocity_pub = None
+        if topic in (pc.VOLTAGE_COMMANDS, pc.CURRENT_COMMANDS):  # the velocity loop runs here
+            self._own_topics += (pc.VELOCITY_COMMANDS,)
+            self._velocity_pub = self.create_publisher(
+                Float64MultiArray, pc.VELOCITY_COMMANDS, command_qos
+            )
         self._diag_pub = self.create_publisher(DiagnosticArray, pc.DIAGNOSTICS, 10)
         self.create_subscription(JointState, pc.JOINT_STATES, self._on_joint_states, state_qos)
         if params.command_interface == "voltage":
@@ -157,8 +171,9 @@ class ControllerNode(Node):
             return
         self._plant_t_s = t_s
         self._command_pub.publish(Float64MultiArray(data=commands))
-        if self._velocity_pub.get_subscription_count():  # a plant closing velocity loops
-            self._velocity_pub.publish(Float64MultiArray(data=self.core.last_velocity_reference))
+        velocity_pub = self._velocity_pub
+        if velocity_pub is not None and velocity_pub.get_subscription_count():  # CSV axes
+            velocity_pub.publish(Float64MultiArray(data=self.core.last_velocity_reference))
         self.commands_sent += 1
 
     def _joint_index(self, names: list[str]) -> list[int] | None:
@@ -281,6 +296,11 @@ class ControllerNode(Node):
         }
         for joint, reference in zip(core.params.joints, core.last_velocity_reference, strict=True):
             values[f"{joint}_velocity_reference"] = reference
+        if core.params.command_interface == "position":
+            for joint, setpoint in zip(
+                core.params.joints, core.last_position_setpoint, strict=True
+            ):
+                values[f"{joint}_position_setpoint"] = setpoint
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status.append(status("lca_hil/controller", level, message, values))

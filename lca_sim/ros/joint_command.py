@@ -2,16 +2,18 @@
 
 ros2_control's topic-based hardware interface commands by joint name with a
 sensor_msgs/JointState. `read_joint_command` reads one message; `JointCommandAdapter` turns it
-into a plant's command values, each joint by what it takes (effort or velocity), counts what it
-accepts and refuses, and says what to warn about. The simulator and the CAN bridge both use it.
+into a plant's command values, each joint by what its drive takes (position, velocity or
+effort), counts what it accepts and refuses, and says what to warn about. The simulator and the
+CAN bridge both use it.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Collection, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+from lca_sim.errors import InvalidValueError
 from lca_sim.model.params import RobotParams
 
 
@@ -24,12 +26,14 @@ class JointCommand:
         velocity: joint -> the velocity entry (finite only).
         unknown: names the node has no joint of, in message order.
         error: why the whole message was refused ("" when it was not).
+        position: joint -> the position entry (finite only), rad (m for the lift).
     """
 
     effort: dict[str, float]
     velocity: dict[str, float]
     unknown: tuple[str, ...] = ()
     error: str = ""
+    position: dict[str, float] = field(default_factory=dict)
 
 
 def read_joint_command(
@@ -37,36 +41,36 @@ def read_joint_command(
     velocity: Sequence[float],
     effort: Sequence[float],
     joints: Sequence[str],
+    position: Sequence[float] = (),
 ) -> JointCommand:
     """Read a JointState command as ros2_control's topic-based hardware interface sends it.
 
     The interface names every joint of its `<ros2_control>` block and appends one entry per
-    joint to `velocity` / `effort` for each command interface that joint declares, so a field
-    is either empty (no joint commands it) or exactly as long as `name`. Any other length
-    cannot be mapped to names and refuses the message. Joints match by name (any order, any
-    subset); a NaN entry leaves that joint's command as it is. `position` is not read (no
-    plant here takes a position command).
+    joint to `position` / `velocity` / `effort` for each command interface that joint
+    declares, so a field is either empty (no joint commands it) or exactly as long as `name`.
+    Any other length cannot be mapped to names and refuses the message. Joints match by name
+    (any order, any subset); a NaN entry leaves that joint's command as it is.
     """
     n = len(names)
-    for field, values in (("velocity", velocity), ("effort", effort)):
+    fields = {"position": position, "velocity": velocity, "effort": effort}
+    for kind, values in fields.items():
         if len(values) not in (0, n):
             return JointCommand(
                 {},
                 {},
                 error=(
-                    f"{field} has {len(values)} entries for {n} names: declare the same "
+                    f"{kind} has {len(values)} entries for {n} names: declare the same "
                     "command interfaces on every joint of the <ros2_control> block"
                 ),
             )
     wanted = set(joints)
     unknown = tuple(name for name in names if name not in wanted)
-    taken_effort: dict[str, float] = {}
-    taken_velocity: dict[str, float] = {}
-    for values, taken in ((velocity, taken_velocity), (effort, taken_effort)):
+    taken: dict[str, dict[str, float]] = {kind: {} for kind in fields}
+    for kind, values in fields.items():
         for name, value in zip(names, values, strict=False):
             if name in wanted and math.isfinite(value):
-                taken[name] = float(value)
-    return JointCommand(taken_effort, taken_velocity, unknown)
+                taken[kind][name] = float(value)
+    return JointCommand(taken["effort"], taken["velocity"], unknown, position=taken["position"])
 
 
 def effort_scales(robot: RobotParams, joints: Sequence[str], effort: str) -> tuple[float, ...]:
@@ -92,27 +96,43 @@ class AdaptedCommand:
         velocity: joint -> the velocity command, velocity joints only.
         accepted: the message commands at least one joint and is not refused as a whole.
         problems: what to warn about (empty: nothing).
+        position: joint -> the position command (rad; m for the lift), position joints only.
     """
 
     effort: dict[str, float]
     velocity: dict[str, float]
     accepted: bool
     problems: tuple[str, ...]
+    position: dict[str, float] = field(default_factory=dict)
+
+
+def _no_position_loop(joints: list[str]) -> str:
+    return f"position for {joints}: their drives close no position loop"
 
 
 class JointCommandAdapter:
     """Reads JointState commands for one plant and counts them (`counts`).
 
+    Each joint takes one field, the one of its drive's mode: position (position_joints),
+    velocity (velocity_joints) or effort (the others). Its entries in the other two fields are
+    ignored when zero (what the interface sends for a command interface no controller claims)
+    and refused, counted and warned about, when not.
+
     Args:
         joints: the plant's joints, in its command order.
         effort_scales: per joint, the command per unit of effort (`effort_scales`).
-        velocity_joints: the joints that take a velocity command (CAN: csv drives); the others
-            take effort.
+        velocity_joints: the joints that take a velocity command (CAN: csv drives).
         takes_effort: False when the plant takes no effort at all (the simulator on voltages):
-            every effort entry is refused, a zero one too.
+            every effort entry of an effort joint is refused, a zero one too.
         velocity_refused, effort_refused: the warning for entries of joints that do not take
             them, given those joints.
         topic: the command topic, named in the warning.
+        position_joints: the joints that take a position command, rad or m (CAN: csp drives;
+            the simulator: drive mode position).
+        position_refused: the warning for position entries of joints that do not take them.
+
+    Raises:
+        InvalidValueError: a joint is both a velocity and a position joint.
     """
 
     def __init__(
@@ -125,35 +145,52 @@ class JointCommandAdapter:
         velocity_refused: Callable[[list[str]], str],
         effort_refused: Callable[[list[str]], str],
         topic: str,
+        position_joints: Collection[str] = (),
+        position_refused: Callable[[list[str]], str] = _no_position_loop,
     ) -> None:
         self.joints = tuple(joints)
         self._scale = dict(zip(self.joints, effort_scales, strict=True))
         self._velocity_joints = frozenset(velocity_joints)
+        self._position_joints = frozenset(position_joints)
+        both = sorted(self._velocity_joints & self._position_joints)
+        if both:
+            raise InvalidValueError(f"joints {both} cannot take both velocity and position")
+        self._effort_joints = frozenset(self.joints) - self._velocity_joints - self._position_joints
         self._takes_effort = takes_effort
         self._velocity_refused = velocity_refused
         self._effort_refused = effort_refused
+        self._position_refused = position_refused
         self._topic = topic
         self.counts = {"accepted": 0, "refused": 0, "unknown_names": 0}
 
     def read(
-        self, names: Sequence[str], velocity: Sequence[float], effort: Sequence[float]
+        self,
+        names: Sequence[str],
+        velocity: Sequence[float],
+        effort: Sequence[float],
+        position: Sequence[float] = (),
     ) -> AdaptedCommand:
         """One message's command, counted as accepted or refused."""
-        cmd = read_joint_command(names, velocity, effort, self.joints)
+        cmd = read_joint_command(names, velocity, effort, self.joints, position)
         self.counts["unknown_names"] += len(cmd.unknown)
         efforts = {
             j: cmd.effort[j] * self._scale[j]
             for j in self.joints
-            if j in cmd.effort and self._takes_effort and j not in self._velocity_joints
+            if j in cmd.effort and self._takes_effort and j in self._effort_joints
         }
         velocities = {
             j: cmd.velocity[j]
             for j in self.joints
             if j in cmd.velocity and j in self._velocity_joints
         }
-        accepted = not cmd.error and bool(efforts or velocities)
+        positions = {
+            j: cmd.position[j]
+            for j in self.joints
+            if j in cmd.position and j in self._position_joints
+        }
+        accepted = not cmd.error and bool(efforts or velocities or positions)
         self.counts["accepted" if accepted else "refused"] += 1
-        return AdaptedCommand(efforts, velocities, accepted, self._problems(cmd))
+        return AdaptedCommand(efforts, velocities, accepted, self._problems(cmd), positions)
 
     def _problems(self, cmd: JointCommand) -> tuple[str, ...]:
         problems: list[str] = []
@@ -169,14 +206,19 @@ class JointCommandAdapter:
         )
         if no_loop:
             problems.append(self._velocity_refused(no_loop))
-        if self._takes_effort:
-            no_effort = sorted(
-                j for j, v in cmd.effort.items() if v != 0.0 and j in self._velocity_joints
-            )
-        else:
-            no_effort = sorted(cmd.effort)
+        no_effort = sorted(
+            j
+            for j, v in cmd.effort.items()
+            if (v != 0.0 and j not in self._effort_joints)
+            or (not self._takes_effort and j in self._effort_joints)
+        )
         if no_effort:
             problems.append(self._effort_refused(no_effort))
+        no_position = sorted(
+            j for j, v in cmd.position.items() if v != 0.0 and j not in self._position_joints
+        )
+        if no_position:
+            problems.append(self._position_refused(no_position))
         return tuple(problems)
 
     def fill(self, held: Sequence[float], values: Mapping[str, float]) -> list[float]:

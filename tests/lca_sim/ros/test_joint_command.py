@@ -6,8 +6,14 @@ Pure: the message fields are handed in as lists, no rclpy context is started.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from lca_sim.config.loader import load_robot
+from lca_sim.errors import InvalidValueError
 from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, read_joint_command
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -76,3 +82,109 @@ def test_torque_effort_scales_by_k_t_and_gear_ratio() -> None:
         a = axes[joint]
         assert scale == 1.0 / (a.motor.torque_constant_nm_per_a * a.gear_ratio)
     assert effort_scales(robot, JOINTS, "current") == (1.0, 1.0, 1.0, 1.0)
+
+
+def _named(tag: str) -> Callable[[list[str]], str]:
+    return lambda joints: f"{tag} {joints}"
+
+
+def test_position_joints_take_position_and_nan_or_absent_keeps_the_command() -> None:
+    """A csp joint takes its position (rad, m); NaN and joints not named keep theirs."""
+    adapter = _adapter(position_joints=("pivot", "lift"), velocity_joints=("c_arc",))
+    cmd = adapter.read(
+        ["lift", "pivot", "c_arc"], [0.0, 0.0, 0.1], [0.0, 0.0, 0.0], [0.25, math.nan, 0.0]
+    )
+    assert cmd.accepted and not cmd.problems
+    assert cmd.position == {"lift": 0.25} and cmd.velocity == {"c_arc": 0.1} and not cmd.effort
+    assert adapter.fill([0.1, 0.6, 0.0, 0.3], cmd.position) == [0.1, 0.6, 0.0, 0.25]
+
+
+def test_a_nonzero_entry_in_another_modes_field_is_refused_and_named() -> None:
+    """Position for a cst/csv joint, velocity or effort for a csp joint: warned; zeros are not."""
+    adapter = JointCommandAdapter(
+        JOINTS,
+        (1.0, 1.0, 1.0, 1.0),
+        velocity_joints=("c_arc",),
+        position_joints=("pivot",),
+        velocity_refused=_named("v"),
+        effort_refused=_named("e"),
+        position_refused=_named("p"),
+        topic="/cmd",
+    )
+    quiet = adapter.read(JOINTS, [0.0, 0.0, 0.2, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.0])
+    assert quiet.accepted and not quiet.problems
+    loud = adapter.read(JOINTS, [0.0, 0.3, 0.2, 0.0], [1.0, 2.0, 0.0, 0.0], [0.4, 0.5, 0.0, 0.0])
+    assert loud.accepted  # the fields the joints take still count
+    assert loud.problems == ("v ['pivot']", "e ['pivot']", "p ['l_arm']")
+    assert loud.position == {"pivot": 0.5} and loud.effort == {"l_arm": 1.0, "lift": 0.0}
+    only_foreign = adapter.read(["l_arm"], [], [], [0.4])
+    assert not only_foreign.accepted and only_foreign.problems == ("p ['l_arm']",)
+    assert adapter.counts == {"accepted": 2, "refused": 1, "unknown_names": 0}
+
+
+def test_position_is_refused_by_default_with_a_reason_and_a_ragged_field_refuses_all() -> None:
+    """Without position joints a position entry is refused; a wrong length refuses the message."""
+    adapter = _adapter()
+    cmd = adapter.read(["pivot"], [], [], [0.7])
+    assert not cmd.accepted
+    assert cmd.problems == ("position for ['pivot']: their drives close no position loop",)
+    ragged = read_joint_command(["pivot", "lift"], [], [], JOINTS, [0.1])
+    assert "position has 1 entries for 2 names" in ragged.error and not ragged.position
+
+
+def test_a_joint_cannot_take_both_velocity_and_position() -> None:
+    """One drive runs one mode: a joint in both sets is refused at construction."""
+    with pytest.raises(InvalidValueError, match="pivot"):
+        _adapter(velocity_joints=("pivot",), position_joints=("pivot", "lift"))
+
+
+_ENTRY = st.sampled_from([0.0, math.nan, -0.3, 0.7])
+
+
+@given(
+    modes=st.lists(st.sampled_from("pve"), min_size=4, max_size=4),
+    named=st.lists(st.sampled_from(JOINTS), unique=True),
+    takes_effort=st.booleans(),
+    data=st.data(),
+)
+def test_each_joint_takes_exactly_its_own_field(
+    modes: list[str], named: list[str], takes_effort: bool, data: st.DataObject
+) -> None:
+    """For any modes and message: each joint takes exactly its own field's finite entry.
+
+    Effort is scaled; a joint is warned about iff another field holds a non-zero entry for it,
+    or (a plant without effort) its own effort field any finite entry.
+    """
+    mode = dict(zip(JOINTS, modes, strict=True))
+    adapter = JointCommandAdapter(
+        JOINTS,
+        (1.0, 2.0, 3.0, 4.0),
+        velocity_joints=[j for j in JOINTS if mode[j] == "v"],
+        position_joints=[j for j in JOINTS if mode[j] == "p"],
+        velocity_refused=_named("v"),
+        effort_refused=_named("e"),
+        position_refused=_named("p"),
+        topic="/cmd",
+        takes_effort=takes_effort,
+    )
+    n = len(named)
+    fields = {k: data.draw(st.lists(_ENTRY, min_size=n, max_size=n)) for k in "pve"}
+    cmd = adapter.read(named, fields["v"], fields["e"], fields["p"])
+    scale = dict(zip(JOINTS, (1.0, 2.0, 3.0, 4.0), strict=True))
+    taken: dict[str, dict[str, float]] = {"p": {}, "v": {}, "e": {}}
+    warned: dict[str, list[str]] = {"p": [], "v": [], "e": []}
+    for i, joint in enumerate(named):
+        for kind, values in fields.items():
+            value = values[i]
+            if not math.isfinite(value):
+                continue
+            if kind == mode[joint] == "e" and not takes_effort:
+                warned[kind].append(joint)
+            elif kind == mode[joint]:
+                taken[kind][joint] = value * (scale[joint] if kind == "e" else 1.0)
+            elif value != 0.0:
+                warned[kind].append(joint)
+    assert (cmd.position, cmd.velocity, cmd.effort) == (taken["p"], taken["v"], taken["e"])
+    expected = tuple(f"{k} {sorted(warned[k])}" for k in "vep" if warned[k])
+    assert cmd.problems == expected
+    assert cmd.accepted == any(taken.values())
