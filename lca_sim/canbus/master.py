@@ -63,6 +63,16 @@ class _BusWatch(can.Listener):
         c.nominal_bits += bus_load.frame_bits_nominal(int(msg.dlc))
 
 
+def _refusal(what: str, values: Sequence[float], joints: Sequence[str], nan_holds: bool) -> str:
+    """Why a command array is refused ('' when it is taken): one finite value per joint."""
+    if len(values) != len(joints):
+        return f"expected {len(joints)} {what} ({', '.join(joints)})"
+    if not all(math.isfinite(v) or (nan_holds and math.isnan(v)) for v in values):
+        allowed = "finite or NaN (hold)" if nan_holds else "finite"
+        return f"{what} must be {allowed}, got {list(values)}"
+    return ""
+
+
 class Cia402Master:
     """A CANopen master for CiA 402 drives in cyclic synchronous torque mode.
 
@@ -200,19 +210,25 @@ class Cia402Master:
         return self._take("velocities", velocities, "command_rad_s", now)
 
     def set_positions(self, positions: Sequence[float], now: float | None = None) -> str | None:
-        """Take a position command (joint rad or m, joint order) for the CSP axes (0x607A)."""
-        return self._take("positions", positions, "command_rad", now)
+        """Take a position command (joint rad or m, joint order) for the CSP axes (0x607A).
+
+        NaN for an axis: no position command, the drive holds where it is (`csp_target`).
+        """
+        return self._take("positions", positions, "command_rad", now, nan_holds=True)
 
     def _take(
-        self, what: str, values: Sequence[float], field: str, now: float | None
+        self,
+        what: str,
+        values: Sequence[float],
+        field: str,
+        now: float | None,
+        nan_holds: bool = False,
     ) -> str | None:
         """Store one command per axis in `field`; None, or why it was refused."""
-        if len(values) != len(self._axes):
+        refused = _refusal(what, values, self.params.joints, nan_holds)
+        if refused:
             self.counters.commands_rejected += 1
-            return f"expected {len(self._axes)} {what} ({', '.join(self.params.joints)})"
-        if not all(math.isfinite(v) for v in values):
-            self.counters.commands_rejected += 1
-            return f"{what} must be finite, got {list(values)}"
+            return refused
         with self._lock:
             for axis, value in zip(self._axes, values, strict=True):
                 setattr(axis, field, float(value))

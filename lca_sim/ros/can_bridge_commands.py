@@ -9,6 +9,7 @@ lockstep lets the controller's answer release the next SYNC. docs/can.md has the
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -58,7 +59,9 @@ class BridgeCommands:
         # JointState naming some joints leaves the others as they are.
         self._held_current_a = [0.0] * len(p.joints)
         self._held_velocity = [0.0] * len(p.joints)
-        self._held_position = [0.0] * len(p.joints)
+        # NaN: no position command, a csp drive holds where it is (a JointState naming some
+        # joints must not send the others to 0).
+        self._held_position = [math.nan] * len(p.joints)
         self.joint_commands = JointCommandAdapter(
             p.joints,
             effort_scales(robot, p.joints, p.joint_command_effort),
@@ -66,8 +69,12 @@ class BridgeCommands:
             velocity_refused=lambda j: (
                 f"velocity for {j}: their drives run cst (modes), send effort"
             ),
-            effort_refused=lambda j: f"effort for {j}: their drives run csv (modes), send velocity",
+            effort_refused=lambda j: (
+                f"effort for {j}: their drives run csv or csp (modes), send velocity or position"
+            ),
             topic=p.joint_command_topic,
+            position_joints=self.position_axes,
+            position_refused=lambda j: f"position for {j}: their drives do not run csp (modes)",
         )
         qos = qos_profile(pc.COMMAND_QOS)
         node.create_subscription(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current, qos)
@@ -162,7 +169,8 @@ class BridgeCommands:
         """A JointState command (docs/ros2_control.md), each joint by its drive's mode.
 
         A cst joint takes its effort entry (A, or joint torque per `joint_command_effort`),
-        a csv joint its velocity entry (the drive closes the loop); joints not named, or with
+        a csv joint its velocity entry, a csp joint its position entry (rad or m; the drive
+        closes the loops); joints not named, or with
         NaN, keep their command. The entry of the other field is ignored when zero (what the
         interface sends for an interface no controller claims) and refused when not.
         """
@@ -170,11 +178,13 @@ class BridgeCommands:
         if master is None:
             return
         adapter = self.joint_commands
-        cmd = adapter.read(msg.name, msg.velocity, msg.effort)
+        cmd = adapter.read(msg.name, msg.velocity, msg.effort, position=msg.position)
         if cmd.accepted and cmd.effort:
             self._set_currents(master, adapter.fill(self._held_current_a, cmd.effort))
         if cmd.accepted and cmd.velocity:
             self._set_velocities(master, adapter.fill(self._held_velocity, cmd.velocity))
+        if cmd.accepted and cmd.position:
+            self._set_positions(master, adapter.fill(self._held_position, cmd.position))
         if cmd.problems:
             self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
         self._answered()
