@@ -250,6 +250,18 @@ def test_supported_modes() -> None:
     assert cia402.SUPPORTED_DRIVE_MODES_BITS == 0x0300  # CiA 402-2 0x6502: bits 8 and 9
 
 
+def test_profile_modes_wait_for_the_wiring_switch() -> None:
+    """PP, PV, HM, CSP have their logic but 0x6060 refuses them until PROFILE_MODES_WIRED.
+
+    Wired, 0x6502 = bits 0, 2, 5, 7, 8, 9 (bit n - 1 for mode n) = 0x03A5.
+    """
+    assert not cia402.PROFILE_MODES_WIRED
+    assert sorted(cia402.PROFILE_MODES) == [1, 3, 6, 8]
+    assert not any(cia402.is_supported_mode(m) for m in cia402.PROFILE_MODES)
+    wired = cia402.SUPPORTED_MODES | cia402.PROFILE_MODES
+    assert cia402.supported_drive_modes_bits(wired) == 0x03A5
+
+
 @given(
     st.integers(min_value=0, max_value=0xFFFF),
     st.integers(min_value=0, max_value=0xFF),
