@@ -1,4 +1,4 @@
-"""The rack's CiA 402 side: each drive's power state, errors, torque demand and CSV loop.
+"""The rack's CiA 402 side: each drive's power state, errors, torque demand and loop modes.
 
 A part of the virtual drive rack over the pure logic of `lca_sim.cia402.device`: it applies a
 controlword, a lost connection's 0x6007 reaction and the error objects (0x603F, 0x1001), and
@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from lca_sim.canbus.rack_modes import LOOP_MODES
 from lca_sim.canbus.rack_state import Drive
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
@@ -45,45 +46,64 @@ class DriveControl:
         return axis.torque.encode(axis.torque_constant_nm_per_a * current_a)
 
     def demand(self, axis: Drive) -> cia402.TorqueDemand:
-        """The torque demand of the drive's mode (CST: 0x6071; CSV: the velocity loop's)."""
-        target = axis.csv_permille if axis.drive.mode == cia402.MODE_CSV else None
+        """The torque demand of the drive's mode (CST: 0x6071; the loop modes: their loops').
+
+        In the profile modes and CSP a halt is the mode's own ramp and hold, so their loops
+        keep the demand; CSV and CST give zero torque while halted (`cia402.torque_demand`).
+        """
+        drive = axis.drive
+        max_permille = axis.value(od.MAX_TORQUE)
+        if drive.mode in cia402.PROFILE_MODES:
+            if drive.power is not PowerState.OPERATION_ENABLED:
+                return cia402.TorqueDemand(0, False)
+            permille = axis.modes.permille
+            if abs(permille) > max_permille:
+                return cia402.TorqueDemand(max_permille if permille > 0 else -max_permille, True)
+            return cia402.TorqueDemand(permille, False)
+        target = axis.modes.permille if drive.mode == cia402.MODE_CSV else None
         return cia402.torque_demand(
-            axis.drive,
-            axis.value(od.TARGET_TORQUE) if target is None else target,
-            axis.value(od.MAX_TORQUE),
+            drive, axis.value(od.TARGET_TORQUE) if target is None else target, max_permille
         )
 
-    def velocity_loop(self, axis: Drive, dt_s: float) -> None:
-        """CSV (CiA 402-2 mode 9): the drive's velocity PI turns 0x60FF into its torque demand.
+    def run_loops(self, axis: Drive, dt_s: float, now: float) -> None:
+        """The loop modes (CSV, PP, PV, HM, CSP): the drive's loops over one SYNC's span.
 
-        Runs once per SYNC that advances the plant, over that period, on the joint velocity
-        (0x60FF and 0x606C are the motor's, / the gear ratio), with lca_control's PI. Its
-        output, a current, is the demand in per mille of 0x6075, clamped to 0x6072 like a CST
-        target. Outside operation enabled, or halted, the loop starts again from 0.
+        Run once per SYNC that advances the plant, on the plant's joint state (`rack_modes`).
+        Outside operation enabled, or halted in CSV, the loops rest and each mode starts again
+        from the present state when enabled. A following error the mode reports (EMCY 0x8611)
+        is the drive's fault reaction: error code, EMCY, FAULT.
         """
-        loop = axis.velocity_loop
-        assert loop is not None
         drive = axis.drive
-        if drive.power is not PowerState.OPERATION_ENABLED or drive.halted:
-            loop.reset()
-            axis.csv_permille = 0
+        if drive.power is not PowerState.OPERATION_ENABLED or (
+            drive.mode == cia402.MODE_CSV and drive.halted
+        ):
+            axis.modes.stop()
             return
         if dt_s <= 0.0:
             return
-        target_rad_s = axis.velocity.decode(axis.value(od.TARGET_VELOCITY)) / axis.gear_ratio
-        current_a = loop.update(target_rad_s, float(self._state[1, axis.plant_index]), dt_s)
-        axis.csv_permille = axis.current.encode(current_a)
+        a, state = axis.plant_index, self._state
+        code = axis.modes.run(
+            axis, dt_s, (float(state[0, a]), float(state[1, a]), float(state[2, a]))
+        )
+        if code is not None:
+            axis.values[(od.ERROR_CODE, 0)] = code
+            axis.values[(od.ERROR_REGISTER, 0)] = axis.value(od.ERROR_REGISTER) | (
+                od.error_register_for(code)
+            )
+            self._emcy(axis, code)
+            self.set_drive(axis, cia402.fault(axis.drive), now)
+            axis.modes.stop()
 
-    def currents_a(self, axes: Sequence[Drive], span_s: float) -> list[float] | None:
-        """Every drive's current setpoint, A, in plant order, after `span_s` of the CSV loops.
+    def currents_a(self, axes: Sequence[Drive], span_s: float, now: float) -> list[float] | None:
+        """Every drive's current setpoint, A, in plant order, after `span_s` of the loop modes.
 
         None when every power stage is off (the plant then holds zero current).
         """
         currents_a = [0.0] * len(axes)
         any_enabled = False
         for axis in axes:
-            if axis.drive.mode == cia402.MODE_CSV:
-                self.velocity_loop(axis, span_s)
+            if axis.drive.mode in LOOP_MODES:
+                self.run_loops(axis, span_s, now)
             # Rated torque is k_t x rated current: a torque in per mille of 0x6076 is the same
             # per mille of 0x6075 (CiA 402-2 0x6071 / 0x6075), the drive's current setpoint.
             currents_a[axis.joint_index] = axis.current.decode(self.demand(axis).permille)
@@ -91,14 +111,24 @@ class DriveControl:
         return currents_a if any_enabled else None
 
     def statusword(self, axis: Drive) -> int:
-        """0x6041, with target reached (0x6077 within the window of the demand) and limit."""
+        """0x6041: the power state, internal limit, and bits 10 / 12 / 13 of the mode.
+
+        CST and CSV: target reached is 0x6077 within the window of the demand. The profile
+        modes and CSP: bits 10, 12 and 13 are their logic's (`rack_modes`).
+        """
+        drive = axis.drive
         demand = self.demand(axis)
+        if drive.mode in cia402.PROFILE_MODES:
+            word = cia402.statusword(drive, target_reached=False, internal_limit=demand.limited)
+            if drive.power is PowerState.OPERATION_ENABLED:
+                word |= axis.modes.status_bits
+            return word
         reached = (
-            axis.drive.power is PowerState.OPERATION_ENABLED
+            drive.power is PowerState.OPERATION_ENABLED
             and abs(self.torque_actual_permille(axis) - demand.permille)
             <= cia402.TARGET_TORQUE_WINDOW_PERMILLE
         )
-        return cia402.statusword(axis.drive, target_reached=reached, internal_limit=demand.limited)
+        return cia402.statusword(drive, target_reached=reached, internal_limit=demand.limited)
 
     # --- state changes -------------------------------------------------------------------
 

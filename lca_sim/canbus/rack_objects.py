@@ -7,6 +7,7 @@ refused with the CiA 301 abort code of docs/can.md, "The virtual drive rack".
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import replace
@@ -129,6 +130,7 @@ class ObjectStore:
         control, counters = self._control, self._counters
         a, gear = axis.plant_index, axis.gear_ratio
         encode_position = codec.position(axis.units).encode
+        loops, rad_per_increment = axis.modes, 2.0 * math.pi / axis.units.increments_per_rev
         encode_velocity = codec.velocity(axis.units).encode
         encode_current = codec.current(axis.units).encode
         encode_stall = codec.codec_for(od.entry(od.LONGEST_STALL)).encode
@@ -137,7 +139,14 @@ class ObjectStore:
             (od.CONTROLWORD, 0): lambda: axis.drive.controlword,
             (od.MODES_OF_OPERATION, 0): lambda: axis.drive.mode,
             (od.MODES_OF_OPERATION_DISPLAY, 0): lambda: axis.drive.mode,
-            (od.POSITION_ACTUAL, 0): lambda: encode_position(float(state[0, a]) * gear),
+            # Homing moves the position frame: 0x6064 reads 0x607C at home (`rack_modes`).
+            (od.POSITION_ACTUAL, 0): lambda: encode_position(
+                float(state[0, a]) * gear + loops.offset_inc * rad_per_increment
+            ),
+            (od.POSITION_DEMAND, 0): lambda: encode_position(modes.demand_inc * rad_per_increment),
+            (od.FOLLOWING_ERROR_ACTUAL, 0): lambda: encode_position(
+                loops.following_error_inc * rad_per_increment
+            ),
             (od.VELOCITY_ACTUAL, 0): lambda: encode_velocity(float(state[1, a]) * gear),
             (od.TORQUE_ACTUAL, 0): lambda: control.torque_actual_permille(axis),
             (od.CURRENT_ACTUAL, 0): lambda: encode_current(float(state[2, a])),

@@ -10,16 +10,19 @@ import math
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import canopen
 from canopen import SdoAbortedError
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 
-from lca_control.pi import PIController
 from lca_sim.cia402 import cia301, codec
 from lca_sim.cia402.codec import Codec, DriveUnits
 from lca_sim.cia402.device import Cia402AxisState
 from lca_sim.config.rack import AxisConfig
+
+if TYPE_CHECKING:  # rack_modes reads a Drive: only the type goes this way
+    from lca_sim.canbus.rack_modes import AxisModes
 
 # canopen's names of the NMT states (`NmtSlave.state`).
 NMT_OPERATIONAL = "OPERATIONAL"
@@ -179,8 +182,8 @@ class Drive:
     torque: Codec = field(init=False)  # N m <-> per mille of 0x6076 (0x6071, 0x6077)
     current: Codec = field(init=False)  # A <-> per mille of 0x6075 (0x6078)
     velocity: Codec = field(init=False)  # motor rad/s <-> increments/s (0x606C, 0x60FF)
-    velocity_loop: PIController | None = None  # CSV: target velocity -> current setpoint
-    csv_permille: int = 0  # CSV: the velocity loop's output, per mille of 0x6075
+    # The drive's loops and loop modes (CSV, PP, PV, HM, CSP), set when the drive is built.
+    modes: AxisModes = field(init=False)
     faults: DriveFaults = field(default_factory=DriveFaults)
 
     def __post_init__(self) -> None:

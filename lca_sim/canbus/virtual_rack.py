@@ -29,10 +29,12 @@ import can
 import canopen
 from can.interfaces.virtual import VirtualBus
 
-from lca_control.pi import PIController, PIParams
+from lca_control.drive_loops import DriveLoopParams
+from lca_control.pi import PIParams
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_cia402 import DriveControl
 from lca_sim.canbus.rack_faults import RackFaults
+from lca_sim.canbus.rack_modes import AxisModes
 from lca_sim.canbus.rack_network import RackListener, RackNetwork
 from lca_sim.canbus.rack_nmt import RackNmt
 from lca_sim.canbus.rack_objects import ObjectStore, drive_units
@@ -411,7 +413,7 @@ class VirtualDriveRack:
         self._step_budget_s += span_s
         steps = math.floor(self._step_budget_s / dt_s + 1e-6)
         self._step_budget_s = max(self._step_budget_s - steps * dt_s, 0.0)
-        currents_a = self._control.currents_a(self._axes, span_s)
+        currents_a = self._control.currents_a(self._axes, span_s, now)
         if currents_a is not None:
             refused = self._plant.command(currents_a)
             if refused is not None:
@@ -527,7 +529,7 @@ def _build_drive(
     k_t: dict[str, float],
     units: dict[str, DriveUnits],
 ) -> Drive:
-    """One drive: its canopen node over the EDS, and its CSV velocity loop."""
+    """One drive: its canopen node over the EDS, and its loops (`rack_modes`)."""
     plant_index = sim.axis_names.index(axis_config.name)
     dictionary = canopen.objectdictionary.import_od(eds, axis_config.node_id)
     node = canopen.LocalNode(axis_config.node_id, dictionary)
@@ -547,7 +549,14 @@ def _build_drive(
         defaults={},
     )
     limit_a = axis.current.decode(axis_config.max_torque_permille)
-    axis.velocity_loop = PIController(
-        PIParams(config.velocity_kp_a_per_rad_s, config.velocity_ti_s, -limit_a, limit_a)
+    loop_params = DriveLoopParams(
+        PIParams(config.velocity_kp_a_per_rad_s, config.velocity_ti_s, -limit_a, limit_a),
+        position_kp_per_s=config.position_kp_per_s,
+        velocity_limit=config.velocity_limit,
+    )
+    axis.modes = AxisModes(
+        loop_params,
+        axis.gear_ratio * axis.units.increments_per_rev / (2.0 * math.pi),
+        sim.position_limits[plant_index],
     )
     return axis

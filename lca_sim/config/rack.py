@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
+from lca_control.drive_loops import DEFAULT_POSITION_KP_PER_S, DEFAULT_VELOCITY_LIMIT
 from lca_sim.cia402 import objects as od
 from lca_sim.config.loader import config_dir
 from lca_sim.config.yaml_files import read_yaml
@@ -109,8 +110,12 @@ class RackConfig:
         rigid_body_period_s: eq. (2)'s A(q) and C qdot + Q evaluated this often and held between
             (a whole multiple of dt_s; the simulator node's `rigid_body_period_s` too).
         current_kp_v_per_a, current_ti_s: the in-drive current PI.
-        velocity_kp_a_per_rad_s, velocity_ti_s: the in-drive velocity PI of CSV (mode 9), on
-            the joint's velocity, the paper's section 6 gains by default (lca_control's).
+        velocity_kp_a_per_rad_s, velocity_ti_s: the in-drive velocity PI (CSV, PV, and under
+            the position loop of PP, HM, CSP), on the joint's velocity, the paper's section 6
+            gains by default (lca_control's).
+        position_kp_per_s: the in-drive position loop's gain (PP, HM, CSP), 1/s.
+        velocity_limit: the drive loops' |velocity setpoint| cap, joint rad/s (m/s for the
+            lift): `lca_control.drive_loops`, as the simulator node's `drive_velocity_limit`.
         heartbeat_producer_ms: 0x1017 after boot-up.
         encoder_increments_per_rev: 0x608F sub 1, motor side.
         sync_loss_periods: SYNC loss after this many 0x1006 periods without a SYNC.
@@ -138,6 +143,8 @@ class RackConfig:
     eds_path: str = ""
     velocity_kp_a_per_rad_s: float = PAPER_VELOCITY_KP_A_PER_RAD_S
     velocity_ti_s: float = PAPER_VELOCITY_TI_S
+    position_kp_per_s: float = DEFAULT_POSITION_KP_PER_S
+    velocity_limit: float = DEFAULT_VELOCITY_LIMIT
     faults: tuple[FaultEntry, ...] = ()
     timing_mode: str = "realtime"
     rigid_body_period_s: float = DEFAULT_RIGID_BODY_PERIOD_S
@@ -271,6 +278,12 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
     velocity_ti_s = top.number(
         "velocity_ti_s", default=PAPER_VELOCITY_TI_S, min_value=0.0, min_exclusive=True
     )
+    position_kp = top.number(
+        "position_kp_per_s", default=DEFAULT_POSITION_KP_PER_S, min_value=0.0, max_value=1000.0
+    )
+    velocity_limit = top.number(
+        "velocity_limit", default=DEFAULT_VELOCITY_LIMIT, min_value=0.0, min_exclusive=True
+    )
     heartbeat_ms = _integer(top, "heartbeat_producer_ms", 0, 0xFFFF)
     increments = _integer(top, "encoder_increments_per_rev", 1, 0xFFFFFFFF)
     sync_loss = top.number("sync_loss_periods", default=3.0, min_value=1.0)
@@ -329,6 +342,8 @@ def parse_rack_config(data: object, source: str, base_dir: Path | None = None) -
         eds_path=eds,
         velocity_kp_a_per_rad_s=velocity_kp,
         velocity_ti_s=velocity_ti_s,
+        position_kp_per_s=position_kp,
+        velocity_limit=velocity_limit,
         faults=faults,
         timing_mode=timing_mode,
         rigid_body_period_s=rigid_body_period_s,

@@ -1,0 +1,246 @@
+"""The rack's loop modes: CSV, PP, PV, HM and CSP through the drive's own loops (CiA 402-2).
+
+A part of each virtual drive. Once per SYNC that advances the plant, for a drive enabled in
+one of these modes, the mode's logic (`lca_sim.cia402.mode_pp`, `mode_pv`, `homing`,
+`mode_csp`) turns its objects and the controlword into a demand (0x6062 and a velocity) and
+the statusword bits 10, 12 and 13; lca_control's `DriveLoops`, the same loops the simulator
+node runs for its position and velocity joints, closes the position and velocity loops on the
+plant's joint state; their output, a current setpoint, becomes the drive's demand in per mille
+of 0x6075. CST does not come here. Positions are motor increments (0x608F) on the bus and
+joint rad (m) in the loops: increments = joint x gear ratio x 0x608F / 2 pi, plus the home
+offset homing set. docs/can-modes.md.
+"""
+
+from __future__ import annotations
+
+import math
+
+from lca_control.drive_loops import DriveLoopParams, DriveLoops, DriveMode
+from lca_sim.canbus.rack_state import Drive
+from lca_sim.cia402 import objects as od
+from lca_sim.cia402.device import MODE_CSP, MODE_CSV, MODE_HM, MODE_PP, MODE_PV
+from lca_sim.cia402.homing import HomingInputs, HomingMode, HomingParams
+from lca_sim.cia402.mode_common import Loop, ModeOutput, SoftwareLimits, WindowParams
+from lca_sim.cia402.mode_csp import CspParams, CyclicPositionMode
+from lca_sim.cia402.mode_pp import PpParams, ProfilePositionMode
+from lca_sim.cia402.mode_pv import ProfileVelocityMode, PvParams
+from lca_sim.cia402.profile import ProfileParams
+
+# The modes whose demand comes from the drive's loops (CST's is the target torque itself).
+LOOP_MODES = frozenset({MODE_CSV, MODE_PP, MODE_PV, MODE_HM, MODE_CSP})
+# The gantry's joint limits act as limit switches (homing methods 17 / 18) this share of the
+# joint's range before its mechanical stop.
+LIMIT_SWITCH_SHARE = 0.005
+_LOOPS = {Loop.POSITION: DriveMode.POSITION, Loop.VELOCITY: DriveMode.VELOCITY}
+
+
+class AxisModes:
+    """One drive's loops and the logic of the loop mode in force.
+
+    Args:
+        loop_params: the drive loops' gains and limits (rack.yaml's velocity PI, the position
+            gain, the current limit of 0x6072).
+        increments_per_joint: encoder increments per joint rad (m): gear x 0x608F / 2 pi.
+        joint_limits: the joint's (min, max), rad or m: the limit switches of homing.
+    """
+
+    def __init__(
+        self,
+        loop_params: DriveLoopParams,
+        increments_per_joint: float,
+        joint_limits: tuple[float, float],
+    ) -> None:
+        self.loops = DriveLoops(loop_params, DriveMode.VELOCITY)
+        self._k = increments_per_joint
+        low, high = joint_limits
+        margin = LIMIT_SWITCH_SHARE * (high - low)
+        self._switches = (low + margin, high - margin)
+        self._pp = ProfilePositionMode()
+        self._pv = ProfileVelocityMode()
+        self._hm = HomingMode()
+        self._csp = CyclicPositionMode()
+        self._entered: int | None = None  # the mode whose logic runs (None: not enabled)
+        self.permille = 0  # the loops' current setpoint, per mille of 0x6075
+        self.status_bits = 0  # bits 10, 12, 13 of the profile mode in force
+        self.demand_inc = 0.0  # 0x6062
+        self.following_error_inc = 0.0  # 0x60F4
+        self.offset_inc = 0.0  # homing's shift: 0x6064 = joint x k + this
+
+    def position_inc(self, joint_position: float) -> float:
+        """0x6064 of a joint position, increments (before the INTEGER32 wrap)."""
+        return joint_position * self._k + self.offset_inc
+
+    def stop(self) -> None:
+        """Not enabled (or halted in CSV): loops at rest, each mode starts afresh when enabled."""
+        self.loops.reset()
+        self._entered = None
+        self.permille = 0
+        self.status_bits = 0
+
+    def run(
+        self,
+        axis: Drive,
+        dt_s: float,
+        joint: tuple[float, float, float],
+    ) -> int | None:
+        """One SYNC's span of the mode in force; an EMCY code for the caller to act on, or None.
+
+        Args:
+            axis: the drive (its objects, controlword, mode and current codec).
+            dt_s: the span the plant advances, s (> 0).
+            joint: the plant's joint position (rad, m), velocity (rad/s, m/s) and current (A).
+        """
+        mode, controlword = axis.drive.mode, axis.drive.controlword
+        position, velocity, current_a = joint
+        k = self._k
+        position_inc, velocity_inc_s = self.position_inc(position), velocity * k
+        if mode != self._entered:
+            self._enter(axis, mode, position_inc, velocity_inc_s, position, velocity)
+        if mode == MODE_CSV:
+            target = axis.velocity.decode(axis.value(od.TARGET_VELOCITY)) / axis.gear_ratio
+            current = self.loops.update(dt_s, position=position, velocity=velocity,
+                                        velocity_target=target)  # fmt: skip
+            self.permille = axis.current.encode(current)
+            return None
+        out = self._step(axis, mode, dt_s, controlword, position_inc, velocity_inc_s, current_a)
+        self.offset_inc += out.position_shift_inc  # homing: the frame moves, the axis does not
+        wanted = _LOOPS.get(out.loop, DriveMode.POSITION)
+        if wanted is not self.loops.mode:
+            self.loops.set_mode(wanted, position=position, velocity=velocity)
+        offset_a = axis.current.decode(out.torque_offset_permille)
+        current = self.loops.update(
+            dt_s,
+            position=position,
+            velocity=velocity,
+            position_target=(out.position_inc - self.offset_inc) / k,
+            velocity_target=out.velocity_inc_s / k,
+            current_target_a=offset_a,
+        )
+        self.permille = axis.current.encode(current)
+        self.status_bits = out.status_bits
+        self.demand_inc = out.position_inc
+        self.following_error_inc = out.following_error_inc
+        return out.emcy_code
+
+    def _enter(
+        self,
+        axis: Drive,
+        mode: int,
+        position_inc: float,
+        velocity_inc_s: float,
+        position: float,
+        velocity: float,
+    ) -> None:
+        """The mode starts from the present state (CiA 402-2 0x6060 while enabled: bumpless)."""
+        controlword = axis.drive.controlword
+        if mode == MODE_PP:
+            self._pp.enter(position_inc, velocity_inc_s, controlword, _pp_params(axis))
+        elif mode == MODE_PV:
+            self._pv.enter(position_inc, velocity_inc_s, controlword)
+        elif mode == MODE_HM:
+            self._hm.enter(position_inc, velocity_inc_s, controlword)
+        elif mode == MODE_CSP:
+            self._csp.enter(position_inc, velocity_inc_s, controlword)
+        loop = DriveMode.VELOCITY if mode in (MODE_CSV, MODE_PV) else DriveMode.POSITION
+        self.loops.set_mode(loop, position=position, velocity=velocity)
+        self._entered = mode
+        self.demand_inc = position_inc
+        self.following_error_inc = 0.0
+        self.status_bits = 0
+
+    def _step(
+        self,
+        axis: Drive,
+        mode: int,
+        dt_s: float,
+        controlword: int,
+        position_inc: float,
+        velocity_inc_s: float,
+        current_a: float,
+    ) -> ModeOutput:
+        if mode == MODE_PP:
+            target = axis.value(od.TARGET_POSITION)
+            return self._pp.update(dt_s, controlword, target, position_inc, _pp_params(axis))
+        if mode == MODE_PV:
+            target = axis.value(od.TARGET_VELOCITY)
+            return self._pv.update(dt_s, controlword, target, velocity_inc_s, _pv_params(axis))
+        if mode == MODE_HM:
+            low, high = self._switches
+            joint = (position_inc - self.offset_inc) / self._k
+            inputs = HomingInputs(
+                position_inc, velocity_inc_s, current_a, joint <= low, joint >= high
+            )
+            return self._hm.update(dt_s, controlword, inputs, _homing_params(axis))
+        return self._csp.update(
+            dt_s,
+            controlword,
+            axis.value(od.TARGET_POSITION),
+            position_inc,
+            _csp_params(axis),
+            velocity_offset_inc_s=axis.value(od.VELOCITY_OFFSET),
+            torque_offset_permille=axis.value(od.TORQUE_OFFSET),
+        )
+
+
+def _profile(axis: Drive) -> ProfileParams:
+    """0x6081, 0x6083, 0x6084, 0x6085, 0x607F (increments)."""
+    return ProfileParams(
+        velocity_inc_s=axis.value(od.PROFILE_VELOCITY),
+        acceleration_inc_s2=max(axis.value(od.PROFILE_ACCELERATION), 1),
+        deceleration_inc_s2=max(axis.value(od.PROFILE_DECELERATION), 1),
+        quick_stop_deceleration_inc_s2=max(axis.value(od.QUICK_STOP_DECELERATION), 1),
+        max_velocity_inc_s=axis.value(od.MAX_PROFILE_VELOCITY),
+    )
+
+
+def _window(axis: Drive, window: int, time_ms: int) -> WindowParams:
+    return WindowParams(axis.value(window), axis.value(time_ms) * 1e-3)
+
+
+def _limits(axis: Drive) -> SoftwareLimits:
+    return SoftwareLimits(
+        axis.value(od.SOFTWARE_POSITION_LIMIT, 1), axis.value(od.SOFTWARE_POSITION_LIMIT, 2)
+    )
+
+
+def _pp_params(axis: Drive) -> PpParams:
+    return PpParams(
+        _profile(axis),
+        halt_option=axis.value(od.HALT_OPTION),
+        limits=_limits(axis),
+        position_window=_window(axis, od.POSITION_WINDOW, od.POSITION_WINDOW_TIME),
+        following_error=_window(axis, od.FOLLOWING_ERROR_WINDOW, od.FOLLOWING_ERROR_TIME),
+    )
+
+
+def _pv_params(axis: Drive) -> PvParams:
+    slippage = axis.values.get((od.MAX_SLIPPAGE, 0))
+    return PvParams(
+        _profile(axis),
+        halt_option=axis.value(od.HALT_OPTION),
+        velocity_window=_window(axis, od.VELOCITY_WINDOW, od.VELOCITY_WINDOW_TIME),
+        velocity_threshold=_window(axis, od.VELOCITY_THRESHOLD, od.VELOCITY_THRESHOLD_TIME),
+        max_slippage_inc_s=math.inf if not slippage else float(slippage),
+    )
+
+
+def _csp_params(axis: Drive) -> CspParams:
+    return CspParams(
+        _profile(axis),
+        halt_option=axis.value(od.HALT_OPTION),
+        limits=_limits(axis),
+        following_error=_window(axis, od.FOLLOWING_ERROR_WINDOW, od.FOLLOWING_ERROR_TIME),
+    )
+
+
+def _homing_params(axis: Drive) -> HomingParams:
+    return HomingParams(
+        method=axis.value(od.HOMING_METHOD),
+        switch_speed_inc_s=max(axis.value(od.HOMING_SPEEDS, 1), 1),
+        zero_speed_inc_s=max(axis.value(od.HOMING_SPEEDS, 2), 1),
+        acceleration_inc_s2=max(axis.value(od.HOMING_ACCELERATION), 1),
+        home_offset_inc=axis.value(od.HOME_OFFSET),
+        stop_current_a=axis.current.decode(axis.value(od.HOMING_STOP_CURRENT)),
+        stop_time_s=axis.value(od.HOMING_STOP_TIME) * 1e-3,
+        stop_velocity_inc_s=axis.value(od.VELOCITY_THRESHOLD),
+    )
