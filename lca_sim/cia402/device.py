@@ -27,15 +27,12 @@ MODE_HM = 6  # homing (`homing`)
 MODE_CSP = 8  # cyclic synchronous position (`mode_csp`)
 MODE_CSV = 9  # cyclic synchronous velocity: the drive closes the velocity loop (0x60FF)
 MODE_CST = 10  # cyclic synchronous torque
-# The modes whose logic exists in this package (the rack runs them once they are wired in).
+# The profile modes and CSP: their logic is in mode_pp, mode_pv, homing and mode_csp, and a
+# halt there is the mode's own ramp (the loops keep the demand), not zero torque.
 PROFILE_MODES: frozenset[int] = frozenset({MODE_PP, MODE_PV, MODE_HM, MODE_CSP})
-# The one switch of the wiring step: True once the rack runs PP, PV, HM and CSP. Until then a
-# write of 0x6060 may select only 0, CSV and CST, and 0x6502 says so.
-PROFILE_MODES_WIRED = False
-# Modes a write of 0x6060 may select; the others (reserved, manufacturer-specific) are refused.
-SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CSV, MODE_CST}) | (
-    PROFILE_MODES if PROFILE_MODES_WIRED else frozenset()
-)
+# Modes a write of 0x6060 may select; the others (reserved, manufacturer-specific) are refused
+# with SDO abort 0x06090030 (value range exceeded).
+SUPPORTED_MODES: frozenset[int] = frozenset({MODE_NONE, MODE_CSV, MODE_CST}) | PROFILE_MODES
 # The modes in which the drive follows a cyclic target (the torque, or its velocity loop's).
 CYCLIC_MODES: frozenset[int] = frozenset({MODE_CSV, MODE_CST})
 
@@ -45,8 +42,7 @@ def supported_drive_modes_bits(modes: frozenset[int]) -> int:
     return sum(1 << (mode - 1) for mode in modes if mode > 0)
 
 
-# 0x6502 of the drive: bit 8 = CSV, bit 9 = CST (0x0300); with the profile modes wired, also
-# bit 0 PP, 2 PV, 5 HM, 7 CSP (0x03A5).
+# 0x6502 of the drive: bits 0 PP, 2 PV, 5 HM, 7 CSP, 8 CSV, 9 CST (0x03A5).
 SUPPORTED_DRIVE_MODES_BITS = supported_drive_modes_bits(SUPPORTED_MODES)
 
 # --- controlword bits (CiA 402-2 0x6040) ---
@@ -388,7 +384,7 @@ def power_state_of(word: int) -> PowerState | None:
 def is_supported_mode(mode: int) -> bool:
     """True for the modes of operation a write of 0x6060 may select (`SUPPORTED_MODES`).
 
-    0 no mode, 9 CSV, 10 CST; also 1 PP, 3 PV, 6 HM, 8 CSP once `PROFILE_MODES_WIRED`.
+    0 no mode, 1 PP, 3 PV, 6 HM, 8 CSP, 9 CSV, 10 CST.
     """
     return mode in SUPPORTED_MODES
 

@@ -584,10 +584,10 @@ _PROCESS_OBJECTS: tuple[ObjectEntry, ...] = (
                 _cia402(POSITION_ENCODER_RESOLUTION), default=65536),
     ObjectEntry(POSITION_ENCODER_RESOLUTION, 2, "Motor revolutions", _U32, _RO, False,
                 _cia402(POSITION_ENCODER_RESOLUTION), default=1),
-    # 0x00000300: bits 8, 9 = CSV, CST. 0x000003A5 (bits 0, 2, 5, 7 too: PP, PV, HM, CSP)
-    # once device.PROFILE_MODES_WIRED; the tests hold this, the EDS and device together.
+    # 0x000003A5: bits 0, 2, 5, 7, 8, 9 = PP, PV, HM, CSP, CSV, CST (bit n - 1 for mode n);
+    # the tests hold this, the EDS and device.SUPPORTED_MODES together.
     ObjectEntry(SUPPORTED_DRIVE_MODES, 0, "Supported drive modes", _U32, _RO, False,
-                _cia402(SUPPORTED_DRIVE_MODES), default=0x00000300),
+                _cia402(SUPPORTED_DRIVE_MODES), default=0x000003A5),
     *_MODE_OBJECTS,
 )  # fmt: skip
 

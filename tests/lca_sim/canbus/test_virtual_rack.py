@@ -121,11 +121,14 @@ def test_illegal_jump_stays_where_it_is(rack: VirtualDriveRack, master: canopen.
 
 
 def test_sdo_aborts(rack: VirtualDriveRack, master: canopen.Network) -> None:
-    """Unsupported mode, unknown object, missing sub-index, read-only, max torque too high."""
+    """Reserved modes, unknown object, missing sub-index, read-only, max torque too high."""
     node = remote_node(master, PIVOT)
     cases = [
-        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 1)), 0x06090030),
-        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 8)), 0x06090030),  # CSP
+        # CiA 402-2 0x6060: 2 (velocity mode), 4 (torque profile), 7 (interpolated position)
+        # are not run, -1 is manufacturer specific: value range exceeded.
+        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 2)), 0x06090030),
+        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", 7)), 0x06090030),
+        (lambda: node.sdo.download(0x6060, 0, struct.pack("<b", -1)), 0x06090030),
         (lambda: node.sdo.upload(0x5000, 0), 0x06020000),
         (lambda: node.sdo.upload(0x6041, 1), 0x06090011),
         (lambda: node.sdo.download(0x6041, 0, b"\x00\x00"), 0x06010002),
@@ -139,7 +142,7 @@ def test_sdo_aborts(rack: VirtualDriveRack, master: canopen.Network) -> None:
         codes.append(aborted.value.code)
     assert codes == [code for _, code in cases]
     assert node.sdo[0x6060].raw == 10
-    assert node.sdo[0x6502].raw == 0x0300  # CSV and CST
+    assert node.sdo[0x6502].raw == 0x03A5  # PP, PV, HM, CSP, CSV, CST
 
 
 def test_fault_reset_acts_on_the_rising_edge_only(

@@ -237,29 +237,12 @@ def test_torque_demand(
     assert cia402.torque_demand(state, target, maximum) == demand
 
 
-def test_supported_modes() -> None:
-    """CST (10), CSV (9) and no mode (0) are accepted; CSP (8), profile position (1) are not."""
-    assert [cia402.is_supported_mode(m) for m in (10, 9, 0, 8, 1, -1)] == [
-        True,
-        True,
-        True,
-        False,
-        False,
-        False,
-    ]
-    assert cia402.SUPPORTED_DRIVE_MODES_BITS == 0x0300  # CiA 402-2 0x6502: bits 8 and 9
-
-
-def test_profile_modes_wait_for_the_wiring_switch() -> None:
-    """PP, PV, HM, CSP have their logic but 0x6060 refuses them until PROFILE_MODES_WIRED.
-
-    Wired, 0x6502 = bits 0, 2, 5, 7, 8, 9 (bit n - 1 for mode n) = 0x03A5.
-    """
-    assert not cia402.PROFILE_MODES_WIRED
+def test_supported_modes_are_the_profile_and_cyclic_modes() -> None:
+    """0x6502 = bits 0, 2, 5, 7, 8, 9 (bit n - 1 for mode n): PP, PV, HM, CSP, CSV, CST."""
     assert sorted(cia402.PROFILE_MODES) == [1, 3, 6, 8]
-    assert not any(cia402.is_supported_mode(m) for m in cia402.PROFILE_MODES)
-    wired = cia402.SUPPORTED_MODES | cia402.PROFILE_MODES
-    assert cia402.supported_drive_modes_bits(wired) == 0x03A5
+    assert all(cia402.is_supported_mode(m) for m in (0, 1, 3, 6, 8, 9, 10))
+    assert not any(cia402.is_supported_mode(m) for m in (-1, 2, 4, 5, 7, 11, 127))
+    assert cia402.supported_drive_modes_bits(cia402.SUPPORTED_MODES) == 0x03A5
 
 
 @given(
