@@ -4,5 +4,5 @@
 units, `device` what a drive decides (power state machine, statusword, torque demand),
 `sync_rate` which SYNCs come faster than 0x1006 allows, `master` what the bridge decides.
 The profile and position modes: `profile` (the ramp), `mode_pp`, `mode_pv`, `homing`,
-`mode_csp`, sharing `mode_common` (docs/can-modes.md).
+`mode_csp`, sharing `mode_common`; `mode_params` reads their objects (docs/can-modes.md).
 """

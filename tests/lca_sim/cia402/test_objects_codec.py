@@ -266,6 +266,32 @@ def test_default_pdo_mappings_come_from_the_table() -> None:
     assert od.entry(od.SUPPORTED_DRIVE_MODES).default == SUPPORTED_DRIVE_MODES_BITS
 
 
+def test_mode_objects_map_as_the_modes_use_them() -> None:
+    """Cyclic set-points are rww and mappable, demand values ro and mappable; the rest rw.
+
+    The modes' configuration (windows, ramps, homing) is SDO-only. docs/can-modes.md.
+    """
+    for index in (od.TARGET_POSITION, od.VELOCITY_OFFSET, od.TORQUE_OFFSET):
+        assert (od.entry(index).access, od.entry(index).pdo_mappable) == (Access.RWW, True)
+    for index in (od.POSITION_DEMAND, od.FOLLOWING_ERROR_ACTUAL):
+        assert (od.entry(index).access, od.entry(index).pdo_mappable) == (Access.RO, True)
+    configuration = [
+        *((index, 0) for index in (
+            od.HALT_OPTION, od.FOLLOWING_ERROR_WINDOW, od.FOLLOWING_ERROR_TIME,
+            od.POSITION_WINDOW, od.POSITION_WINDOW_TIME, od.VELOCITY_WINDOW,
+            od.VELOCITY_WINDOW_TIME, od.VELOCITY_THRESHOLD, od.VELOCITY_THRESHOLD_TIME,
+            od.HOME_OFFSET, od.MAX_PROFILE_VELOCITY, od.PROFILE_VELOCITY,
+            od.PROFILE_ACCELERATION, od.PROFILE_DECELERATION, od.QUICK_STOP_DECELERATION,
+            od.MOTION_PROFILE_TYPE, od.HOMING_METHOD, od.HOMING_ACCELERATION, od.MAX_SLIPPAGE,
+            od.HOMING_STOP_CURRENT, od.HOMING_STOP_TIME,
+        )),
+        (od.SOFTWARE_POSITION_LIMIT, 1), (od.SOFTWARE_POSITION_LIMIT, 2),
+        (od.HOMING_SPEEDS, 1), (od.HOMING_SPEEDS, 2),
+    ]  # fmt: skip
+    for key in configuration:
+        assert (od.BY_KEY[key].access, od.BY_KEY[key].pdo_mappable) == (Access.RW, False), key
+
+
 def test_bus_load_of_the_default_mapping() -> None:
     """Four axes at 500 Hz on 1 Mbit/s: SYNC, RPDO1, TPDO1, TPDO2 each cycle, TPDO4 every 10th.
 
