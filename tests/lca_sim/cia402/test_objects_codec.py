@@ -194,6 +194,17 @@ def test_hand_worked_numbers() -> None:
     assert DriveUnits.from_raw(1200, 10000, 4096, 2).increments_per_rev == 2048.0
 
 
+@pytest.mark.parametrize(
+    ("gear_ratio", "per_unit"),
+    [(800.0, 8344303), (600.0, 6258227), (700.0, 7301265), (6283.2, 65536153)],
+)
+def test_increments_per_joint_unit(gear_ratio: float, per_unit: int) -> None:
+    """The docs/can-modes.md table: l_arm, pivot, c_arc per rad, the lift per metre."""
+    assert round(codec.increments_per_joint_unit(SHIPPED, gear_ratio)) == per_unit
+    with pytest.raises(CodecError, match="gear_ratio"):
+        codec.increments_per_joint_unit(SHIPPED, 0.0)
+
+
 def test_codec_refusals() -> None:
     """A code has no SI value; a relative scaling needs the drive's units; bad units refused."""
     with pytest.raises(CodecError, match="not a scaled quantity"):
