@@ -36,4 +36,6 @@ ABORT_PDO_LENGTH = 0x06040042  # number and length of mapped objects exceed the 
 ABORT_NO_SUBINDEX = 0x06090011  # sub-index does not exist
 ABORT_VALUE_RANGE = 0x06090030  # value range of parameter exceeded (write access only)
 ABORT_VALUE_TOO_HIGH = 0x06090031  # value of parameter written too high
+ABORT_VALUE_TOO_LOW = 0x06090032  # value of parameter written too low
+ABORT_MAX_BELOW_MIN = 0x06090036  # maximum value is less than minimum value
 ABORT_DEVICE_STATE = 0x08000022  # data cannot be transferred because of the present device state

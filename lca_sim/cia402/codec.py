@@ -212,6 +212,20 @@ def velocity(units: DriveUnits) -> Codec:
     return codec_for(od.entry(od.VELOCITY_ACTUAL), units)
 
 
+def increments_per_joint_unit(units: DriveUnits, gear_ratio: float) -> float:
+    """Increments per joint rad (per m for a prismatic joint): gear_ratio x 0x608F / 2 pi.
+
+    `gear_ratio` is the robot config's motor rad per joint rad (or per m). Every position and
+    velocity object of docs/can-modes.md is motor increments; this is their joint scale.
+
+    Raises:
+        CodecError: a gear ratio that is not finite and > 0.
+    """
+    if not (math.isfinite(gear_ratio) and gear_ratio > 0.0):
+        raise CodecError(f"gear_ratio must be finite and > 0, got {gear_ratio!r}")
+    return gear_ratio * units.increments_per_rev / TWO_PI
+
+
 # Efficiency (0x2012 / 0x2013): per mille, UNSIGNED16, 0xFFFF = undefined (axis stopped).
 EFFICIENCY = codec_for(od.entry(od.ETA_M))
 # Amplifier voltage (0x2016): 10 mV, INTEGER16 (+-327.67 V: the pivot's 300 V amplifier fits).

@@ -146,9 +146,13 @@ class HomingMode:
         """Where the procedure is."""
         return self._phase
 
-    def enter(self, position_inc: float, velocity_inc_s: float, controlword: int) -> None:
-        """Start the mode (bumpless): not homing yet, holding velocity until stopped."""
+    def enter(
+        self, position_inc: float, velocity_inc_s: float, controlword: int, params: HomingParams
+    ) -> None:
+        """Start the mode (bumpless): from the actual state, stopping on 0x609A; not started."""
         self._generator.reset(position_inc, velocity_inc_s)
+        if velocity_inc_s != 0.0:
+            self._generator.stop(params.acceleration_inc_s2)
         self._controlword = controlword
         self._phase = Phase.IDLE
         self._pressed.reset()

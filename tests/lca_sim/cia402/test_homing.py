@@ -65,7 +65,7 @@ class Rig:
         self.offset = 0.0  # drive frame - physical
         self.negative_below, self.positive_above, self.wall = negative_below, positive_above, wall
         self.mode = HomingMode()
-        self.mode.enter(position, 0.0, ENABLED)
+        self.mode.enter(position, 0.0, ENABLED, _params(37))
 
     @property
     def actual(self) -> float:
@@ -148,7 +148,7 @@ def test_the_far_switch_is_a_homing_error() -> None:
     outs = rig.run(START, _params(17), 0.5)
     assert outs[0].status_bits == ERROR_STOPPED  # it never moved
     rig = Rig(5000.0, positive_above=-1e9)
-    rig.mode.enter(5000.0, -1000.0, ENABLED)  # entered while moving
+    rig.mode.enter(5000.0, -1000.0, ENABLED, _params(17))  # entered while moving
     rig.velocity = -1000.0
     outs = rig.run(START, _params(17), 0.5)
     assert outs[0].status_bits == ERROR_MOVING and outs[-1].status_bits == ERROR_STOPPED
@@ -180,6 +180,16 @@ def test_interrupt_by_bit_4_or_halt() -> None:
         rig.run(ENABLED, params, 0.01)
         outs = rig.run(START, params, 4.0)
         assert outs[-1].status_bits == COMPLETED
+
+
+def test_entry_while_moving_stops_on_the_homing_ramp() -> None:
+    """Entered at -1000 inc/s: 0x609A = 10000 stops it in 0.1 s (50 inc); then 001, at rest."""
+    rig = Rig(5000.0)
+    rig.mode.enter(5000.0, -1000.0, ENABLED, _params(37))
+    outs = rig.run(ENABLED, _params(37), 0.2)
+    assert outs[0].velocity_inc_s == pytest.approx(-1000.0 + 10000.0 * DT)
+    assert outs[-1].velocity_inc_s == 0.0 and outs[-1].position_inc == pytest.approx(4950.0)
+    assert {o.status_bits for o in outs} == {NOT_STARTED}
 
 
 def test_unknown_method_and_bad_speed_are_refused() -> None:

@@ -194,6 +194,17 @@ def test_hand_worked_numbers() -> None:
     assert DriveUnits.from_raw(1200, 10000, 4096, 2).increments_per_rev == 2048.0
 
 
+@pytest.mark.parametrize(
+    ("gear_ratio", "per_unit"),
+    [(800.0, 8344303), (600.0, 6258227), (700.0, 7301265), (6283.2, 65536153)],
+)
+def test_increments_per_joint_unit(gear_ratio: float, per_unit: int) -> None:
+    """The docs/can-modes.md table: l_arm, pivot, c_arc per rad, the lift per metre."""
+    assert round(codec.increments_per_joint_unit(SHIPPED, gear_ratio)) == per_unit
+    with pytest.raises(CodecError, match="gear_ratio"):
+        codec.increments_per_joint_unit(SHIPPED, 0.0)
+
+
 def test_codec_refusals() -> None:
     """A code has no SI value; a relative scaling needs the drive's units; bad units refused."""
     with pytest.raises(CodecError, match="not a scaled quantity"):
@@ -264,6 +275,32 @@ def test_default_pdo_mappings_come_from_the_table() -> None:
     assert od.entry(od.TPDO_MAPPING + 3, 1).default == 0x20140010
     assert od.entry(od.TPDO_COMMUNICATION + 3, 2).default == od.EXTRAS_TRANSMISSION_TYPE == 10
     assert od.entry(od.SUPPORTED_DRIVE_MODES).default == SUPPORTED_DRIVE_MODES_BITS
+
+
+def test_mode_objects_map_as_the_modes_use_them() -> None:
+    """Cyclic set-points are rww and mappable, demand values ro and mappable; the rest rw.
+
+    The modes' configuration (windows, ramps, homing) is SDO-only. docs/can-modes.md.
+    """
+    for index in (od.TARGET_POSITION, od.VELOCITY_OFFSET, od.TORQUE_OFFSET):
+        assert (od.entry(index).access, od.entry(index).pdo_mappable) == (Access.RWW, True)
+    for index in (od.POSITION_DEMAND, od.FOLLOWING_ERROR_ACTUAL):
+        assert (od.entry(index).access, od.entry(index).pdo_mappable) == (Access.RO, True)
+    configuration = [
+        *((index, 0) for index in (
+            od.HALT_OPTION, od.FOLLOWING_ERROR_WINDOW, od.FOLLOWING_ERROR_TIME,
+            od.POSITION_WINDOW, od.POSITION_WINDOW_TIME, od.VELOCITY_WINDOW,
+            od.VELOCITY_WINDOW_TIME, od.VELOCITY_THRESHOLD, od.VELOCITY_THRESHOLD_TIME,
+            od.HOME_OFFSET, od.MAX_PROFILE_VELOCITY, od.PROFILE_VELOCITY,
+            od.PROFILE_ACCELERATION, od.PROFILE_DECELERATION, od.QUICK_STOP_DECELERATION,
+            od.MOTION_PROFILE_TYPE, od.HOMING_METHOD, od.HOMING_ACCELERATION, od.MAX_SLIPPAGE,
+            od.HOMING_STOP_CURRENT, od.HOMING_STOP_TIME,
+        )),
+        (od.SOFTWARE_POSITION_LIMIT, 1), (od.SOFTWARE_POSITION_LIMIT, 2),
+        (od.HOMING_SPEEDS, 1), (od.HOMING_SPEEDS, 2),
+    ]  # fmt: skip
+    for key in configuration:
+        assert (od.BY_KEY[key].access, od.BY_KEY[key].pdo_mappable) == (Access.RW, False), key
 
 
 def test_bus_load_of_the_default_mapping() -> None:
