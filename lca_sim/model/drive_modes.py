@@ -14,7 +14,6 @@ import math
 from collections.abc import Sequence
 
 from lca_control.drive_loops import DriveLoopParams, DriveLoops, DriveMode
-from lca_control.pi import ControlParamError
 from lca_sim.errors import InvalidValueError
 
 VOLTAGE_MODE = "voltage"
@@ -85,17 +84,17 @@ class JointDriveLoops:
         """A position (rad, m) or velocity (rad/s, m/s) target, by the joint's mode; runs again.
 
         Raises:
-            ControlParamError: a current-mode joint (it takes current commands) or NaN.
+            InvalidValueError: a current-mode joint (it takes current commands) or NaN.
         """
         if not math.isfinite(value):
-            raise ControlParamError(f"target of joint {joint} must be finite, got {value}")
+            raise InvalidValueError(f"target of joint {joint} must be finite, got {value}")
         mode = self.modes[joint]
         if mode is DriveMode.POSITION:
             self._position_target[joint] = value
         elif mode is DriveMode.VELOCITY:
             self._velocity_target[joint] = value
         else:
-            raise ControlParamError(f"joint {joint} runs current mode: it takes no target")
+            raise InvalidValueError(f"joint {joint} runs current mode: it takes no target")
         self.halted = False
 
     def cycle(

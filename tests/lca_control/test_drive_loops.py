@@ -268,3 +268,23 @@ def test_a_mode_switch_moves_the_output_only_by_the_pis_response(
     error = -w if after is DriveMode.POSITION else 0.0
     rebase_loss = max(0.0, abs(u0 - KP_V * error) - LIMIT_A)
     assert abs(u1 - u0) <= KP_V * dt / TI_S * abs(error) + rebase_loss + 1e-9
+
+
+@given(MODES, st.lists(SAMPLE, min_size=1, max_size=20), st.floats(-1.0, 1.0))
+def test_reset_gives_zero_from_any_state(
+    mode: DriveMode, samples: list[tuple[float, float, float, float, float]], x: float
+) -> None:
+    """After any history, reset: 0 A, and a first cycle at rest holding still gives 0 A."""
+    loops = DriveLoops(PARAMS, mode)
+    for x0, w0, x_ref, w_ref, i_ref in samples:
+        loops.update(
+            4e-3,
+            position=x0,
+            velocity=w0,
+            position_target=x_ref,
+            velocity_target=w_ref,
+            current_target_a=i_ref,
+        )
+    loops.reset()
+    assert loops.current_setpoint_a == 0.0
+    assert loops.update(4e-3, position=x, velocity=0.0) == 0.0

@@ -12,7 +12,7 @@ from lca_sim.config.loader import load_robot
 from lca_sim.errors import InvalidValueError
 from lca_sim.model import kernel
 from lca_sim.model.commanded_plant import CommandedPlant
-from lca_sim.model.drive_modes import check_drive_modes
+from lca_sim.model.drive_modes import JointDriveLoops, check_drive_modes
 from lca_sim.model.plant import Plant, PlantConfig, build_plant
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -148,3 +148,16 @@ def test_modes_that_do_not_fit_the_interface_or_dt_are_refused() -> None:
         plant.commanded.use_drive_modes(("velocity",) * 4, LOOPS, 0.00415)
     with pytest.raises(InvalidValueError, match="need the voltage interface"):
         plant.commanded.use_drive_modes(("voltage",) * 4, LOOPS, PERIOD_S)
+
+
+def test_a_target_for_a_current_joint_or_nan_is_refused() -> None:
+    """JointDriveLoops: a current joint takes no target; a NaN target is no target."""
+    loops = JointDriveLoops([DriveMode.CURRENT, DriveMode.VELOCITY], LOOPS, PERIOD_STEPS)
+    with pytest.raises(InvalidValueError, match="runs current mode"):
+        loops.set_target(0, 0.1)
+    with pytest.raises(InvalidValueError, match="must be finite"):
+        loops.set_target(1, math.nan)
+    assert loops.halted
+    loops.set_target(1, 0.1)
+    assert not loops.halted
+    assert loops.velocity_targets == (0.0, 0.1)

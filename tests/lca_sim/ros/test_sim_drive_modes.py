@@ -23,6 +23,10 @@ TARGET_RAD = 0.7
 START_RAD = math.radians(35.0)
 
 
+def _t_s(msg: JointState) -> float:
+    return float(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+
+
 def test_position_commands_move_the_pivot_to_the_target_and_it_stays() -> None:
     """From 35 deg to 0.7 rad in position mode: within 2e-5 rad after 1.5 s, l_arm unmoved."""
     with ros_context() as (ctx, executor):
@@ -51,12 +55,49 @@ def test_position_commands_move_the_pivot_to_the_target_and_it_stays() -> None:
         spin_until(executor, lambda: sim.sim_time_s >= 2.0, "2 s of lockstep", timeout_s=120.0)
         assert sim.plant.counters.accepted == round(sim.sim_time_s / 0.004)
         assert sim.plant.counters.rejected == 0
-        late = [
-            m.position for m in states if m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec > 1.5
-        ]
+        late = [m.position for m in states if _t_s(m) > 1.5]
         assert len(late) > 100
         assert max(abs(p[1] - TARGET_RAD) for p in late) < 2e-5
         assert all(p[0] == 0.0 for p in late)  # 0 A on l_arm: the worm gear holds it
+
+
+def test_velocity_commands_answer_the_state_after_the_current_commands() -> None:
+    """Current then velocity commands per state: one period per velocity array, 0.05 rad/s held.
+
+    velocity_commands is the controller's last topic, so it runs the period; the currents of
+    the current joints are in force by then (as on the CAN bridge with csv axes).
+    """
+    with ros_context() as (ctx, executor):
+        sim = support.start_simulator(
+            ctx,
+            executor,
+            {
+                "timing_mode": "lockstep",
+                "command_interface": "current",
+                "drive_modes": ["current", "velocity", "current", "current"],
+                "initial_position": [0.0, START_RAD, 0.0, 0.0],
+                "lockstep_subscribers": 1,
+            },
+        )
+        node = Node("test_velocity_master", context=ctx)
+        executor.add_node(node)
+        currents = node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
+        velocities = node.create_publisher(Float64MultiArray, pc.VELOCITY_COMMANDS, 10)
+        states: list[JointState] = []
+
+        def answer(msg: JointState) -> None:
+            states.append(msg)
+            currents.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))  # pivot: ignored
+            velocities.publish(Float64MultiArray(data=[math.nan, 0.05, math.nan, math.nan]))
+
+        node.create_subscription(JointState, pc.JOINT_STATES, answer, pc.STATE_QOS_DEPTH)
+        spin_until(executor, lambda: sim.sim_time_s >= 2.0, "2 s of lockstep", timeout_s=120.0)
+        periods = round(sim.sim_time_s / 0.004)
+        spin_until(executor, lambda: sim.plant.counters.accepted >= 2 * periods, "the currents")
+        assert sim.plant.counters.accepted == 2 * periods  # no period ran on the currents
+        late = [m.velocity[1] for m in states if _t_s(m) > 1.5]
+        assert len(late) > 100
+        assert max(abs(w - 0.05) for w in late) < 5e-5
 
 
 def test_drive_modes_that_do_not_fit_refuse_the_start() -> None:
