@@ -42,6 +42,8 @@ from lca_sim.errors import InvalidValueError, UnknownNameError
 
 log = logging.getLogger(__name__)
 
+# The command fields in which NaN means "no command: hold" (a CSP drive's own position).
+NAN_HOLDS = frozenset({"command_rad"})
 # The most SYNC -> command latencies kept between two `take_command_latencies` (8 s at 500 Hz).
 LATENCY_RECORDS = 4096
 
@@ -214,25 +216,18 @@ class Cia402Master:
 
         NaN for an axis: no position command, the drive holds where it is (`csp_target`).
         """
-        return self._take("positions", positions, "command_rad", now, nan_holds=True)
+        return self._take("positions", positions, "command_rad", now)
 
-    def _take(
-        self,
-        what: str,
-        values: Sequence[float],
-        field: str,
-        now: float | None,
-        nan_holds: bool = False,
-    ) -> str | None:
+    def _take(self, what: str, values: Sequence[float], field: str, at: float | None) -> str | None:
         """Store one command per axis in `field`; None, or why it was refused."""
-        refused = _refusal(what, values, self.params.joints, nan_holds)
+        refused = _refusal(what, values, self.params.joints, field in NAN_HOLDS)
         if refused:
             self.counters.commands_rejected += 1
             return refused
         with self._lock:
             for axis, value in zip(self._axes, values, strict=True):
                 setattr(axis, field, float(value))
-            self._commands_arrived(self._clock() if now is None else now)
+            self._commands_arrived(self._clock() if at is None else at)
         self.counters.commands_accepted += 1
         return None
 

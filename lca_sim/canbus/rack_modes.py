@@ -13,18 +13,16 @@ offset homing set. docs/can-modes.md.
 
 from __future__ import annotations
 
-import math
-
 from lca_control.drive_loops import DriveLoopParams, DriveLoops, DriveMode
 from lca_sim.canbus.rack_state import Drive
+from lca_sim.cia402 import mode_params
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CSP, MODE_CSV, MODE_HM, MODE_PP, MODE_PV
 from lca_sim.cia402.homing import HomingInputs, HomingMode, HomingParams
-from lca_sim.cia402.mode_common import Loop, ModeOutput, SoftwareLimits, WindowParams
+from lca_sim.cia402.mode_common import Loop, ModeOutput
 from lca_sim.cia402.mode_csp import CspParams, CyclicPositionMode
 from lca_sim.cia402.mode_pp import PpParams, ProfilePositionMode
 from lca_sim.cia402.mode_pv import ProfileVelocityMode, PvParams
-from lca_sim.cia402.profile import ProfileParams
 
 # The modes whose demand comes from the drive's loops (CST's is the target torque itself).
 LOOP_MODES = frozenset({MODE_CSV, MODE_PP, MODE_PV, MODE_HM, MODE_CSP})
@@ -138,7 +136,7 @@ class AxisModes:
         elif mode == MODE_PV:
             self._pv.enter(position_inc, velocity_inc_s, controlword)
         elif mode == MODE_HM:
-            self._hm.enter(position_inc, velocity_inc_s, controlword)
+            self._hm.enter(position_inc, velocity_inc_s, controlword, _homing_params(axis))
         elif mode == MODE_CSP:
             self._csp.enter(position_inc, velocity_inc_s, controlword)
         loop = DriveMode.VELOCITY if mode in (MODE_CSV, MODE_PV) else DriveMode.POSITION
@@ -182,65 +180,17 @@ class AxisModes:
         )
 
 
-def _profile(axis: Drive) -> ProfileParams:
-    """0x6081, 0x6083, 0x6084, 0x6085, 0x607F (increments)."""
-    return ProfileParams(
-        velocity_inc_s=axis.value(od.PROFILE_VELOCITY),
-        acceleration_inc_s2=max(axis.value(od.PROFILE_ACCELERATION), 1),
-        deceleration_inc_s2=max(axis.value(od.PROFILE_DECELERATION), 1),
-        quick_stop_deceleration_inc_s2=max(axis.value(od.QUICK_STOP_DECELERATION), 1),
-        max_velocity_inc_s=axis.value(od.MAX_PROFILE_VELOCITY),
-    )
-
-
-def _window(axis: Drive, window: int, time_ms: int) -> WindowParams:
-    return WindowParams(axis.value(window), axis.value(time_ms) * 1e-3)
-
-
-def _limits(axis: Drive) -> SoftwareLimits:
-    return SoftwareLimits(
-        axis.value(od.SOFTWARE_POSITION_LIMIT, 1), axis.value(od.SOFTWARE_POSITION_LIMIT, 2)
-    )
-
-
 def _pp_params(axis: Drive) -> PpParams:
-    return PpParams(
-        _profile(axis),
-        halt_option=axis.value(od.HALT_OPTION),
-        limits=_limits(axis),
-        position_window=_window(axis, od.POSITION_WINDOW, od.POSITION_WINDOW_TIME),
-        following_error=_window(axis, od.FOLLOWING_ERROR_WINDOW, od.FOLLOWING_ERROR_TIME),
-    )
+    return mode_params.pp_params(axis.value)
 
 
 def _pv_params(axis: Drive) -> PvParams:
-    slippage = axis.values.get((od.MAX_SLIPPAGE, 0))
-    return PvParams(
-        _profile(axis),
-        halt_option=axis.value(od.HALT_OPTION),
-        velocity_window=_window(axis, od.VELOCITY_WINDOW, od.VELOCITY_WINDOW_TIME),
-        velocity_threshold=_window(axis, od.VELOCITY_THRESHOLD, od.VELOCITY_THRESHOLD_TIME),
-        max_slippage_inc_s=math.inf if not slippage else float(slippage),
-    )
+    return mode_params.pv_params(axis.value)
 
 
 def _csp_params(axis: Drive) -> CspParams:
-    return CspParams(
-        _profile(axis),
-        halt_option=axis.value(od.HALT_OPTION),
-        limits=_limits(axis),
-        following_error=_window(axis, od.FOLLOWING_ERROR_WINDOW, od.FOLLOWING_ERROR_TIME),
-    )
+    return mode_params.csp_params(axis.value)
 
 
 def _homing_params(axis: Drive) -> HomingParams:
-    return HomingParams(
-        method=axis.value(od.HOMING_METHOD),
-        switch_speed_inc_s=max(axis.value(od.HOMING_SPEEDS, 1), 1),
-        zero_speed_inc_s=max(axis.value(od.HOMING_SPEEDS, 2), 1),
-        acceleration_inc_s2=max(axis.value(od.HOMING_ACCELERATION), 1),
-        home_offset_inc=axis.value(od.HOME_OFFSET),
-        stop_current_a=axis.current.decode(axis.value(od.HOMING_STOP_CURRENT)),
-        stop_time_s=axis.value(od.HOMING_STOP_TIME) * 1e-3,
-        stop_velocity_inc_s=axis.value(od.VELOCITY_THRESHOLD),
-    )
+    return mode_params.homing_params(axis.value, axis.units)

@@ -22,6 +22,7 @@ from lca_sim.cia402 import cia301, codec
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
+from lca_sim.cia402.mode_params import mode_write_abort
 from lca_sim.config.rack import AxisConfig, RackConfig
 from lca_sim.errors import ConfigError
 from lca_sim.model.simulator import SIGNAL_NAMES
@@ -212,6 +213,9 @@ class ObjectStore:
         allowed = _OPTION_VALUES.get((index, subindex))
         if allowed is not None and value not in allowed:
             raise SdoAbortedError(cia301.ABORT_VALUE_RANGE)
+        refused = mode_write_abort(index, subindex, value, axis.value)  # a mode's objects
+        if refused is not None:
+            raise SdoAbortedError(refused)
         value = self._write_pdo(axis, index, subindex, value)
         if index == od.HEARTBEAT_CONSUMER:
             axis.heartbeat_last_rx_s = None

@@ -556,7 +556,7 @@ def _build_drive(
     )
     axis.modes = AxisModes(
         loop_params,
-        axis.gear_ratio * axis.units.increments_per_rev / (2.0 * math.pi),
+        codec.increments_per_joint_unit(axis.units, axis.gear_ratio),
         sim.position_limits[plant_index],
     )
     return axis
