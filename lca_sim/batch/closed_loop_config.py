@@ -46,6 +46,15 @@ def closed_loop_config(
     """
     controller = validate_controller_params(controller_values)
     simulator = plant_params(simulator_values)
+    if any(mode != simulator.command_interface for mode in simulator.joint_drive_modes):
+        # The composed loop closes the position and velocity loops in the controller: a
+        # simulator params file with drive modes would run here as if they were not there.
+        raise ParameterError(
+            "drive_modes",
+            f"none, or {simulator.command_interface} for every joint (a composed run closes "
+            "the loops in the controller; drive modes are the simulator node's)",
+            list(simulator.drive_modes),
+        )
     if duration_s is None:
         duration_s = simulator.lockstep_end_s
         if duration_s <= 0.0:

@@ -73,6 +73,12 @@ def test_the_loop_refuses_what_the_nodes_could_not_run() -> None:
         closed_loop_config({**controller, "velocity_ti_s": -1.0}, simulator)
     with pytest.raises(ParameterError, match=r"^lockstep_end_s: expected a run's end > 0"):
         closed_loop_config(controller, _simulator())  # no length, and the shipped end is 0
+    # Drive modes are the simulator node's: a composed run must not silently ignore them.
+    modes = {**simulator, "drive_modes": ["current", "position", "current", "current"]}
+    with pytest.raises(ParameterError, match=r"^drive_modes: expected none, or current for"):
+        closed_loop_config(controller, modes)
+    same = {**simulator, "drive_modes": ["current"] * 4}
+    assert closed_loop_config(controller, same).plant.interface == "current"
 
 
 def test_a_closed_loop_point_is_lca_hil_runs_loop(tmp_path: Path) -> None:
