@@ -51,6 +51,17 @@ class CascadeParams:
             raise ControlParamError(f"velocity_limit must be > 0, got {self.velocity_limit}")
 
 
+def position_law(
+    kp_per_s: float, velocity_limit: float, target: float, position: float, feedforward: float
+) -> float:
+    """The P position loop: velocity setpoint = feedforward + kp (target - position), capped.
+
+    One law for the controller's outer loop and the drive's (`lca_control.drive_loops`).
+    """
+    command = feedforward + kp_per_s * (target - position)
+    return min(max(command, -velocity_limit), velocity_limit)
+
+
 def paper_cascade(current_limit_a: float, voltage_limit_v: float) -> CascadeParams:
     """The section 6 gains with the given output limits."""
     return CascadeParams(
@@ -94,8 +105,9 @@ class AxisCascade:
     ) -> float:
         """Outer position loop: a P law with velocity feed-forward, capped at velocity_limit."""
         p = self._params
-        command = velocity_feedforward + p.position_kp_per_s * (position_ref - position)
-        return min(max(command, -p.velocity_limit), p.velocity_limit)
+        return position_law(
+            p.position_kp_per_s, p.velocity_limit, position_ref, position, velocity_feedforward
+        )
 
     def current_command(self, velocity_ref: float, velocity: float, dt_s: float) -> float:
         """Velocity loop: the current setpoint (A) for the drive's own current loop."""

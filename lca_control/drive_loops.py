@@ -22,7 +22,11 @@ import enum
 import math
 from dataclasses import dataclass
 
-from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
+from lca_control.cascade import (
+    PAPER_VELOCITY_KP_A_PER_RAD_S,
+    PAPER_VELOCITY_TI_S,
+    position_law,
+)
 from lca_control.pi import ControlParamError, PIParams, pi_law, pi_rebase
 
 DEFAULT_POSITION_KP_PER_S = 15.0
@@ -193,11 +197,12 @@ class DriveLoops:
         if self._mode is DriveMode.POSITION:
             target, rate = self._position_step(position_target, position, dt_s)
             feedforward = velocity_target + rate
-            correction = p.position_kp_per_s * (target - position)
-            reference = feedforward + correction
+            self.velocity_setpoint = position_law(
+                p.position_kp_per_s, p.velocity_limit, target, position, feedforward
+            )
         else:
-            feedforward = reference = velocity_target
-        self.velocity_setpoint = _clamp(reference, -p.velocity_limit, p.velocity_limit)
+            feedforward = velocity_target
+            self.velocity_setpoint = _clamp(velocity_target, -p.velocity_limit, p.velocity_limit)
         offset_a = current_target_a
         if p.current_feedforward_a_per_rad_s2 > 0.0 and self._last_feedforward is not None:
             acceleration = (feedforward - self._last_feedforward) / dt_s
