@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,8 +26,32 @@ from lca_sim.ros.node_util import status
 from lca_sim.ros.plant_contract import PlantPublisher, worst_first
 
 BRIDGE_STATUS = "lca_hil/can_bridge"
-# More than this share of the cycles sending the previous command again is a WARN.
+# More than this share of the cycles sending the previous command again is a WARN ...
 LATE_COMMAND_SHARE = 0.05
+# ... judged over this many diagnostics periods: the WARN says the loop runs with two periods of
+# delay, a state of the loop, not a moment. A one-off stall of the host (70 ms are 35 late
+# cycles at 500 Hz, 7 % of one second) does not raise it; lateness that lasts does, within
+# this many periods.
+LATE_COMMAND_PERIODS = 3
+
+
+class LateShare:
+    """The share of late commands over the last `LATE_COMMAND_PERIODS` diagnostics periods."""
+
+    def __init__(self) -> None:
+        self._marks: deque[tuple[int, int]] = deque([(0, 0)], maxlen=LATE_COMMAND_PERIODS + 1)
+
+    def update(self, in_time: int, late: int) -> tuple[float, int] | None:
+        """Take the counters at a diagnostics period; (share, cycles) of the window, or None.
+
+        None while the window holds no cycle.
+        """
+        self._marks.append((in_time, late))
+        first_in_time, first_late = self._marks[0]
+        window_late = late - first_late
+        window_all = in_time - first_in_time + window_late
+        return (window_late / window_all, window_all) if window_all else None
+
 
 Finding = tuple[bytes, str]
 
@@ -65,7 +90,7 @@ class BridgeDiagnostics:
         self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
         self._last_t = time.monotonic()
         self._last_frames_bits = (0, 0)  # frames and bits at the previous diagnostics
-        self._last_command_timing = (0, 0)  # commands in time and late, at the previous one
+        self._late_share = LateShare()
         self._commands_lost = False  # the controller peer, as the status reports it
         self.command_losses = 0
 
@@ -176,21 +201,20 @@ class BridgeDiagnostics:
         return (DiagnosticStatus.ERROR if latched else DiagnosticStatus.WARN), why
 
     def _late_commands(self, in_time: int, late: int) -> Finding | None:
-        """WARN while too many cycles of the last diagnostics period sent an old command.
+        """WARN while too many cycles of the last few diagnostics periods sent an old command.
 
-        More than LATE_COMMAND_SHARE of the cycles sent the previous command again (the
-        controller's answer came after the SYNC it was for): the loop then runs with two
-        periods of delay instead of one, and a loop tuned for one (the paper's gains) rings.
-        The host is too slow for `cycle_hz`.
+        More than LATE_COMMAND_SHARE of the cycles of the last LATE_COMMAND_PERIODS periods
+        sent the previous command again (the controller's answer came after the SYNC it was
+        for): the loop then runs with two periods of delay instead of one, and a loop tuned for
+        one (the paper's gains) rings. The host is too slow for `cycle_hz`.
         """
-        last_in_time, last_late = self._last_command_timing
-        self._last_command_timing = (in_time, late)
-        window_late, window_all = late - last_late, in_time + late - last_in_time - last_late
-        if window_all == 0 or window_late <= LATE_COMMAND_SHARE * window_all:
+        window = self._late_share.update(in_time, late)
+        if window is None or window[0] <= LATE_COMMAND_SHARE:
             return None
+        share, cycles = window
         return (
             DiagnosticStatus.WARN,
-            f"{100.0 * window_late / window_all:.0f} % of the cycles sent the previous command "
+            f"{100.0 * share:.0f} % of the last {cycles} cycles sent the previous command "
             "(the controller answered after the next SYNC): the loop has two periods of delay; "
             "lower cycle_hz or unload the host",
         )

@@ -176,7 +176,7 @@ def test_commands_late_for_their_cycle_warn_on_the_bridge() -> None:
         )
         try:
             spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
-            status = probe.wait_for(BRIDGE, WARN, "of the cycles sent the previous command")
+            status = probe.wait_for(BRIDGE, WARN, "cycles sent the previous command")
             values = {kv.key: kv.value for kv in status.values}
             late, in_time = int(values["commands_late"]), int(values["commands_in_time"])
             assert late > 0.5 * (late + in_time)
