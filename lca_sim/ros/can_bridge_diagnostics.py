@@ -28,10 +28,12 @@ from lca_sim.ros.plant_contract import PlantPublisher, worst_first
 BRIDGE_STATUS = "lca_hil/can_bridge"
 # More than this share of the cycles sending the previous command again is a WARN ...
 LATE_COMMAND_SHARE = 0.05
-# ... judged over this many diagnostics periods: the WARN says the loop runs with two periods of
-# delay, a state of the loop, not a moment. A one-off stall of the host (70 ms are 35 late
-# cycles at 500 Hz, 7 % of one second) does not raise it; lateness that lasts does, within
-# this many periods.
+# ... judged over this many diagnostics periods, all of them with commands flowing: the WARN says
+# the loop runs with two periods of delay, a state of the loop, not a moment. A one-off stall of
+# the host (70 ms are 35 late cycles at 500 Hz, 7 % of one second) does not raise it, nor does
+# the controller's start (its first commands come late while DDS and both processes warm up:
+# 5-10 % of the first second on the 2-core host); lateness that lasts does, within this many
+# periods of the first command.
 LATE_COMMAND_PERIODS = 3
 
 
@@ -44,10 +46,13 @@ class LateShare:
     def update(self, in_time: int, late: int) -> tuple[float, int] | None:
         """Take the counters at a diagnostics period; (share, cycles) of the window, or None.
 
-        None while the window holds no cycle.
+        None until the window lies wholly after the first command (it starts at a period whose
+        counters had already counted commands).
         """
         self._marks.append((in_time, late))
         first_in_time, first_late = self._marks[0]
+        if first_in_time + first_late == 0:
+            return None
         window_late = late - first_late
         window_all = in_time - first_in_time + window_late
         return (window_late / window_all, window_all) if window_all else None
