@@ -80,6 +80,20 @@ class JointDriveLoops:
         """The velocity target in force per joint (0 for the others), rad/s (m/s)."""
         return tuple(self._velocity_target)
 
+    @property
+    def position_targets(self) -> tuple[float | None, ...]:
+        """The position target in force per joint, rad (m); None without one (halted, other modes).
+
+        The target set last, else the loop's own (a position loop holds the position it
+        started from until its first target).
+        """
+        return tuple(
+            (target if target is not None else loops.position_target)
+            if loops.mode is DriveMode.POSITION
+            else None
+            for target, loops in zip(self._position_target, self._loops, strict=True)
+        )
+
     def set_target(self, joint: int, value: float) -> None:
         """A position (rad, m) or velocity (rad/s, m/s) target, by the joint's mode; runs again.
 

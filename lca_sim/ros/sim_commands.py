@@ -21,6 +21,7 @@ from lca_control import contract as pc
 from lca_control.drive_loops import DriveMode
 from lca_sim.config.simulator_params import SimulatorNodeParams
 from lca_sim.model.commanded_plant import CommandedPlant
+from lca_sim.model.drive_modes import JointDriveLoops
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
 from lca_sim.ros.plant_contract import qos_profile
@@ -64,6 +65,7 @@ class SimCommands:
         )
         modes = p.joint_drive_modes
         velocity_joints = tuple(j for j, m in zip(p.joints, modes, strict=True) if m == "velocity")
+        position_joints = tuple(j for j, m in zip(p.joints, modes, strict=True) if m == "position")
         # Lockstep: the controller's answer is the last topic it sends per state (current or
         # voltage, then velocity, then position), as on the CAN bridge; the others are put
         # in force when they come and run no period.
@@ -79,7 +81,7 @@ class SimCommands:
                 node.create_subscription(Float64MultiArray, topic, callback, qos)
                 self.answer_topic = topic
         # ros2_control's topic-based interface: A per joint, or joint torque / (k_t N); the
-        # velocity entry for velocity-mode joints.
+        # velocity entry for velocity-mode joints, the position entry for position-mode ones.
         self._joint_index = [axis_names.index(j) for j in p.joints]
         self.joint_commands = JointCommandAdapter(
             p.joints,
@@ -94,6 +96,11 @@ class SimCommands:
                 "effort refused: the simulator takes voltages (command_interface)"
             ),
             topic=p.joint_command_topic,
+            position_joints=position_joints,
+            position_refused=lambda j: (
+                f"position commands for {j}: not in position mode (drive_modes); command "
+                "effort or velocity, or run the joint in position mode"
+            ),
         )
         if p.joint_command_topic:
             node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
@@ -108,24 +115,30 @@ class SimCommands:
         self._take(list(msg.data), apply, self.answer_topic == topic)
 
     def _on_joint(self, msg: JointState) -> None:
-        """A JointState command (docs/ros2_control.md): effort or velocity per joint, by name.
+        """A JointState command (docs/ros2_control.md): position, velocity or effort by name.
 
         Effort is this node's command (A, or joint torque per `joint_command_effort`) on the
-        joints named with a finite entry; velocity the target of velocity-mode joints; every
-        other joint keeps its command. A non-zero velocity entry for a joint not in velocity
-        mode is refused (counted, warned); a zero one is what the interface sends for a
-        velocity interface no controller claims. In voltage mode effort has no meaning here
-        and the message is refused. In lockstep the message is the period's command either
-        way, as a refused array is.
+        joints named with a finite entry; velocity the target of velocity-mode joints, position
+        (rad, m) that of position-mode joints; every other joint keeps its command. A non-zero
+        velocity or position entry for a joint not in that mode is refused (counted, warned);
+        a zero one is what the interface sends for an interface no controller claims, NaN
+        what Jazzy's sends. In voltage mode effort has no meaning here and the message is
+        refused. In lockstep the message is the period's command either way, as a refused
+        array is.
         """
         adapter = self.joint_commands
-        cmd = adapter.read(msg.name, msg.velocity, msg.effort)
+        cmd = adapter.read(msg.name, msg.velocity, msg.effort, position=msg.position)
         if cmd.problems:
             self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
         if not cmd.accepted:
             self._take(None, self._plant.command, answers=True)
             return
         plant = self._plant
+        if cmd.position and plant.drive is not None:
+            apply = partial(plant.command_targets, DriveMode.POSITION)
+            answers = not (cmd.velocity or cmd.effort)
+            held = self._held_positions(plant.drive)
+            self._take(adapter.fill(held, cmd.position), apply, answers)
         if cmd.velocity and plant.drive is not None:
             held = list(plant.drive.velocity_targets)
             apply = partial(plant.command_targets, DriveMode.VELOCITY)
@@ -133,6 +146,19 @@ class SimCommands:
         if cmd.effort:
             held = plant.target[self._joint_index].tolist()
             self._take(adapter.fill(held, cmd.effort), plant.command, answers=True)
+
+    def _held_positions(self, drive: JointDriveLoops) -> list[float]:
+        """Each joint's position target in force (joints order), rad (m).
+
+        A joint without one (halted, or not in position mode) holds where it is: its present
+        position, never 0, so a JointState naming some joints leaves the others in place.
+        """
+        present = self._plant.sim.state.position
+        targets = drive.position_targets
+        return [
+            present[axis] if target is None else target
+            for axis, target in zip(self._joint_index, targets, strict=True)
+        ]
 
     def _take(
         self,
