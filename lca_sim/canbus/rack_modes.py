@@ -20,7 +20,7 @@ from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CSP, MODE_CSV, MODE_HM, MODE_PP, MODE_PV
 from lca_sim.cia402.homing import HomingInputs, HomingMode, HomingParams
 from lca_sim.cia402.mode_common import Loop, ModeOutput
-from lca_sim.cia402.mode_csp import CspParams, CyclicPositionMode
+from lca_sim.cia402.mode_csp import CW_HALT, CspParams, CyclicPositionMode
 from lca_sim.cia402.mode_pp import PpParams, ProfilePositionMode
 from lca_sim.cia402.mode_pv import ProfileVelocityMode, PvParams
 
@@ -111,7 +111,7 @@ class AxisModes:
             position=position,
             velocity=velocity,
             position_target=(out.position_inc - self.offset_inc) / k,
-            velocity_target=out.velocity_inc_s / k,
+            velocity_target=_velocity_target(wanted, mode, controlword, out) / k,
             current_target_a=offset_a,
         )
         self.permille = axis.current.encode(current)
@@ -194,3 +194,20 @@ def _csp_params(axis: Drive) -> CspParams:
 
 def _homing_params(axis: Drive) -> HomingParams:
     return mode_params.homing_params(axis.value, axis.units)
+
+
+def _velocity_target(loop: DriveMode, mode: int, controlword: int, out: ModeOutput) -> float:
+    """The loops' velocity target, increments/s: the set-point, or CSP's 0x60B1 offset.
+
+    In the velocity loop the mode's velocity is the set-point; in the position loop only CSP's
+    0x60B1 velocity offset is passed.
+
+    The position loop feeds the rate of its position demand forward itself (`DriveLoops`); the
+    profile generator's velocity is that same rate, so passing it too would feed it forward
+    twice (the axis then ran ahead of 0x6062 by v / kp).
+    """
+    if loop is DriveMode.VELOCITY:
+        return out.velocity_inc_s
+    if mode == MODE_CSP and not controlword & CW_HALT:
+        return out.velocity_inc_s  # 0x60B1 (a halt's ramp is in the demand's rate)
+    return 0.0
