@@ -15,6 +15,9 @@ from lca_sim.canbus.rack_state import Drive
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import Cia402AxisState, PowerState
+from lca_sim.cia402.mode_common import EMCY_FOLLOWING_ERROR, SW_BIT13
+
+_FAULT_STATES = frozenset({PowerState.FAULT_REACTION_ACTIVE, PowerState.FAULT})
 
 
 class DriveControl:
@@ -114,7 +117,8 @@ class DriveControl:
         """0x6041: the power state, internal limit, and bits 10 / 12 / 13 of the mode.
 
         CST and CSV: target reached is 0x6077 within the window of the demand. The profile
-        modes and CSP: bits 10, 12 and 13 are their logic's (`rack_modes`).
+        modes and CSP: bits 10, 12 and 13 are their logic's (`rack_modes`); in FAULT after a
+        following error (0x603F = 0x8611) bit 13 stays set.
         """
         drive = axis.drive
         demand = self.demand(axis)
@@ -122,6 +126,12 @@ class DriveControl:
             word = cia402.statusword(drive, target_reached=False, internal_limit=demand.limited)
             if drive.power is PowerState.OPERATION_ENABLED:
                 word |= axis.modes.status_bits
+            elif drive.power in _FAULT_STATES and axis.value(od.ERROR_CODE) == (
+                EMCY_FOLLOWING_ERROR
+            ):
+                # The fault reaction follows bit 13 within the same SYNC, so without this a
+                # master would never see it; it stays up until the fault reset clears 0x603F.
+                word |= SW_BIT13
             return word
         reached = (
             drive.power is PowerState.OPERATION_ENABLED
