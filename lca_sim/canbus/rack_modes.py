@@ -140,6 +140,13 @@ class AxisModes:
         elif mode == MODE_CSP:
             self._csp.enter(position_inc, velocity_inc_s, controlword)
         loop = DriveMode.VELOCITY if mode in (MODE_CSV, MODE_PV) else DriveMode.POSITION
+        if loop is self.loops.mode:
+            # A new mode on the same loop (PP -> CSP, HM -> PP) restarts it from the present
+            # state as a change of loop does; else the position loop kept the old mode's
+            # target as its feed-forward's last sample and the PI its old error, and the
+            # current jumped by kp x velocity a cycle after the switch.
+            other = DriveMode.CURRENT if loop is DriveMode.VELOCITY else DriveMode.VELOCITY
+            self.loops.set_mode(other, position=position, velocity=velocity)
         self.loops.set_mode(loop, position=position, velocity=velocity)
         self._entered = mode
         self.demand_inc = position_inc
