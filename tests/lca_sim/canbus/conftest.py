@@ -113,12 +113,14 @@ def lockstep_rack(
 ) -> Iterator[Callable[..., tuple[VirtualDriveRack, canopen.Network]]]:
     """Build the shipped rack in lockstep timing and a canopen master network on `channel`.
 
-    `build(**initial_position)` starts the rack with those axes' initial positions (rad, m)
-    overridden; everything is stopped at the end.
+    `build(robot=None, **initial_position)` starts the rack (on the shipped robot unless given)
+    with those axes' initial positions (rad, m) overridden; everything is stopped at the end.
     """
     cleanups: list[Callable[[], None]] = []
 
-    def build(**initial_position: float) -> tuple[VirtualDriveRack, canopen.Network]:
+    def build(
+        robot: RobotParams | None = None, **initial_position: float
+    ) -> tuple[VirtualDriveRack, canopen.Network]:
         config = load_rack_config(None)
         axes = tuple(
             dataclasses.replace(
@@ -129,7 +131,7 @@ def lockstep_rack(
         config = dataclasses.replace(config, timing_mode=LOCKSTEP, axes=axes)
         rack_bus = can.Bus(interface="virtual", channel=channel)
         cleanups.append(rack_bus.shutdown)
-        rack = VirtualDriveRack(rack_bus, config, robot=default_robot)
+        rack = VirtualDriveRack(rack_bus, config, robot=robot or default_robot)
         rack.start(settle=False)
         cleanups.append(rack.stop)
         network = canopen.Network(can.Bus(interface="virtual", channel=channel))
