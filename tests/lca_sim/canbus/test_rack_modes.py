@@ -241,6 +241,97 @@ def test_pp_relative_move_lands_at_start_plus_distance(drive: Drive402) -> None:
         assert abs(drive.read(0x6064) - expected) <= window
 
 
+def _new_set_point(drive: Drive402, target: int, extra: int = 0) -> None:
+    """The PP handshake: 0x607A, bit 4 up for a cycle (bit 12 answers), bit 4 down."""
+    drive.write(0x607A, target)
+    drive.control(CW_ENABLED | CW_NEW_SET_POINT | extra)
+    drive.cycle()
+    assert drive.status & SW_BIT12
+    drive.control(CW_ENABLED | extra)
+    drive.cycle()
+
+
+def test_pp_halt_stops_on_the_deceleration_and_resumes(drive: Drive402) -> None:
+    """PP bit 8: stop on 0x6084 (0x605D = 1), bit 10 at standstill; dropping it resumes."""
+    velocity, decel = 10 * REV, 40 * REV
+    _profile(drive, velocity, 40 * REV, decel)
+    drive.enable(1)
+    start = drive.read(0x6064)
+    target = start + 20 * REV
+    _new_set_point(drive, target)
+    drive.cycle(200)  # cruising at 10 rev/s since 0.25 s
+    halted_at = drive.read(0x6062)
+    drive.control(CW_ENABLED | CW_HALT)
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "halted", 1.0)
+    # The demand stops v^2 / 2 d = 1.25 rev beyond where the halt came (within a cycle's step).
+    stop = velocity * velocity / (2.0 * decel)
+    assert abs(drive.read(0x6062) - (halted_at + stop)) <= velocity * PERIOD_S
+    drive.cycle(20)
+    assert drive.status & SW_TARGET_REACHED
+    assert drive.read(0x6062) < target
+    drive.control(CW_ENABLED)
+    drive.cycle()
+    assert drive.status & SW_TARGET_REACHED == 0
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "target", 3.0)
+    assert abs(drive.read(0x6064) - target) <= drive.read(0x6067)
+
+
+def test_pp_buffers_one_set_point_and_runs_it_after_the_first(drive: Drive402) -> None:
+    """PP bit 5 = 0 while moving: the next set-point waits (bit 12 stays up), then runs."""
+    _profile(drive, 10 * REV, 40 * REV, 40 * REV)
+    drive.enable(1)
+    start = drive.read(0x6064)
+    _new_set_point(drive, start + 4 * REV)
+    drive.cycle(10)
+    drive.write(0x607A, start + 2 * REV)
+    drive.control(CW_ENABLED | CW_NEW_SET_POINT)
+    drive.cycle()
+    drive.control(CW_ENABLED)
+    drive.cycle()
+    assert drive.status & SW_BIT12  # buffered: the acknowledge stays until it starts
+    # The first positioning ends on its own target before the second one starts back.
+    reached_first = False
+    while drive.status & SW_BIT12:
+        drive.cycle()
+        reached_first = reached_first or drive.read(0x6062) == start + 4 * REV
+    assert reached_first
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "second target", 2.0)
+    assert abs(drive.read(0x6064) - (start + 2 * REV)) <= drive.read(0x6067)
+
+
+def test_pp_target_beyond_the_software_limit_stops_at_it(drive: Drive402) -> None:
+    """0x607D: a PP target beyond the max is limited to it (CiA 402-2)."""
+    _profile(drive, 10 * REV, 40 * REV, 40 * REV)
+    drive.enable(1)
+    start = drive.read(0x6064)
+    drive.write(0x607D, start + 3 * REV, 2)
+    _new_set_point(drive, start + 10 * REV)
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "limit", 2.0)
+    assert drive.read(0x6062) == start + 3 * REV
+    assert abs(drive.read(0x6064) - (start + 3 * REV)) <= drive.read(0x6067)
+
+
+def test_pp_after_homing_moves_in_the_homed_frame(drive: Drive402) -> None:
+    """HM 37 with 0x607C, then PP to 0x607C + 5 rev: the joint moves 5 motor rev."""
+    home_offset = 1_000_000
+    drive.write(0x607C, home_offset)
+    _profile(drive, 10 * REV, 40 * REV, 40 * REV)
+    drive.enable(6)
+    joint_at_home = drive.joint_position
+    drive.control(CW_ENABLED | CW_NEW_SET_POINT)
+    drive.cycle()
+    assert drive.status & SW_BIT12
+    drive.set_mode(1)
+    drive.control(CW_ENABLED)
+    drive.cycle()
+    _new_set_point(drive, home_offset + 5 * REV)
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "target", 2.0)
+    window = drive.read(0x6067)
+    assert abs(drive.read(0x6064) - (home_offset + 5 * REV)) <= window
+    moved = (drive.joint_position - joint_at_home) * drive.increments_per_joint
+    assert abs(moved - 5 * REV) <= window
+
+
 # --- profile velocity (3) -------------------------------------------------------------------
 
 
@@ -378,6 +469,34 @@ def test_csp_follows_a_cyclic_trajectory_within_the_window(drive: Drive402) -> N
         worst = max(worst, abs(error))
     assert worst > 0  # the trajectory moved the axis
     assert abs(drive.read(0x6064) - target) <= window
+
+
+def test_csp_target_in_an_rpdo_every_sync(drive: Drive402) -> None:
+    """CSP with 0x607A mapped into RPDO2 by the master (python-canopen's PDO API)."""
+    drive.node.nmt.state = "PRE-OPERATIONAL"
+    wait_until(lambda: drive.rack.nmt_state("l_arm") == "PRE-OPERATIONAL", "PRE-OPERATIONAL")
+    rpdo2 = drive.node.rpdo[2]
+    rpdo2.clear()
+    rpdo2.add_variable(0x607A)
+    rpdo2.trans_type = 1
+    rpdo2.enabled = True
+    rpdo2.save()
+    drive.node.nmt.state = "OPERATIONAL"
+    wait_until(lambda: drive.rack.nmt_state("l_arm") == "OPERATIONAL", "OPERATIONAL")
+    window = 4000
+    drive.write(0x6065, window)
+    drive.enable(8)
+    start = drive.read(0x6064)
+    for n in range(1, 601):  # 1 s of 2 rev x (1 - cos), then holding 0.2 s
+        phase = 2.0 * math.pi * min(n, 500) * PERIOD_S
+        target = start + round(2 * REV * (1.0 - math.cos(phase)))
+        rpdo2[0x607A].raw = target
+        rpdo2.transmit()
+        drive.cycle()
+        assert drive.read(0x6062) == target  # taken at this SYNC
+        assert abs(drive.read(0x60F4)) <= window
+        assert drive.status & (SW_BIT12 | SW_BIT13) == SW_BIT12
+    assert abs(drive.read(0x6064) - target) <= drive.read(0x6067)
 
 
 def test_csp_following_error_faults_with_emcy_8611(drive: Drive402) -> None:
