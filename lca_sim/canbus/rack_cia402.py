@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from lca_sim.canbus.rack_modes import LOOP_MODES
+from lca_sim.canbus.rack_modes import LOOP_MODES, QUICK_STOP_RAMPS
 from lca_sim.canbus.rack_state import Drive
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
@@ -57,7 +57,8 @@ class DriveControl:
         drive = axis.drive
         max_permille = axis.value(od.MAX_TORQUE)
         if drive.mode in cia402.PROFILE_MODES:
-            if drive.power is not PowerState.OPERATION_ENABLED:
+            running = drive.power is PowerState.OPERATION_ENABLED or axis.modes.quick_stopping
+            if not running:
                 return cia402.TorqueDemand(0, False)
             permille = axis.modes.permille
             if abs(permille) > max_permille:
@@ -74,9 +75,20 @@ class DriveControl:
         Run once per SYNC that advances the plant, on the plant's joint state (`rack_modes`).
         Outside operation enabled, or halted in CSV, the loops rest and each mode starts again
         from the present state when enabled. A following error the mode reports (EMCY 0x8611)
-        is the drive's fault reaction: error code, EMCY, FAULT.
+        is the drive's fault reaction: error code, EMCY, FAULT. QUICK STOP ACTIVE in the
+        profile modes and CSP ramps down (0x605A 1, 2, 5, 6: `AxisModes.quick_stop`).
         """
         drive = axis.drive
+        a, state = axis.plant_index, self._state
+        if (
+            drive.power is PowerState.QUICK_STOP_ACTIVE
+            and drive.mode in cia402.PROFILE_MODES
+            and axis.value(od.QUICK_STOP_OPTION) in QUICK_STOP_RAMPS
+        ):
+            if dt_s > 0.0:
+                joint = (float(state[0, a]), float(state[1, a]), float(state[2, a]))
+                axis.modes.quick_stop(axis, dt_s, joint)
+            return
         if drive.power is not PowerState.OPERATION_ENABLED or (
             drive.mode == cia402.MODE_CSV and drive.halted
         ):
@@ -84,7 +96,6 @@ class DriveControl:
             return
         if dt_s <= 0.0:
             return
-        a, state = axis.plant_index, self._state
         code = axis.modes.run(
             axis, dt_s, (float(state[0, a]), float(state[1, a]), float(state[2, a]))
         )
@@ -110,7 +121,11 @@ class DriveControl:
             # Rated torque is k_t x rated current: a torque in per mille of 0x6076 is the same
             # per mille of 0x6075 (CiA 402-2 0x6071 / 0x6075), the drive's current setpoint.
             currents_a[axis.joint_index] = axis.current.decode(self.demand(axis).permille)
-            any_enabled = any_enabled or axis.drive.power is PowerState.OPERATION_ENABLED
+            any_enabled = (
+                any_enabled
+                or axis.drive.power is PowerState.OPERATION_ENABLED
+                or axis.modes.quick_stopping
+            )
         return currents_a if any_enabled else None
 
     def statusword(self, axis: Drive) -> int:
