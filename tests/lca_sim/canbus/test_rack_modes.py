@@ -332,6 +332,44 @@ def test_pp_after_homing_moves_in_the_homed_frame(drive: Drive402) -> None:
     assert abs(moved - 5 * REV) <= window
 
 
+CW_QUICK_STOP = 0x0B  # CiA 402-2: bit 2 (quick stop) low, the others enabled
+
+
+@pytest.mark.parametrize("option", [2, 6])
+def test_pp_quick_stop_ramps_down_on_0x6085(drive: Drive402, option: int) -> None:
+    """Quick stop in PP (0x605A = 2 / 6): the demand ramps to rest on 0x6085, the axis follows.
+
+    Option 2 then goes to SWITCH ON DISABLED at standstill; option 6 stays in QUICK STOP
+    ACTIVE, holding, and enable operation (transition 16) resumes PP from there.
+    """
+    velocity, quick_decel = 10 * REV, drive.read(0x6085)  # 50 rev/s^2
+    drive.write(0x605A, option)
+    _profile(drive, velocity, 40 * REV, 40 * REV)
+    drive.enable(1)
+    _new_set_point(drive, drive.read(0x6064) + 30 * REV)
+    drive.cycle(200)  # cruising
+    at_quick_stop = drive.read(0x6064)
+    drive.control(CW_QUICK_STOP)
+    drive.cycle()
+    assert drive.status & 0x6F == 0x07  # QUICK STOP ACTIVE
+    threshold = drive.read(0x606F)
+    took_s = drive.cycle_until(lambda: abs(drive.read(0x606C)) <= threshold, "standing", 1.0)
+    # v / d = 0.2 s over v^2 / 2d = 1 rev; the loops' lag adds a few cycles.
+    assert 0.2 - 0.01 <= took_s <= 0.2 + 0.05
+    stop = velocity * velocity / (2.0 * quick_decel)
+    assert abs(drive.read(0x6064) - (at_quick_stop + stop)) <= 2 * velocity * PERIOD_S
+    if option == 2:
+        drive.cycle_until(lambda: drive.status & 0x4F == 0x40, "SWITCH ON DISABLED", 0.5)
+        return
+    drive.cycle(50)
+    assert drive.status & 0x6F == 0x07
+    held = drive.read(0x6064)
+    drive.control(CW_ENABLED)
+    drive.cycle(10)
+    assert drive.status & (0x6F | SW_TARGET_REACHED) == 0x27 | SW_TARGET_REACHED
+    assert abs(drive.read(0x6064) - held) <= drive.read(0x6067)
+
+
 # --- profile velocity (3) -------------------------------------------------------------------
 
 
@@ -519,13 +557,17 @@ def test_csp_following_error_faults_with_emcy_8611(drive: Drive402) -> None:
 # --- mode changes while enabled -------------------------------------------------------------
 
 
-@pytest.mark.parametrize("moving_in", [3, 1])
-def test_moving_to_csp_holding_is_bumpless(drive: Drive402, moving_in: int) -> None:
-    """PV (or PP) at 5 rev/s, then CSP holding 0x6064: the current does not jump at the switch.
+@pytest.mark.parametrize(("moving_in", "switch_to"), [(3, 8), (1, 8), (3, 1), (3, 6)])
+def test_moving_to_a_position_mode_is_bumpless(
+    drive: Drive402, moving_in: int, switch_to: int
+) -> None:
+    """PV (or PP) at 5 rev/s, then CSP holding 0x6064, or PP / HM stopping on their ramps.
 
-    Holding at speed asks the velocity PI for a step of its error from 0 to -v. Re-based at
-    the switch (`DriveLoops.set_mode`), its output changes in the first cycle by the integral
-    action only, kp dt / Ti |v| (2.5 A here), not by the proportional step kp |v| (12 A).
+    CSP holding at speed asks the velocity PI for a step of its error from 0 to -v; PP and HM
+    without a set-point stop from the actual velocity on 0x6084 / 0x609A, so the error stays
+    near 0. Re-based at the switch (`DriveLoops.set_mode`), the current changes in each cycle
+    by about the integral action, kp dt / Ti |v| (2.5 A here), never by the proportional
+    step kp |v| (12 A).
     """
     _profile(drive, 5 * REV, 40 * REV, 40 * REV)
     drive.write(0x60FF, 5 * REV)
@@ -538,7 +580,7 @@ def test_moving_to_csp_holding_is_bumpless(drive: Drive402, moving_in: int) -> N
     drive.cycle(300)  # 0.6 s: at speed, settled
     current_before, velocity_before = drive.read(0x6078), drive.read(0x606C)
     drive.write(0x607A, drive.read(0x6064))  # CiA 402-2: the master sets 0x607A first
-    drive.set_mode(8)
+    drive.set_mode(switch_to)
     config = drive.rack.config
     v_joint = velocity_before / drive.increments_per_joint  # rad/s
     kp, ti_s = config.velocity_kp_a_per_rad_s, config.velocity_ti_s
@@ -556,7 +598,7 @@ def test_moving_to_csp_holding_is_bumpless(drive: Drive402, moving_in: int) -> N
         # The speed changes by what that current decelerates in one cycle: < 10 % of it.
         assert abs(velocity - last_velocity) <= 0.1 * velocity_before
     drive.cycle_until(lambda: abs(drive.read(0x606C)) < drive.read(0x606F), "stopped", 1.0)
-    assert drive.status & (SW_BIT12 | SW_BIT13) == SW_BIT12
+    assert drive.status & SW_BIT13 == 0
 
 
 def test_pp_moving_to_pv_is_bumpless(drive: Drive402) -> None:
