@@ -370,6 +370,31 @@ def test_pp_quick_stop_ramps_down_on_0x6085(drive: Drive402, option: int) -> Non
     assert abs(drive.read(0x6064) - held) <= drive.read(0x6067)
 
 
+CW_CHANGE_IMMEDIATELY = 1 << 5
+
+
+def test_pp_change_set_immediately_replans_without_a_velocity_jump(drive: Drive402) -> None:
+    """PP bit 5: a new target mid-move takes over at once, from the present demand."""
+    velocity, decel = 10 * REV, 40 * REV
+    _profile(drive, velocity, 40 * REV, decel)
+    drive.enable(1)
+    start = drive.read(0x6064)
+    _new_set_point(drive, start + 20 * REV)
+    drive.cycle(200)  # cruising at 10 rev/s, ~3 rev travelled
+    new_target = drive.read(0x6062) + REV  # closer than the 1.25 rev it takes to stop
+    speed_before = drive.read(0x606C)
+    _new_set_point(drive, new_target, CW_CHANGE_IMMEDIATELY)
+    # The speed ramps down at once on 0x6084 (no jump), overshoots by 0.25 rev and comes back.
+    assert speed_before - drive.read(0x606C) <= 2 * decel * PERIOD_S * 1.5
+    peak = drive.read(0x6062)
+    while not drive.status & SW_TARGET_REACHED:
+        drive.cycle()
+        peak = max(peak, drive.read(0x6062))
+        assert drive.read(0x6062) <= new_target + velocity * velocity / (2.0 * decel)
+    assert peak > new_target  # it went beyond and came back
+    assert abs(drive.read(0x6064) - new_target) <= drive.read(0x6067)
+
+
 # --- profile velocity (3) -------------------------------------------------------------------
 
 
@@ -405,6 +430,25 @@ def test_pv_holds_the_commanded_speed_and_reports_standstill(drive: Drive402) ->
     drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "stopped", 1.0)
 
 
+def test_pv_halt_ramps_down_and_back(drive: Drive402) -> None:
+    """PV bit 8: stop on 0x6084 (bit 10 once stopped), dropping it ramps back to 0x60FF."""
+    accel = 40 * REV
+    drive.write(0x6083, accel)
+    drive.write(0x6084, accel)
+    drive.enable(3)
+    speed = 5 * REV
+    drive.write(0x60FF, speed)
+    drive.cycle(300)
+    drive.control(CW_ENABLED | CW_HALT)
+    threshold = drive.read(0x606F)
+    took_s = drive.cycle_until(lambda: abs(drive.read(0x606C)) <= threshold, "halted", 1.0)
+    assert took_s <= speed / accel + 0.05  # 0.125 s on the ramp
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "halt: bit 10", 0.5)
+    drive.control(CW_ENABLED)
+    drive.cycle(150)
+    assert abs(drive.read(0x606C) - speed) <= drive.read(0x606D)
+
+
 # --- homing (6) -----------------------------------------------------------------------------
 
 
@@ -437,6 +481,24 @@ def test_basenode402_homing_returns_true(drive: Drive402) -> None:
         drive.node.state = "OPERATION ENABLED"
         assert drive.node.homing(timeout=10) is True  # type: ignore[no-untyped-call]
     assert abs(drive.read(0x6064) + 5000) <= 2
+
+
+def test_homing_interrupted_by_dropping_bit_4(drive: Drive402) -> None:
+    """HM 17 from mid-range, bit 4 dropped on the way: 13 12 10 = 0 0 1, stopped on 0x609A."""
+    drive.write(0x6098, 17)
+    drive.enable(6)
+    drive.control(CW_ENABLED | CW_NEW_SET_POINT)
+    drive.cycle(300)  # 0x6099 sub 1 = 5 rev/s towards the negative switch after 0.5 s
+    assert drive.status & (SW_BIT13 | SW_BIT12 | SW_TARGET_REACHED) == 0  # in progress
+    assert drive.read(0x606C) < -4 * REV
+    drive.control(CW_ENABLED)
+    drive.cycle()
+    accel = drive.read(0x609A)
+    threshold = drive.read(0x606F)
+    took_s = drive.cycle_until(lambda: abs(drive.read(0x606C)) <= threshold, "stopped", 2.0)
+    assert took_s <= 5 * REV / accel + 0.05  # 0.5 s on 0x609A
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "interrupted", 0.5)
+    assert drive.status & (SW_BIT13 | SW_BIT12) == 0
 
 
 L_ARM_NEAR_LOW_STOP = ("l_arm", {"l_arm": -1.70})  # 0.045 rad (5.7 motor rev) above its stop
