@@ -10,11 +10,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from lca_sim.canbus.rack_modes import LOOP_MODES
+from lca_sim.canbus.rack_modes import LOOP_MODES, QUICK_STOP_RAMPS
 from lca_sim.canbus.rack_state import Drive
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import Cia402AxisState, PowerState
+from lca_sim.cia402.mode_common import EMCY_FOLLOWING_ERROR, SW_BIT13
+
+_FAULT_STATES = frozenset({PowerState.FAULT_REACTION_ACTIVE, PowerState.FAULT})
 
 
 class DriveControl:
@@ -54,7 +57,8 @@ class DriveControl:
         drive = axis.drive
         max_permille = axis.value(od.MAX_TORQUE)
         if drive.mode in cia402.PROFILE_MODES:
-            if drive.power is not PowerState.OPERATION_ENABLED:
+            running = drive.power is PowerState.OPERATION_ENABLED or axis.modes.quick_stopping
+            if not running:
                 return cia402.TorqueDemand(0, False)
             permille = axis.modes.permille
             if abs(permille) > max_permille:
@@ -71,9 +75,20 @@ class DriveControl:
         Run once per SYNC that advances the plant, on the plant's joint state (`rack_modes`).
         Outside operation enabled, or halted in CSV, the loops rest and each mode starts again
         from the present state when enabled. A following error the mode reports (EMCY 0x8611)
-        is the drive's fault reaction: error code, EMCY, FAULT.
+        is the drive's fault reaction: error code, EMCY, FAULT. QUICK STOP ACTIVE in the
+        profile modes and CSP ramps down (0x605A 1, 2, 5, 6: `AxisModes.quick_stop`).
         """
         drive = axis.drive
+        a, state = axis.plant_index, self._state
+        if (
+            drive.power is PowerState.QUICK_STOP_ACTIVE
+            and drive.mode in cia402.PROFILE_MODES
+            and axis.value(od.QUICK_STOP_OPTION) in QUICK_STOP_RAMPS
+        ):
+            if dt_s > 0.0:
+                joint = (float(state[0, a]), float(state[1, a]), float(state[2, a]))
+                axis.modes.quick_stop(axis, dt_s, joint)
+            return
         if drive.power is not PowerState.OPERATION_ENABLED or (
             drive.mode == cia402.MODE_CSV and drive.halted
         ):
@@ -81,7 +96,6 @@ class DriveControl:
             return
         if dt_s <= 0.0:
             return
-        a, state = axis.plant_index, self._state
         code = axis.modes.run(
             axis, dt_s, (float(state[0, a]), float(state[1, a]), float(state[2, a]))
         )
@@ -107,14 +121,19 @@ class DriveControl:
             # Rated torque is k_t x rated current: a torque in per mille of 0x6076 is the same
             # per mille of 0x6075 (CiA 402-2 0x6071 / 0x6075), the drive's current setpoint.
             currents_a[axis.joint_index] = axis.current.decode(self.demand(axis).permille)
-            any_enabled = any_enabled or axis.drive.power is PowerState.OPERATION_ENABLED
+            any_enabled = (
+                any_enabled
+                or axis.drive.power is PowerState.OPERATION_ENABLED
+                or axis.modes.quick_stopping
+            )
         return currents_a if any_enabled else None
 
     def statusword(self, axis: Drive) -> int:
         """0x6041: the power state, internal limit, and bits 10 / 12 / 13 of the mode.
 
         CST and CSV: target reached is 0x6077 within the window of the demand. The profile
-        modes and CSP: bits 10, 12 and 13 are their logic's (`rack_modes`).
+        modes and CSP: bits 10, 12 and 13 are their logic's (`rack_modes`); in FAULT after a
+        following error (0x603F = 0x8611) bit 13 stays set.
         """
         drive = axis.drive
         demand = self.demand(axis)
@@ -122,6 +141,12 @@ class DriveControl:
             word = cia402.statusword(drive, target_reached=False, internal_limit=demand.limited)
             if drive.power is PowerState.OPERATION_ENABLED:
                 word |= axis.modes.status_bits
+            elif drive.power in _FAULT_STATES and axis.value(od.ERROR_CODE) == (
+                EMCY_FOLLOWING_ERROR
+            ):
+                # The fault reaction follows bit 13 within the same SYNC, so without this a
+                # master would never see it; it stays up until the fault reset clears 0x603F.
+                word |= SW_BIT13
             return word
         reached = (
             drive.power is PowerState.OPERATION_ENABLED

@@ -20,9 +20,10 @@ from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CSP, MODE_CSV, MODE_HM, MODE_PP, MODE_PV
 from lca_sim.cia402.homing import HomingInputs, HomingMode, HomingParams
 from lca_sim.cia402.mode_common import Loop, ModeOutput
-from lca_sim.cia402.mode_csp import CspParams, CyclicPositionMode
+from lca_sim.cia402.mode_csp import CW_HALT, CspParams, CyclicPositionMode
 from lca_sim.cia402.mode_pp import PpParams, ProfilePositionMode
 from lca_sim.cia402.mode_pv import ProfileVelocityMode, PvParams
+from lca_sim.cia402.profile import ProfileGenerator
 
 # The modes whose demand comes from the drive's loops (CST's is the target torque itself).
 LOOP_MODES = frozenset({MODE_CSV, MODE_PP, MODE_PV, MODE_HM, MODE_CSP})
@@ -30,6 +31,9 @@ LOOP_MODES = frozenset({MODE_CSV, MODE_PP, MODE_PV, MODE_HM, MODE_CSP})
 # joint's range before its mechanical stop.
 LIMIT_SWITCH_SHARE = 0.005
 _LOOPS = {Loop.POSITION: DriveMode.POSITION, Loop.VELOCITY: DriveMode.VELOCITY}
+# 0x605A options that ramp down in quick stop: on 0x6084 (1, 5) or on 0x6085 (2, 6).
+QUICK_STOP_SLOW_DOWN = frozenset({1, 5})
+QUICK_STOP_RAMPS = QUICK_STOP_SLOW_DOWN | frozenset({2, 6})
 
 
 class AxisModes:
@@ -57,6 +61,8 @@ class AxisModes:
         self._pv = ProfileVelocityMode()
         self._hm = HomingMode()
         self._csp = CyclicPositionMode()
+        self._quick = ProfileGenerator()  # the quick stop's ramp
+        self.quick_stopping = False  # QUICK STOP ACTIVE on a ramp: the loops run
         self._entered: int | None = None  # the mode whose logic runs (None: not enabled)
         self.permille = 0  # the loops' current setpoint, per mille of 0x6075
         self.status_bits = 0  # bits 10, 12, 13 of the profile mode in force
@@ -72,6 +78,7 @@ class AxisModes:
         """Not enabled (or halted in CSV): loops at rest, each mode starts afresh when enabled."""
         self.loops.reset()
         self._entered = None
+        self.quick_stopping = False
         self.permille = 0
         self.status_bits = 0
 
@@ -91,6 +98,7 @@ class AxisModes:
         mode, controlword = axis.drive.mode, axis.drive.controlword
         position, velocity, current_a = joint
         k = self._k
+        self.quick_stopping = False
         position_inc, velocity_inc_s = self.position_inc(position), velocity * k
         if mode != self._entered:
             self._enter(axis, mode, position_inc, velocity_inc_s, position, velocity)
@@ -111,7 +119,7 @@ class AxisModes:
             position=position,
             velocity=velocity,
             position_target=(out.position_inc - self.offset_inc) / k,
-            velocity_target=out.velocity_inc_s / k,
+            velocity_target=_velocity_target(wanted, mode, controlword, out) / k,
             current_target_a=offset_a,
         )
         self.permille = axis.current.encode(current)
@@ -140,11 +148,63 @@ class AxisModes:
         elif mode == MODE_CSP:
             self._csp.enter(position_inc, velocity_inc_s, controlword)
         loop = DriveMode.VELOCITY if mode in (MODE_CSV, MODE_PV) else DriveMode.POSITION
-        self.loops.set_mode(loop, position=position, velocity=velocity)
+        # PP and HM ramp down from the actual velocity: their demand starts moving with it.
+        moving = mode in (MODE_PP, MODE_HM)
+        self._restart_loops(loop, position, velocity, velocity if moving else 0.0)
         self._entered = mode
         self.demand_inc = position_inc
         self.following_error_inc = 0.0
         self.status_bits = 0
+
+    def quick_stop(self, axis: Drive, dt_s: float, joint: tuple[float, float, float]) -> None:
+        """One SYNC's span of QUICK STOP ACTIVE on a ramp (0x605A in `QUICK_STOP_RAMPS`).
+
+        CiA 402-2 quick stop function: from the actual position and velocity the demand ramps
+        to rest on 0x6084 (options 1, 5) or 0x6085 (2, 6), the position loop following it,
+        then holds. Back in OPERATION ENABLED (options 5, 6) the mode starts afresh.
+        """
+        position, velocity, _ = joint
+        k = self._k
+        if not self.quick_stopping:
+            self._quick.reset(self.position_inc(position), velocity * k)
+            profile = mode_params.profile_params(axis.value)
+            slow = axis.value(od.QUICK_STOP_OPTION) in QUICK_STOP_SLOW_DOWN
+            self._quick.stop(
+                profile.deceleration_inc_s2 if slow else profile.quick_stop_deceleration_inc_s2
+            )
+            self._restart_loops(DriveMode.POSITION, position, velocity, velocity)
+            self.quick_stopping = True
+            self._entered = None
+        point = self._quick.step(dt_s)
+        current = self.loops.update(
+            dt_s,
+            position=position,
+            velocity=velocity,
+            position_target=(point.position_inc - self.offset_inc) / k,
+        )
+        self.permille = axis.current.encode(current)
+        self.status_bits = 0
+        self.demand_inc = point.position_inc
+        self.following_error_inc = point.position_inc - self.position_inc(position)
+
+    def _restart_loops(
+        self, loop: DriveMode, position: float, velocity: float, demand_velocity: float
+    ) -> None:
+        """The loops in `loop`, started from the present state (bumpless).
+
+        A new mode on the same loop (PP -> CSP, HM -> PP) restarts it as a change of loop
+        does; else the position loop kept the old mode's target as its feed-forward's last
+        sample and the PI its old error, and the current jumped by kp x velocity a cycle
+        after the switch. `demand_velocity` (rad/s, m/s) is the velocity the new position
+        demand starts with: `DriveLoops.set_mode` re-bases the PI on the error the first
+        update will see, setpoint - velocity, and takes the setpoint as 0 (holding), so it is
+        told the velocity relative to the demand's; else a demand that starts moving (PP, HM
+        and quick stop ramping down from the actual velocity) stepped the current by kp x v.
+        """
+        if loop is self.loops.mode:
+            other = DriveMode.CURRENT if loop is DriveMode.VELOCITY else DriveMode.VELOCITY
+            self.loops.set_mode(other, position=position, velocity=velocity)
+        self.loops.set_mode(loop, position=position, velocity=velocity - demand_velocity)
 
     def _step(
         self,
@@ -194,3 +254,20 @@ def _csp_params(axis: Drive) -> CspParams:
 
 def _homing_params(axis: Drive) -> HomingParams:
     return mode_params.homing_params(axis.value, axis.units)
+
+
+def _velocity_target(loop: DriveMode, mode: int, controlword: int, out: ModeOutput) -> float:
+    """The loops' velocity target, increments/s: the set-point, or CSP's 0x60B1 offset.
+
+    In the velocity loop the mode's velocity is the set-point; in the position loop only CSP's
+    0x60B1 velocity offset is passed.
+
+    The position loop feeds the rate of its position demand forward itself (`DriveLoops`); the
+    profile generator's velocity is that same rate, so passing it too would feed it forward
+    twice (the axis then ran ahead of 0x6062 by v / kp).
+    """
+    if loop is DriveMode.VELOCITY:
+        return out.velocity_inc_s
+    if mode == MODE_CSP and not controlword & CW_HALT:
+        return out.velocity_inc_s  # 0x60B1 (a halt's ramp is in the demand's rate)
+    return 0.0

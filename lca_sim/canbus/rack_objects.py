@@ -144,7 +144,7 @@ class ObjectStore:
             (od.POSITION_ACTUAL, 0): lambda: encode_position(
                 float(state[0, a]) * gear + loops.offset_inc * rad_per_increment
             ),
-            (od.POSITION_DEMAND, 0): lambda: encode_position(modes.demand_inc * rad_per_increment),
+            (od.POSITION_DEMAND, 0): lambda: encode_position(loops.demand_inc * rad_per_increment),
             (od.FOLLOWING_ERROR_ACTUAL, 0): lambda: encode_position(
                 loops.following_error_inc * rad_per_increment
             ),
