@@ -241,7 +241,15 @@ class DriveLoops:
             return target, 0.0
         return target, self._params.velocity_feedforward_gain * (target - last) / dt_s
 
-    def set_mode(self, mode: DriveMode, *, position: float, velocity: float) -> None:
+    def set_mode(
+        self,
+        mode: DriveMode,
+        *,
+        position: float,
+        velocity: float,
+        velocity_setpoint: float = 0.0,
+        restart: bool = False,
+    ) -> None:
         """Switch mode without a jump in the current setpoint (CiA 402-2 0x6060 while enabled).
 
         The new loop starts from the present state: position mode holds the present position
@@ -249,8 +257,15 @@ class DriveLoops:
         the velocity PI's integral is re-based so that the new loop's error at this state
         gives the present output (`pi_rebase`). The first update then differs from the output
         before the switch only by the PI's response to the change of its error.
+
+        Args:
+            velocity_setpoint: position mode: the velocity its demand starts with (rad/s, m/s;
+                a profile that ramps down from the actual velocity), so the PI is re-based on
+                the error the first update sees; 0 for a demand that starts at rest.
+            restart: start the loop afresh even in the mode it is in (a new CiA 402 mode on
+                the same loop: its last target and error are the old mode's).
         """
-        if mode is self._mode:
+        if mode is self._mode and not restart:
             return
         self._mode = mode
         self._last_feedforward = None
@@ -258,7 +273,7 @@ class DriveLoops:
             return
         if mode is DriveMode.POSITION:
             self._position_target = self._last_position_target = position
-            error = -velocity  # the setpoint at the present position is 0
+            error = velocity_setpoint - velocity
         else:
             error = 0.0
         p = self._params.velocity

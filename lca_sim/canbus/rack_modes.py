@@ -196,15 +196,16 @@ class AxisModes:
         does; else the position loop kept the old mode's target as its feed-forward's last
         sample and the PI its old error, and the current jumped by kp x velocity a cycle
         after the switch. `demand_velocity` (rad/s, m/s) is the velocity the new position
-        demand starts with: `DriveLoops.set_mode` re-bases the PI on the error the first
-        update will see, setpoint - velocity, and takes the setpoint as 0 (holding), so it is
-        told the velocity relative to the demand's; else a demand that starts moving (PP, HM
-        and quick stop ramping down from the actual velocity) stepped the current by kp x v.
+        demand starts with (PP, HM and quick stop ramp down from the actual velocity): the
+        PI is re-based on the error the first update sees, else the current stepped by kp x v.
         """
-        if loop is self.loops.mode:
-            other = DriveMode.CURRENT if loop is DriveMode.VELOCITY else DriveMode.VELOCITY
-            self.loops.set_mode(other, position=position, velocity=velocity)
-        self.loops.set_mode(loop, position=position, velocity=velocity - demand_velocity)
+        self.loops.set_mode(
+            loop,
+            position=position,
+            velocity=velocity,
+            velocity_setpoint=demand_velocity,
+            restart=True,
+        )
 
     def _step(
         self,

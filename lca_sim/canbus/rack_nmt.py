@@ -74,6 +74,10 @@ class RackNmt:
                 del axis.node.data_store[index]
         self._load_pdos(axis)
         if not communication_only:
+            # Reset node: the drive forgets its home too (0x607C is back at its default, and
+            # 0x6064 reads the encoder again), as a drive without a battery-backed home does.
+            axis.modes.stop()
+            axis.modes.offset_inc = 0.0
             axis.drive = Cia402AxisState(mode=axis.value(od.MODES_OF_OPERATION))
             self._control.set_drive(axis, axis.drive, now)
         axis.heartbeat_last_rx_s = None

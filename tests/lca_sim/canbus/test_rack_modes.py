@@ -473,6 +473,20 @@ def test_homing_on_the_present_position_reads_the_home_offset(drive: Drive402, m
     assert abs(drive.read(0x6064) - home_offset) <= 2
 
 
+def test_reset_node_forgets_the_home(drive: Drive402) -> None:
+    """NMT reset node (CiA 301 7.2.8.3.2.1, 0x81): 0x607C back to 0, 0x6064 the encoder's again."""
+    drive.write(0x6098, 37)
+    drive.write(0x607C, 1_000_000)
+    drive.enable(6)
+    drive.control(CW_ENABLED | CW_NEW_SET_POINT)
+    drive.cycle()
+    assert abs(drive.read(0x6064) - 1_000_000) <= 2
+    drive.node.nmt.send_command(0x81)
+    wait_until(lambda: drive.read(0x607C) == 0, "the reset's defaults")
+    encoder = drive.joint_position * drive.increments_per_joint
+    assert abs(drive.read(0x6064) - encoder) <= 2
+
+
 def test_basenode402_homing_returns_true(drive: Drive402) -> None:
     """BaseNode402's own homing(): it does not write 0x6098 (37 is the default) and gets True."""
     drive.write(0x607C, -5000)
