@@ -57,12 +57,14 @@ class CyclicPositionMode:
         self._halt = ProfileGenerator()
         self._controlword = 0
         self._following = FollowingErrorWatch()
+        self._last_demand: float | None = None  # the last cycle's demand, for its rate
 
     def enter(self, position_inc: float, velocity_inc_s: float, controlword: int) -> None:
         """Start the mode: a master sets 0x607A to 0x6064 before it switches (bumpless)."""
         self._halt.reset(position_inc, velocity_inc_s)
         self._controlword = controlword & ~CW_HALT  # a halt already on stops from here
         self._following.reset()
+        self._last_demand = None
 
     def update(
         self,
@@ -95,7 +97,11 @@ class CyclicPositionMode:
             demand, velocity = point.position_inc, point.velocity_inc_s
         else:
             demand, velocity = params.limits.clamp(target_inc), velocity_offset_inc_s
-            self._halt.reset(demand, velocity)
+            # A halt ramps down from the speed the targets moved at (their last step's rate,
+            # plus 0x60B1), not from the offset alone: else the demand stopped at once.
+            last, self._last_demand = self._last_demand, demand
+            rate = 0.0 if last is None or dt_s <= 0.0 else (demand - last) / dt_s
+            self._halt.reset(demand, velocity + rate)
         following, rose = self._following.update(demand, position_inc, dt_s, params.following_error)
         bits = 0 if halted else SW_FOLLOWS_COMMAND
         if following:

@@ -102,3 +102,14 @@ def test_halt_stops_on_the_ramp_and_ignores_the_target() -> None:
     assert all(o.torque_offset_permille == 0 for o in outs)
     out = mode.update(DT, ENABLED, 1130.0, 1125.0, PARAMS)
     assert out.position_inc == 1130.0 and out.status_bits == SW_FOLLOWS_COMMAND
+
+
+def test_halt_ramps_down_from_the_speed_the_targets_moved_at() -> None:
+    """Targets at 500 inc/s, no 0x60B1: the halt stops on 0x6084 from 500 inc/s, 125 inc on."""
+    mode = _mode()
+    for k in range(1, 51):  # 1 increment per 2 ms cycle: 500 inc/s, up to 50
+        mode.update(DT, ENABLED, float(k), float(k), PARAMS)
+    outs = [mode.update(DT, ENABLED | CW_HALT, 5000.0, 50.0, PARAMS) for _ in range(300)]
+    assert outs[0].velocity_inc_s == pytest.approx(500.0 - 1000.0 * DT)
+    assert outs[-1].position_inc == pytest.approx(50.0 + 125.0)
+    assert outs[-1].velocity_inc_s == 0.0
