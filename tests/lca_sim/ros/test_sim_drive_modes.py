@@ -7,6 +7,7 @@ each answer runs one control period. Every wait has a deadline; none sleeps.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 import support
@@ -27,20 +28,25 @@ def _t_s(msg: JointState) -> float:
     return float(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
 
 
+def _lockstep_pivot_in(ctx: Any, executor: Any, mode: str) -> Any:
+    """A lockstep simulator from 35 deg with the pivot in drive mode `mode`, the others current."""
+    return support.start_simulator(
+        ctx,
+        executor,
+        {
+            "timing_mode": "lockstep",
+            "command_interface": "current",
+            "drive_modes": ["current", mode, "current", "current"],
+            "initial_position": [0.0, START_RAD, 0.0, 0.0],
+            "lockstep_subscribers": 1,
+        },
+    )
+
+
 def test_position_commands_move_the_pivot_to_the_target_and_it_stays() -> None:
     """From 35 deg to 0.7 rad in position mode: within 2e-5 rad after 1.5 s, l_arm unmoved."""
     with ros_context() as (ctx, executor):
-        sim = support.start_simulator(
-            ctx,
-            executor,
-            {
-                "timing_mode": "lockstep",
-                "command_interface": "current",
-                "drive_modes": ["current", "position", "current", "current"],
-                "initial_position": [0.0, START_RAD, 0.0, 0.0],
-                "lockstep_subscribers": 1,
-            },
-        )
+        sim = _lockstep_pivot_in(ctx, executor, "position")
         node = Node("test_position_master", context=ctx)
         executor.add_node(node)
         publisher = node.create_publisher(Float64MultiArray, pc.POSITION_COMMANDS, 10)
@@ -68,17 +74,7 @@ def test_velocity_commands_answer_the_state_after_the_current_commands() -> None
     the current joints are in force by then (as on the CAN bridge with csv axes).
     """
     with ros_context() as (ctx, executor):
-        sim = support.start_simulator(
-            ctx,
-            executor,
-            {
-                "timing_mode": "lockstep",
-                "command_interface": "current",
-                "drive_modes": ["current", "velocity", "current", "current"],
-                "initial_position": [0.0, START_RAD, 0.0, 0.0],
-                "lockstep_subscribers": 1,
-            },
-        )
+        sim = _lockstep_pivot_in(ctx, executor, "velocity")
         node = Node("test_velocity_master", context=ctx)
         executor.add_node(node)
         currents = node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
