@@ -119,6 +119,11 @@ class ObjectStore:
         values[(od.POSITION_ENCODER_RESOLUTION, 1)] = self._config.encoder_increments_per_rev
         values[(od.POSITION_ENCODER_RESOLUTION, 2)] = 1
         values[(od.SUPPORTED_DRIVE_MODES, 0)] = cia402.SUPPORTED_DRIVE_MODES_BITS
+        # 0x607F: the drive loops' velocity cap (rack.yaml velocity_limit, joint side) in this
+        # drive's increments/s, so a profile is clamped where its loops are: a faster profile
+        # would run ahead of the axis into a following error.
+        scale = codec.increments_per_joint_unit(units, axis.gear_ratio)
+        values[(od.MAX_PROFILE_VELOCITY, 0)] = round(self._config.velocity_limit * scale)
         return values
 
     def _live_objects(self, axis: Drive) -> dict[tuple[int, int], Callable[[], int]]:

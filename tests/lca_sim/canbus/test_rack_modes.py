@@ -223,6 +223,32 @@ def test_pp_reaches_the_target_in_the_trapezoids_time(drive: Drive402) -> None:
     assert drive.status & SW_BIT13 == 0
 
 
+def test_pp_profile_velocity_is_clamped_where_the_loops_are(drive: Drive402) -> None:
+    """0x607F is the loops' cap (rack.yaml velocity_limit, 0.2 rad/s at l_arm's 800:1 gear).
+
+    A 0x6081 of twice it cruises at 0x607F (CiA 402-2: the profile velocity is limited to the
+    max profile velocity), not faster than the loops follow: no following error.
+    """
+    cap = drive.read(0x607F)
+    assert cap == round(0.2 * drive.increments_per_joint)  # 1 668 861 inc/s
+    _profile(drive, 2 * cap, 4 * cap, 4 * cap)  # 0.25 s ramps
+    drive.enable(1)
+    target = drive.read(0x6064) + cap  # 1 s at the cap: 0.5 s cruising
+    drive.write(0x607A, target)
+    drive.control(CW_ENABLED | CW_NEW_SET_POINT)
+    drive.cycle()
+    drive.control(CW_ENABLED)
+    speeds = []
+    for _ in range(int(0.6 / PERIOD_S)):
+        drive.cycle()
+        speeds.append(abs(drive.read(0x606C)))
+    cruise = speeds[int(0.4 / PERIOD_S) :]  # 0.4-0.6 s: past the ramp and the PI's overshoot
+    assert abs(sum(cruise) / len(cruise) - cap) <= 0.02 * cap
+    assert max(speeds) <= 1.1 * cap  # the velocity PI's overshoot (5 %), not 2 x the cap
+    drive.cycle_until(lambda: bool(drive.status & SW_TARGET_REACHED), "target reached", 1.0)
+    assert drive.status & SW_BIT13 == 0
+
+
 def test_pp_relative_move_lands_at_start_plus_distance(drive: Drive402) -> None:
     """PP with bit 6: 0x607A is relative to the preceding target (0x60F2 = 0)."""
     _profile(drive, 10 * REV, 40 * REV, 40 * REV)
