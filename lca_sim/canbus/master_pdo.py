@@ -15,6 +15,7 @@ from lca_sim.canbus.master_state import AXIS_FIELDS, AxisState
 from lca_sim.cia402 import codec, device
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import DriveUnits
+from lca_sim.cia402.object_entry import DataType
 from lca_sim.errors import InvalidValueError
 
 # TPDO objects a drive must map: what joint_states needs (CiA 402-2 0x6041, 0x6064, 0x606C,
@@ -111,9 +112,9 @@ class RpdoPacker:
         self._shared = cw_var.pdo_parent is target_var.pdo_parent
         self._cw_template = bytes(cw_var.pdo_parent.data)
         self._cw_offset = cw_var.offset // 8
-        self._cw_format = "<" + od.DataType(cw_var.od.data_type).struct_format
+        self._cw_format = "<" + DataType(cw_var.od.data_type).struct_format
         self._t_offset = target_var.offset // 8
-        self._t_format = "<" + od.DataType(target_var.od.data_type).struct_format
+        self._t_format = "<" + DataType(target_var.od.data_type).struct_format
         self._target_template = bytes(target_var.pdo_parent.data)
 
     @classmethod

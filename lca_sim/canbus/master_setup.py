@@ -32,6 +32,7 @@ from lca_sim.cia402 import codec
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
 from lca_sim.cia402.controlword import TorqueScale
+from lca_sim.cia402.object_entry import DataType
 
 
 class DriveSetup:
@@ -212,7 +213,7 @@ class DriveSetup:
             target = self._target(axis, var.od)
             if target is None:
                 continue  # an object the bridge has no use for: its bytes are skipped
-            fmt += f"{offset - struct.calcsize(fmt)}x" + od.DataType(var.od.data_type).struct_format
+            fmt += f"{offset - struct.calcsize(fmt)}x" + DataType(var.od.data_type).struct_format
             targets.append(target)
         apply = compile_apply(targets, struct.Struct(fmt).unpack_from, axis.gear)
         size = end  # the whole mapping: a shorter frame is not this PDO

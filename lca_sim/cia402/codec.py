@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from functools import partial
 
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.objects import DataType, ObjectEntry, Overflow, Scaling
+from lca_sim.cia402.object_entry import DataType, ObjectEntry, Overflow, Scaling
 from lca_sim.errors import LcaHilError
 
 TWO_PI = 2.0 * math.pi

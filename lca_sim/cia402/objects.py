@@ -19,14 +19,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-# The entry types live in object_entry; the table's users import them from here (re-exports).
-from lca_sim.cia402.object_entry import MANUFACTURER_AREA as MANUFACTURER_AREA  # noqa: PLC0414
-from lca_sim.cia402.object_entry import Access as Access  # noqa: PLC0414
-from lca_sim.cia402.object_entry import DataType as DataType  # noqa: PLC0414
-from lca_sim.cia402.object_entry import ObjectEntry as ObjectEntry  # noqa: PLC0414
-from lca_sim.cia402.object_entry import Overflow as Overflow  # noqa: PLC0414
-from lca_sim.cia402.object_entry import Scaling as Scaling  # noqa: PLC0414
-from lca_sim.cia402.object_entry import UnknownObjectError as UnknownObjectError  # noqa: PLC0414
+from lca_sim.cia402.object_entry import (
+    Access,
+    DataType,
+    ObjectEntry,
+    Overflow,
+    Scaling,
+    UnknownObjectError,
+)
 
 # --- object indices ----------------------------------------------------------------------------
 # CiA 301 communication profile area

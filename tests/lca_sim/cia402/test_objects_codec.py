@@ -22,7 +22,14 @@ from lca_sim.cia402 import bus_load, codec
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import Codec, CodecError, DriveUnits
 from lca_sim.cia402.device import SUPPORTED_DRIVE_MODES_BITS
-from lca_sim.cia402.objects import Access, DataType, ObjectEntry, Overflow, Scaling
+from lca_sim.cia402.object_entry import (
+    Access,
+    DataType,
+    ObjectEntry,
+    Overflow,
+    Scaling,
+    UnknownObjectError,
+)
 
 EDS = CONFIG / "can" / "lca_drive.eds"
 SHIPPED = DriveUnits(rated_torque_nm=1.2, rated_current_a=10.0, increments_per_rev=65536)
@@ -252,7 +259,7 @@ def test_standard_objects_cite_their_profile() -> None:
 
 def test_unknown_object_names_itself() -> None:
     """An object the table does not declare: one line naming index and sub-index."""
-    with pytest.raises(od.UnknownObjectError) as error:
+    with pytest.raises(UnknownObjectError) as error:
         od.entry(0x6079)
     assert str(error.value).startswith("object 0x6079 sub 0 is not in lca_hil's object table")
     with pytest.raises(ValueError, match="outside INTEGER16"):
