@@ -53,6 +53,15 @@ class BridgeCommands:
         self._lifecycle_state = lifecycle_state
         self.velocity_axes = tuple(j for j, m in zip(p.joints, p.modes, strict=False) if m == "csv")
         self.position_axes = tuple(j for j, m in zip(p.joints, p.modes, strict=False) if m == "csp")
+        modes = p.modes or ("cst",) * len(p.joints)
+        self._axes_of = {  # the topic that serves each mode's axes, and those axes
+            pc.CURRENT_COMMANDS: tuple(
+                j for j, m in zip(p.joints, modes, strict=True) if m == "cst"
+            ),
+            pc.VELOCITY_COMMANDS: self.velocity_axes,
+            pc.POSITION_COMMANDS: self.position_axes,
+        }
+        self.taken = dict.fromkeys(self._axes_of, 0)  # command arrays taken, per topic
         self.wrong_interface = 0
         self.ignored_inactive = 0  # commands that came while not active
         # ros2_control's topic-based interface: the commands in force, joint order, so a
@@ -90,6 +99,24 @@ class BridgeCommands:
         if p.joint_command_topic:
             node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
 
+    def unserved(self) -> str:
+        """Axes whose mode's topic brings nothing while another topic does ('' if none).
+
+        A controller commands one interface: with command_interface current it serves cst
+        (and csv) axes, with position only csp ones. The others would then hold where they
+        are without a word. JointState commands serve every mode, so with them all is served.
+        """
+        if not any(self.taken.values()) or self.joint_commands.counts["accepted"]:
+            return ""
+        idle = [
+            f"{list(axes)} get no {topic}"
+            for topic, axes in self._axes_of.items()
+            if axes and not self.taken[topic]
+        ]
+        if not idle:
+            return ""
+        return "; ".join(idle) + " (their modes' topic; the controller's command_interface?)"
+
     def _commanding(self) -> Cia402Master | None:
         """The master, when the node is active; else None, the command counted and warned."""
         master = self._drives.master
@@ -107,6 +134,7 @@ class BridgeCommands:
         master = self._commanding()
         if master is not None:
             self._set_currents(master, list(msg.data))
+            self.taken[pc.CURRENT_COMMANDS] += 1
             if not (self.velocity_axes or self.position_axes):
                 self._answered()
 
@@ -136,6 +164,7 @@ class BridgeCommands:
         master = self._commanding()
         if master is not None:
             self._set_velocities(master, list(msg.data))
+            self.taken[pc.VELOCITY_COMMANDS] += 1
             if not self.position_axes:
                 self._answered()
 
@@ -143,6 +172,7 @@ class BridgeCommands:
         master = self._commanding()
         if master is not None:
             self._set_positions(master, list(msg.data))
+            self.taken[pc.POSITION_COMMANDS] += 1
             self._answered()
 
     def _set_positions(self, master: Cia402Master, positions: list[float]) -> None:

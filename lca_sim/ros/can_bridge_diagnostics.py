@@ -72,6 +72,7 @@ class BridgeView:
         failures: a failed transition or init, each an ERROR text.
         counts: the node's own counters, in the order of the status's values.
         refused: the node refused a command (wrong interface, a refused JointState).
+        warnings: WARN texts of the node's own (axes no command topic serves).
     """
 
     lifecycle_state: str
@@ -80,6 +81,7 @@ class BridgeView:
     failures: tuple[str, ...]
     counts: dict[str, int]
     refused: bool
+    warnings: tuple[str, ...] = ()
 
 
 class BridgeDiagnostics:
@@ -150,6 +152,7 @@ class BridgeDiagnostics:
         else:
             first = (DiagnosticStatus.OK, "commands again" if self.command_losses else "running")
         found: list[Finding] = [first, *_failures(view)]
+        found += [(DiagnosticStatus.WARN, text) for text in view.warnings]
         if c.commands_rejected or c.send_failures or view.refused:
             found.append((DiagnosticStatus.WARN, "rejected commands or failed sends"))
         peer = self._command_health(master, master.now())

@@ -415,6 +415,7 @@ class CanBridgeNode(LifecycleNode):
                 "joint_command_unknown_names": counts["unknown_names"],
             },
             refused=bool(commands.wrong_interface or counts["refused"]),
+            warnings=tuple(filter(None, [commands.unserved()])),
         )
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()

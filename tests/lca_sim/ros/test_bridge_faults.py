@@ -9,6 +9,7 @@ publishing joint_states is a second plant on the domain: ERROR, as on the simula
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import can
@@ -180,6 +181,36 @@ def test_commands_late_for_their_cycle_warn_on_the_bridge() -> None:
             values = {kv.key: kv.value for kv in status.values}
             late, in_time = int(values["commands_late"]), int(values["commands_in_time"])
             assert late > 0.5 * (late + in_time)
+        finally:
+            bridge.destroy_node()
+            probe.node.destroy_node()
+
+
+def test_csp_axes_without_position_commands_warn_on_the_bridge() -> None:
+    """A pivot in csp and only current_commands coming: the bridge WARNs naming it.
+
+    Without the WARN the pivot would hold where it is without a word; it ends once
+    position_commands come.
+    """
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, modes=["cst", "csp", "cst", "cst"])
+        probe = Diagnostics(ctx, executor)
+        currents = probe.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
+        positions = probe.node.create_publisher(Float64MultiArray, pc.POSITION_COMMANDS, 10)
+        probe.node.create_timer(
+            0.01, lambda: currents.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+        )
+        try:
+            spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
+            status = probe.wait_for(BRIDGE, WARN, "['pivot'] get no position_commands")
+            assert "command_interface" in status.message
+            probe.node.create_timer(
+                0.01,
+                lambda: positions.publish(
+                    Float64MultiArray(data=[math.nan, math.nan, math.nan, math.nan])
+                ),
+            )
+            probe.wait_for(BRIDGE, OK, "")
         finally:
             bridge.destroy_node()
             probe.node.destroy_node()
