@@ -22,7 +22,7 @@ from lca_sim.canbus.master import Cia402Master
 from lca_sim.config.can_bridge_params import CanBridgeNodeParams
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.can_drives import CanDrives
-from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
+from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, unserved_axes
 from lca_sim.ros.plant_contract import qos_profile
 
 
@@ -100,22 +100,13 @@ class BridgeCommands:
             node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
 
     def unserved(self) -> str:
-        """Axes whose mode's topic brings nothing while another topic does ('' if none).
+        """Axes no command topic serves while another does (`unserved_axes`).
 
-        A controller commands one interface: with command_interface current it serves cst
-        (and csv) axes, with position only csp ones. The others would then hold where they
-        are without a word. JointState commands serve every mode, so with them all is served.
+        JointState commands serve every mode.
         """
-        if not any(self.taken.values()) or self.joint_commands.counts["accepted"]:
+        if self.joint_commands.counts["accepted"]:
             return ""
-        idle = [
-            f"{list(axes)} get no {topic}"
-            for topic, axes in self._axes_of.items()
-            if axes and not self.taken[topic]
-        ]
-        if not idle:
-            return ""
-        return "; ".join(idle) + " (their modes' topic; the controller's command_interface?)"
+        return unserved_axes(self._axes_of, self.taken)
 
     def _commanding(self) -> Cia402Master | None:
         """The master, when the node is active; else None, the command counted and warned."""

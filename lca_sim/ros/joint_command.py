@@ -232,3 +232,22 @@ class JointCommandAdapter:
             f"{self._topic}: {'; '.join(problems)} ({c['refused']} refused, "
             f"{c['unknown_names']} unknown names so far)"
         )
+
+
+def unserved_axes(axes_of: Mapping[str, Sequence[str]], taken: Mapping[str, int]) -> str:
+    """Axes whose mode's command topic brings nothing while another topic does ('' if none).
+
+    A controller commands one interface (current_commands, velocity_commands or
+    position_commands): the joints of the other modes would then hold where they are without
+    a word. `axes_of`: each topic and the joints it serves; `taken`: arrays taken per topic.
+    """
+    if not any(taken.values()):
+        return ""
+    idle = [
+        f"{list(axes)} get no {topic}"
+        for topic, axes in axes_of.items()
+        if axes and not taken[topic]
+    ]
+    if not idle:
+        return ""
+    return "; ".join(idle) + " (their modes' topic; the controller's command_interface?)"

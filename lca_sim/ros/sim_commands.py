@@ -23,7 +23,7 @@ from lca_sim.config.simulator_params import SimulatorNodeParams
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.drive_modes import JointDriveLoops
 from lca_sim.model.params import RobotParams
-from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales
+from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, unserved_axes
 from lca_sim.ros.plant_contract import qos_profile
 from lca_sim.ros.sim_pacing import SimPacing
 
@@ -70,6 +70,14 @@ class SimCommands:
         # voltage, then velocity, then position), as on the CAN bridge; the others are put
         # in force when they come and run no period.
         self.answer_topic = self.topic
+        self._axes_of = {  # the topic that serves each drive mode's joints, and those joints
+            self.topic: tuple(
+                j for j, m in zip(p.joints, modes, strict=True) if m == p.command_interface
+            ),
+            pc.VELOCITY_COMMANDS: velocity_joints,
+            pc.POSITION_COMMANDS: position_joints,
+        }
+        self.taken = dict.fromkeys(self._axes_of, 0)  # command arrays taken, per topic
         node.create_subscription(Float64MultiArray, self.topic, self.on_command, qos)
         node.create_subscription(Float64MultiArray, other, self._on_wrong_interface, qos)
         for mode, topic in (
@@ -107,12 +115,23 @@ class SimCommands:
 
     def on_command(self, msg: Float64MultiArray) -> None:
         """A command array on the interface's topic (joints order)."""
+        self.taken[self.topic] += 1
         self._take(list(msg.data), self._plant.command, self.answer_topic == self.topic)
 
     def _on_targets(self, mode: DriveMode, topic: str, msg: Float64MultiArray) -> None:
         """velocity_commands or position_commands (joints order; other joints' entries ignored)."""
         apply = partial(self._plant.command_targets, mode)
+        self.taken[topic] += 1
         self._take(list(msg.data), apply, self.answer_topic == topic)
+
+    def unserved(self) -> str:
+        """Joints no command topic serves while another does (`unserved_axes`).
+
+        JointState commands serve every mode.
+        """
+        if self.joint_commands.counts["accepted"]:
+            return ""
+        return unserved_axes(self._axes_of, self.taken)
 
     def _on_joint(self, msg: JointState) -> None:
         """A JointState command (docs/ros2_control.md): position, velocity or effort by name.

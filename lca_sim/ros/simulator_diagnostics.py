@@ -62,9 +62,16 @@ class SimulatorDiagnostics:
         self.command_losses = 0
 
     def statuses(
-        self, published: int, wrong_interface: int, joint_commands: dict[str, int]
+        self,
+        published: int,
+        wrong_interface: int,
+        joint_commands: dict[str, int],
+        unserved: str = "",
     ) -> list[DiagnosticStatus]:
-        """The simulator's status, then one per axis, given the node's own counters."""
+        """The simulator's status, then one per axis, given the node's own counters.
+
+        `unserved`: joints whose drive mode's topic brings nothing while another does (WARN).
+        """
         p = self._params()
         pacing = self._pacing
         plant = self._plant
@@ -113,6 +120,8 @@ class SimulatorDiagnostics:
             **counters.as_dict(),
         }
         found: list[Finding] = [(level, message)]
+        if unserved:
+            found.append((DiagnosticStatus.WARN, unserved))
         link_fault: Finding | None = None
         if faults.active(LINK):
             link_fault = (DiagnosticStatus.WARN, f"injected link faults: {faults.describe(LINK)}")

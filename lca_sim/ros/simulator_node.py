@@ -278,8 +278,12 @@ class SimulatorNode(Node):
     def _publish_diagnostics(self) -> None:
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
+        commands = self._commands
         array.status = self._diagnostics.statuses(
-            self._published, self._commands.wrong_interface, self._commands.joint_commands.counts
+            self._published,
+            commands.wrong_interface,
+            commands.joint_commands.counts,
+            commands.unserved(),
         )
         self._plant.publish_diagnostics(array)
 

@@ -14,7 +14,12 @@ from hypothesis import strategies as st
 
 from lca_sim.config.loader import load_robot
 from lca_sim.errors import InvalidValueError
-from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, read_joint_command
+from lca_sim.ros.joint_command import (
+    JointCommandAdapter,
+    effort_scales,
+    read_joint_command,
+    unserved_axes,
+)
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 
@@ -188,3 +193,22 @@ def test_each_joint_takes_exactly_its_own_field(
     expected = tuple(f"{k} {sorted(warned[k])}" for k in "vep" if warned[k])
     assert cmd.problems == expected
     assert cmd.accepted == any(taken.values())
+
+
+def test_unserved_axes_names_the_joints_their_topic_leaves_idle() -> None:
+    """Only current_commands coming: csp / position joints are named; none at all: silence."""
+    axes_of = {
+        "current_commands": ("l_arm", "c_arc", "lift"),
+        "velocity_commands": (),
+        "position_commands": ("pivot",),
+    }
+    idle = {"current_commands": 0, "velocity_commands": 0, "position_commands": 0}
+    assert unserved_axes(axes_of, idle) == ""  # no command yet: the peer watch's business
+    currents = {**idle, "current_commands": 7}
+    assert unserved_axes(axes_of, currents).startswith("['pivot'] get no position_commands")
+    both = {**currents, "position_commands": 1}
+    assert unserved_axes(axes_of, both) == ""
+    positions = {**idle, "position_commands": 3}
+    assert unserved_axes(axes_of, positions).startswith(
+        "['l_arm', 'c_arc', 'lift'] get no current_commands"
+    )

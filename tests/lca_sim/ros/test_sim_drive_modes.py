@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import support
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -19,7 +20,8 @@ from support import spin_until
 from lca_control import contract as pc
 from lca_control.parameters import ParameterError
 
-ros_context = support.domain_contexts(122, 1)  # its own: 140-145 are test_sim_control's
+WARN = DiagnosticStatus.WARN
+ros_context = support.domain_contexts(122, 4)  # its own: 140-145 are test_sim_control's
 TARGET_RAD = 0.7
 START_RAD = math.radians(35.0)
 
@@ -109,3 +111,29 @@ def test_drive_modes_that_do_not_fit_refuse_the_start() -> None:
             executor,
             {"command_interface": "voltage", "drive_modes": ["position"] * 4},
         )
+
+
+def test_position_joints_without_position_commands_warn() -> None:
+    """The pivot in position mode and only current_commands coming: a WARN naming it.
+
+    Without it the pivot would hold where it is without a word (realtime: nothing stalls).
+    """
+    with ros_context() as (ctx, executor):
+        support.start_simulator(
+            ctx,
+            executor,
+            {
+                "timing_mode": "realtime",
+                "command_interface": "current",
+                "drive_modes": ["current", "position", "current", "current"],
+                "initial_position": [0.0, START_RAD, 0.0, 0.0],
+                "diagnostics_period_s": 0.1,
+            },
+        )
+        probe = support.Diagnostics(ctx, executor)
+        currents = probe.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
+        probe.node.create_timer(
+            0.01, lambda: currents.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+        )
+        status = probe.wait_for("lca_hil/simulator", WARN, "['pivot'] get no position_commands")
+        assert "command_interface" in status.message
