@@ -96,6 +96,7 @@ class SimulatorDiagnostics:
         values: dict[str, object] = {
             "timing_mode": p.timing_mode,
             "command_interface": p.command_interface,
+            "drive_modes": " ".join(p.joint_drive_modes),
             "enabled": plant.enabled,
             "sim_time_s": pacing.sim_time_s,
             "steps": pacing.steps,
