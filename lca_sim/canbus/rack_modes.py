@@ -104,8 +104,9 @@ class AxisModes:
             self._enter(axis, mode, position_inc, velocity_inc_s, position, velocity)
         if mode == MODE_CSV:
             target = axis.velocity.decode(axis.value(od.TARGET_VELOCITY)) / axis.gear_ratio
-            current = self.loops.update(dt_s, position=position, velocity=velocity,
-                                        velocity_target=target)  # fmt: skip
+            current = self.loops.update(
+                dt_s, position=position, velocity=velocity, velocity_target=target
+            )
             self.permille = axis.current.encode(current)
             return None
         out = self._step(axis, mode, dt_s, controlword, position_inc, velocity_inc_s, current_a)
