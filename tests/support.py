@@ -481,3 +481,20 @@ def emcy_code(data: bytes) -> tuple[int, int]:
     """(error code, error register) of an EMCY frame."""
     code, register = struct.unpack_from("<HB", data)
     return code, register
+
+
+def assert_lockstep_plant_clean(node: Any) -> None:
+    """A lockstep plant node after its run: nothing latched, late or refused.
+
+    The bridge: no latch, no late and no refused command; the simulator: no refused command.
+    """
+    from lca_sim.ros.can_bridge_node import CanBridgeNode
+    from lca_sim.ros.simulator_node import SimulatorNode
+
+    if isinstance(node, CanBridgeNode):
+        assert node.bridge.latched_reason() == ""
+        assert node.bridge.counters.commands_late == 0
+        assert node.bridge.counters.commands_rejected == 0
+    else:
+        assert isinstance(node, SimulatorNode)
+        assert node.plant.counters.rejected == 0

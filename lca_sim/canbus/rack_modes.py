@@ -17,10 +17,10 @@ from lca_control.drive_loops import DriveLoopParams, DriveLoops, DriveMode
 from lca_sim.canbus.rack_state import Drive
 from lca_sim.cia402 import mode_params
 from lca_sim.cia402 import objects as od
-from lca_sim.cia402.device import MODE_CSP, MODE_CSV, MODE_HM, MODE_PP, MODE_PV
+from lca_sim.cia402.device import CW_HALT, MODE_CSP, MODE_CSV, MODE_HM, MODE_PP, MODE_PV
 from lca_sim.cia402.homing import HomingInputs, HomingMode, HomingParams
 from lca_sim.cia402.mode_common import Loop, ModeOutput
-from lca_sim.cia402.mode_csp import CW_HALT, CspParams, CyclicPositionMode
+from lca_sim.cia402.mode_csp import CspParams, CyclicPositionMode
 from lca_sim.cia402.mode_pp import PpParams, ProfilePositionMode
 from lca_sim.cia402.mode_pv import ProfileVelocityMode, PvParams
 from lca_sim.cia402.profile import ProfileGenerator

@@ -24,12 +24,12 @@ import enum
 import math
 from dataclasses import dataclass
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import SW_BIT10, SW_BIT12, SW_BIT13, Dwell, Loop, ModeOutput
 from lca_sim.cia402.profile import ProfileGenerator, ProfileParams
 from lca_sim.errors import InvalidValueError
 
 CW_HOMING_START = 1 << 4
-CW_HALT = 1 << 8
 SW_HOMING_TARGET_REACHED = SW_BIT10
 SW_HOMING_ATTAINED = SW_BIT12
 SW_HOMING_ERROR = SW_BIT13

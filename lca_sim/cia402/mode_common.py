@@ -107,6 +107,10 @@ class WindowParams:
         return self.window >= WINDOW_OFF
 
 
+# A window switched off (0x6065 / 0x6067 = 0xFFFFFFFF): the modes' default.
+WINDOW_DISABLED = WindowParams(WINDOW_OFF, 0.0)
+
+
 class Dwell:
     """True once a condition has held continuously for a time (a window time, CiA 402-2)."""
 

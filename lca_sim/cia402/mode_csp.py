@@ -13,10 +13,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import (
     EMCY_FOLLOWING_ERROR,
     SW_BIT12,
     SW_BIT13,
+    WINDOW_DISABLED,
     FollowingErrorWatch,
     Loop,
     ModeOutput,
@@ -26,11 +28,8 @@ from lca_sim.cia402.mode_common import (
 )
 from lca_sim.cia402.profile import HALT_SLOW_DOWN_RAMP, ProfileGenerator, ProfileParams
 
-CW_HALT = 1 << 8
 SW_FOLLOWS_COMMAND = SW_BIT12
 SW_FOLLOWING_ERROR = SW_BIT13
-
-_OFF = WindowParams(0xFFFFFFFF, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,7 +46,7 @@ class CspParams:
     profile: ProfileParams
     halt_option: int = HALT_SLOW_DOWN_RAMP
     limits: SoftwareLimits = field(default_factory=SoftwareLimits)
-    following_error: WindowParams = _OFF
+    following_error: WindowParams = WINDOW_DISABLED
 
 
 class CyclicPositionMode:

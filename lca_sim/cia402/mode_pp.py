@@ -16,11 +16,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import (
     EMCY_FOLLOWING_ERROR,
     SW_BIT10,
     SW_BIT12,
     SW_BIT13,
+    WINDOW_DISABLED,
     Dwell,
     FollowingErrorWatch,
     Loop,
@@ -36,13 +38,10 @@ from lca_sim.cia402.profile import HALT_SLOW_DOWN_RAMP, ProfileGenerator, Profil
 CW_NEW_SET_POINT = 1 << 4
 CW_CHANGE_SET_IMMEDIATELY = 1 << 5
 CW_RELATIVE = 1 << 6
-CW_HALT = 1 << 8
 # Statusword bits of profile position (CiA 402-2 0x6041).
 SW_TARGET_REACHED = SW_BIT10
 SW_SET_POINT_ACKNOWLEDGE = SW_BIT12
 SW_FOLLOWING_ERROR = SW_BIT13
-
-_OFF = WindowParams(0xFFFFFFFF, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,8 +59,8 @@ class PpParams:
     profile: ProfileParams
     halt_option: int = HALT_SLOW_DOWN_RAMP
     limits: SoftwareLimits = field(default_factory=SoftwareLimits)
-    position_window: WindowParams = _OFF
-    following_error: WindowParams = _OFF
+    position_window: WindowParams = WINDOW_DISABLED
+    following_error: WindowParams = WINDOW_DISABLED
 
 
 class ProfilePositionMode:

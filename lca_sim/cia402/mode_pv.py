@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import (
     SW_BIT10,
     SW_BIT12,
@@ -27,7 +28,6 @@ from lca_sim.cia402.mode_common import (
 )
 from lca_sim.cia402.profile import HALT_SLOW_DOWN_RAMP, ProfileGenerator, ProfileParams
 
-CW_HALT = 1 << 8
 SW_TARGET_REACHED = SW_BIT10
 SW_SPEED_ZERO = SW_BIT12
 SW_MAX_SLIPPAGE = SW_BIT13

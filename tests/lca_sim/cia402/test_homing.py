@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import pytest
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.homing import (
-    CW_HALT,
     CW_HOMING_START,
     HomingInputs,
     HomingMode,

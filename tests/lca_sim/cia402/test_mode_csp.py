@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pytest
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import (
     EMCY_FOLLOWING_ERROR,
     SW_BIT10,
@@ -18,7 +19,6 @@ from lca_sim.cia402.mode_common import (
 )
 from lca_sim.cia402.mode_common import WindowParams as Window
 from lca_sim.cia402.mode_csp import (
-    CW_HALT,
     SW_FOLLOWING_ERROR,
     SW_FOLLOWS_COMMAND,
     CspParams,

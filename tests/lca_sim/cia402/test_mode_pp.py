@@ -12,11 +12,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import EMCY_FOLLOWING_ERROR, Loop, ModeOutput, SoftwareLimits
 from lca_sim.cia402.mode_common import WindowParams as Window
 from lca_sim.cia402.mode_pp import (
     CW_CHANGE_SET_IMMEDIATELY,
-    CW_HALT,
     CW_NEW_SET_POINT,
     CW_RELATIVE,
     SW_FOLLOWING_ERROR,

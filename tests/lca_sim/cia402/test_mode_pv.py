@@ -12,10 +12,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from lca_sim.cia402.device import CW_HALT
 from lca_sim.cia402.mode_common import Loop, ModeOutput
 from lca_sim.cia402.mode_common import WindowParams as Window
 from lca_sim.cia402.mode_pv import (
-    CW_HALT,
     SW_MAX_SLIPPAGE,
     SW_SPEED_ZERO,
     SW_TARGET_REACHED,

@@ -183,13 +183,7 @@ def _run(plant: str, mode: str, tmp_path: Path) -> Trace:
                 f"{END_S} s of lockstep on {plant} in {mode} mode",
                 timeout_s=180.0,
             )
-            if isinstance(node, CanBridgeNode):
-                assert node.bridge.latched_reason() == ""
-                assert node.bridge.counters.commands_late == 0
-                assert node.bridge.counters.commands_rejected == 0
-            else:
-                assert isinstance(node, SimulatorNode)
-                assert node.plant.counters.rejected == 0
+            support.assert_lockstep_plant_clean(node)
             return master.trace
         finally:
             for n in (node, master):

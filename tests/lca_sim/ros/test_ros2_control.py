@@ -332,13 +332,7 @@ def test_position_and_velocity_interfaces_on_both_plants(
                 f"{END_S} s of lockstep on {plant}",
                 timeout_s=120.0,
             )
-            if isinstance(node, CanBridgeNode):
-                assert node.bridge.latched_reason() == ""
-                assert node.bridge.counters.commands_late == 0
-                assert node.bridge.counters.commands_rejected == 0
-            else:
-                assert isinstance(node, SimulatorNode)
-                assert node.plant.counters.rejected == 0
+            support.assert_lockstep_plant_clean(node)
             counts = node.joint_command_counts
             assert counts["refused"] == 0 and counts["accepted"] > 500
         finally:
