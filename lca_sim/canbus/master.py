@@ -89,6 +89,9 @@ class Cia402Master:
             simulated time, and the cycle runs only when its driver calls `cycle`.
         stamp_clock: the stamp of each SYNC's `Snapshot`, s (default `time.time`; a lockstep
             loop: the same simulated time).
+        before_cycle: called by the cycle thread (`start`) before each cycle, so before its
+            command is judged in time or late: the ROS shell takes the commands that came
+            since the last SYNC there (`BridgeCommands.poll`), not its executor per command.
     """
 
     def __init__(
@@ -99,8 +102,10 @@ class Cia402Master:
         on_state: Callable[[Snapshot], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         stamp_clock: Callable[[], float] = time.time,
+        before_cycle: Callable[[], None] | None = None,
     ) -> None:
         self.network = network
+        self._before_cycle = before_cycle
         self.params = params
         self.on_state = on_state
         self._clock = clock
@@ -219,7 +224,11 @@ class Cia402Master:
         return self._take("positions", positions, "command_rad", now)
 
     def _take(self, what: str, values: Sequence[float], field: str, at: float | None) -> str | None:
-        """Store one command per axis in `field`; None, or why it was refused."""
+        """Store one command per axis in `field`; None, or why it was refused.
+
+        `at`: when the command arrived, on the master's clock (a polled command's receive
+        time); None: now.
+        """
         refused = _refusal(what, values, self.params.joints, field in NAN_HOLDS)
         if refused:
             self.counters.commands_rejected += 1
@@ -227,15 +236,18 @@ class Cia402Master:
         with self._lock:
             for axis, value in zip(self._axes, values, strict=True):
                 setattr(axis, field, float(value))
-            self._commands_arrived(self._clock() if at is None else at)
+            self._commands_arrived(at)
         self.counters.commands_accepted += 1
         return None
 
-    def _commands_arrived(self, now: float) -> None:
+    def _commands_arrived(self, at: float | None) -> None:
         if self._answered_cycle != self._cycle:  # the first command after this SYNC
             self._answered_cycle = self._cycle
-            self._command_latencies_s.append(time.monotonic() - self._sync_mono_s)
-        self._watch.command(now)
+            # A time given is on the master's clock, monotonic wall time unless lockstep (whose
+            # commands are never polled, so never given one).
+            arrived_s = time.monotonic() if at is None else at
+            self._command_latencies_s.append(arrived_s - self._sync_mono_s)
+        self._watch.command(self._clock() if at is None else at)
 
     def enable(self, on: bool) -> str:
         """Walk every drive to operation enabled (or back to ready to switch on)."""
@@ -302,6 +314,8 @@ class Cia402Master:
         next_t = time.monotonic()
         previous_start = math.nan
         while not self._stop.is_set():
+            if self._before_cycle is not None:
+                self._before_cycle()  # the commands that came since the last SYNC
             now = time.monotonic()
             freeze = self._freeze_watch.check(now - previous_start - period)
             if freeze is not None:

@@ -5,15 +5,26 @@
 `voltage_commands` (refused: CiA 402 drives take torque) and the JointState command topic
 (docs/ros2_control.md), hands the values to the master while the node is active, and in
 lockstep lets the controller's answer release the next SYNC. docs/can.md has the whole story.
+
+In real time the subscriptions are polled, not spun: the master's cycle thread takes what came
+since the last SYNC (`poll`, just before it builds the RPDOs), each command with the time rmw
+received it, so in time and late are judged as before. Spinning them woke the executor's
+thread for every command, a second thread taking the GIL in each 2 ms cycle (about 100 us of
+CPU per command; docs/can-transport.md). A polled subscription lives on a node of its own that
+no executor spins (`<bridge>_commands`).
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -36,6 +47,7 @@ class BridgeCommands:
         drives: the node's drives (the master, the lockstep loop).
         active: the node is lifecycle ACTIVE (commands are passed on only then).
         lifecycle_state: the lifecycle state's label, for the warning while inactive.
+        polled: take the commands in `poll` (real time) instead of from the executor.
     """
 
     def __init__(
@@ -46,6 +58,8 @@ class BridgeCommands:
         drives: CanDrives,
         active: Callable[[], bool],
         lifecycle_state: Callable[[], str],
+        *,
+        polled: bool = False,
     ) -> None:
         self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
         self._drives = drives
@@ -85,19 +99,70 @@ class BridgeCommands:
             position_joints=self.position_axes,
             position_refused=lambda j: f"position for {j}: their drives do not run csp (modes)",
         )
-        qos = qos_profile(pc.COMMAND_QOS)
-        node.create_subscription(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current, qos)
-        node.create_subscription(Float64MultiArray, pc.VOLTAGE_COMMANDS, self._on_voltage, qos)
+        self._poll_node: Node | None = None
+        if polled:  # the same context, remappings and namespace; no executor spins it
+            self._poll_node = Node(
+                f"{node.get_name()}_commands",
+                namespace=node.get_namespace(),
+                context=node.context,
+                start_parameter_services=False,
+                enable_rosout=False,
+            )
+        self._polled: list[tuple[Subscription, Callable[[Any, float | None], None]]] = []
+        self._poll_lock = threading.Lock()  # the cycle thread and the diagnostics timer
+        self._subscribe(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current, node)
+        self._subscribe(Float64MultiArray, pc.VOLTAGE_COMMANDS, self._on_voltage, node)
         if self.velocity_axes:  # CSV axes close their velocity loop in the drive
-            node.create_subscription(
-                Float64MultiArray, pc.VELOCITY_COMMANDS, self._on_velocity, qos
-            )
+            self._subscribe(Float64MultiArray, pc.VELOCITY_COMMANDS, self._on_velocity, node)
         if self.position_axes:  # CSP axes close position and velocity loops in the drive
-            node.create_subscription(
-                Float64MultiArray, pc.POSITION_COMMANDS, self._on_position, qos
-            )
+            self._subscribe(Float64MultiArray, pc.POSITION_COMMANDS, self._on_position, node)
         if p.joint_command_topic:
-            node.create_subscription(JointState, p.joint_command_topic, self._on_joint, qos)
+            self._subscribe(JointState, p.joint_command_topic, self._on_joint, node)
+
+    def _subscribe(
+        self, msg_type: Any, topic: str, handler: Callable[[Any, float | None], None], node: Node
+    ) -> None:
+        qos = qos_profile(pc.COMMAND_QOS)
+        if self._poll_node is None:
+            node.create_subscription(msg_type, topic, lambda msg: handler(msg, None), qos)
+            return
+        sub = self._poll_node.create_subscription(msg_type, topic, lambda _msg: None, qos)
+        self._polled.append((sub, handler))
+
+    def poll(self) -> None:
+        """Take every command that came since the last poll, with its receive time (real time).
+
+        Called by the master's cycle thread before each SYNC's RPDOs, and by the diagnostics
+        timer, which counts the commands that come while no cycle runs (unconfigured).
+        """
+        if not self._polled:
+            return
+        with self._poll_lock:
+            offset_ns = time.time_ns() - time.monotonic_ns()
+            now_s = time.monotonic()
+            for sub, handler in self._polled:
+                while True:
+                    try:
+                        with sub.handle:
+                            taken = sub.handle.take_message(sub.msg_type, False)
+                    except InvalidHandle:  # destroyed: the node is shutting down
+                        return
+                    if taken is None:
+                        break
+                    msg, info = taken
+                    received_ns = int(info.get("received_timestamp") or 0)
+                    # rmw stamps the receipt on the system clock; the master judges on the
+                    # monotonic one. No receipt time (an rmw without it): now.
+                    at_s = min(now_s, (received_ns - offset_ns) * 1e-9) if received_ns else now_s
+                    handler(msg, at_s)
+
+    def destroy(self) -> None:
+        """Destroy the polled subscriptions' node (with the bridge node)."""
+        poll_node, self._poll_node = self._poll_node, None
+        with self._poll_lock:
+            self._polled = []
+        if poll_node is not None:
+            poll_node.destroy_node()  # type: ignore[no-untyped-call]
 
     def unserved(self) -> str:
         """Axes no command topic serves while another does (`unserved_axes`).
@@ -121,10 +186,10 @@ class BridgeCommands:
         )
         return None
 
-    def _on_current(self, msg: Float64MultiArray) -> None:
+    def _on_current(self, msg: Float64MultiArray, at: float | None) -> None:
         master = self._commanding()
         if master is not None:
-            self._set_currents(master, list(msg.data))
+            self._set_currents(master, list(msg.data), at)
             self.taken[pc.CURRENT_COMMANDS] += 1
             if not (self.velocity_axes or self.position_axes):
                 self._answered()
@@ -141,8 +206,10 @@ class BridgeCommands:
         if loop is not None:
             loop.on_command(time.monotonic())
 
-    def _set_currents(self, master: Cia402Master, currents_a: list[float]) -> None:
-        reason = master.set_currents(currents_a)
+    def _set_currents(
+        self, master: Cia402Master, currents_a: list[float], at: float | None
+    ) -> None:
+        reason = master.set_currents(currents_a, at)
         if reason is None:
             self._held_current_a[:] = currents_a
         else:
@@ -151,23 +218,25 @@ class BridgeCommands:
                 throttle_duration_sec=1.0,
             )
 
-    def _on_velocity(self, msg: Float64MultiArray) -> None:
+    def _on_velocity(self, msg: Float64MultiArray, at: float | None) -> None:
         master = self._commanding()
         if master is not None:
-            self._set_velocities(master, list(msg.data))
+            self._set_velocities(master, list(msg.data), at)
             self.taken[pc.VELOCITY_COMMANDS] += 1
             if not self.position_axes:
                 self._answered()
 
-    def _on_position(self, msg: Float64MultiArray) -> None:
+    def _on_position(self, msg: Float64MultiArray, at: float | None) -> None:
         master = self._commanding()
         if master is not None:
-            self._set_positions(master, list(msg.data))
+            self._set_positions(master, list(msg.data), at)
             self.taken[pc.POSITION_COMMANDS] += 1
             self._answered()
 
-    def _set_positions(self, master: Cia402Master, positions: list[float]) -> None:
-        reason = master.set_positions(positions)
+    def _set_positions(
+        self, master: Cia402Master, positions: list[float], at: float | None
+    ) -> None:
+        reason = master.set_positions(positions, at)
         if reason is None:
             self._held_position[:] = positions
         else:
@@ -176,8 +245,10 @@ class BridgeCommands:
                 throttle_duration_sec=1.0,
             )
 
-    def _set_velocities(self, master: Cia402Master, velocities: list[float]) -> None:
-        reason = master.set_velocities(velocities)
+    def _set_velocities(
+        self, master: Cia402Master, velocities: list[float], at: float | None
+    ) -> None:
+        reason = master.set_velocities(velocities, at)
         if reason is None:
             self._held_velocity[:] = velocities
         else:
@@ -186,7 +257,7 @@ class BridgeCommands:
                 throttle_duration_sec=1.0,
             )
 
-    def _on_joint(self, msg: JointState) -> None:
+    def _on_joint(self, msg: JointState, at: float | None) -> None:
         """A JointState command (docs/ros2_control.md), each joint by its drive's mode.
 
         A cst joint takes its effort entry (A, or joint torque per `joint_command_effort`),
@@ -201,16 +272,16 @@ class BridgeCommands:
         adapter = self.joint_commands
         cmd = adapter.read(msg.name, msg.velocity, msg.effort, position=msg.position)
         if cmd.accepted and cmd.effort:
-            self._set_currents(master, adapter.fill(self._held_current_a, cmd.effort))
+            self._set_currents(master, adapter.fill(self._held_current_a, cmd.effort), at)
         if cmd.accepted and cmd.velocity:
-            self._set_velocities(master, adapter.fill(self._held_velocity, cmd.velocity))
+            self._set_velocities(master, adapter.fill(self._held_velocity, cmd.velocity), at)
         if cmd.accepted and cmd.position:
-            self._set_positions(master, adapter.fill(self._held_position, cmd.position))
+            self._set_positions(master, adapter.fill(self._held_position, cmd.position), at)
         if cmd.problems:
             self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
         self._answered()
 
-    def _on_voltage(self, msg: Float64MultiArray) -> None:
+    def _on_voltage(self, _msg: Float64MultiArray, _at: float | None) -> None:
         self.wrong_interface += 1
         self._log.warning(
             f"ignoring voltage commands ({self.wrong_interface} so far): CiA 402 drives take "

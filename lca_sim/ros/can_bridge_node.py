@@ -84,13 +84,13 @@ class CanBridgeNode(LifecycleNode):
         eds = Path(p.eds) if p.eds else config_dir() / "can" / "lca_drive.eds"
         if not eds.is_file():
             raise ConfigError("parameters", "eds", f"{FILE_NOT_FOUND}: {eds}")
-        self._drives = CanDrives(robot, p.joints, eds, self._on_state)
+        self._lockstep = p.timing_mode == "lockstep"
+        self._drives = CanDrives(robot, p.joints, eds, self._on_state, self._poll_commands)
         self._active = False  # lifecycle ACTIVE: states published, commands passed on
         self._autostarting = False  # inside the start-up's configure and activate
         self._startup_error: Exception | None = None  # a user error of that start-up
         self._transition_error = ""  # why the last transition failed, until one succeeds
         self._published = 0
-        self._lockstep = p.timing_mode == "lockstep"
         self._last_plant: PlantSnapshot | None = None  # lockstep: sent again to a silent peer
         self._create_interfaces(p, robot)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
@@ -109,7 +109,13 @@ class CanBridgeNode(LifecycleNode):
         )
         self._diagnostics = BridgeDiagnostics(self, self._plant)
         self._commands = BridgeCommands(
-            self, p, robot, self._drives, lambda: self._active, lambda: self.lifecycle_state
+            self,
+            p,
+            robot,
+            self._drives,
+            lambda: self._active,
+            lambda: self.lifecycle_state,
+            polled=not self._lockstep,
         )
         self._drive_services = DriveServices(
             self, self._drives, lambda: self._active, lambda: self.lifecycle_state
@@ -344,6 +350,7 @@ class CanBridgeNode(LifecycleNode):
         """Leave the drives torque-free and close the buses (as on shutdown), then destroy."""
         self._torque_free()
         self._teardown()
+        self._commands.destroy()
         super().destroy_node()
 
     # --- topics --------------------------------------------------------------------------
@@ -395,8 +402,13 @@ class CanBridgeNode(LifecycleNode):
 
     # --- diagnostics ---------------------------------------------------------------------
 
+    def _poll_commands(self) -> None:
+        """The cycle thread, before each SYNC: the commands that came since the last one."""
+        self._commands.poll()
+
     def _publish_diagnostics(self) -> None:
         commands = self._commands
+        commands.poll()  # what came while no cycle runs (unconfigured) is counted too
         counts = commands.joint_commands.counts
         failures = [self._transition_error] if self._transition_error else []
         if self._drives.init_error and self._drives.master is not None:

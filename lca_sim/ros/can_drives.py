@@ -186,6 +186,8 @@ class CanDrives:
         joints: the bridge's joints (read-only), in command order.
         eds: the drives' EDS.
         on_state: called with each complete SYNC cycle (in the notifier thread).
+        before_cycle: real time: called by the cycle thread before each SYNC's RPDOs
+            (`Cia402Master`'s `before_cycle`); lockstep runs on commands and ignores it.
     """
 
     def __init__(
@@ -194,6 +196,7 @@ class CanDrives:
         joints: tuple[str, ...],
         eds: Path,
         on_state: Callable[[Snapshot], None],
+        before_cycle: Callable[[], None] | None = None,
     ) -> None:
         axes = {a.name: a for a in robot.axes}
         self.joints = joints
@@ -204,6 +207,7 @@ class CanDrives:
         self.state_names = robot.state_machine.state_names
         self._eds = eds
         self._on_state = on_state
+        self._before_cycle = before_cycle
         self.master: Cia402Master | None = None
         self.network: canopen.Network | None = None
         self.rack: VirtualDriveRack | None = None
@@ -256,7 +260,13 @@ class CanDrives:
             bus.attach(self.network.notifier.listeners)
         params = bridge_params(p, self.robot_values())
         if not self._lockstep:
-            self.master = Cia402Master(self.network, params, self._eds, on_state=self._on_state)
+            self.master = Cia402Master(
+                self.network,
+                params,
+                self._eds,
+                on_state=self._on_state,
+                before_cycle=self._before_cycle,
+            )
             return
         clock = CycleClock(1.0 / p.cycle_hz)
         master = Cia402Master(

@@ -64,6 +64,13 @@ def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> 
         bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
         probe = Diagnostics(ctx, executor)
         commands = probe.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
+        answering = [False]
+
+        def answer(_state: JointState) -> None:  # one command per state, as a controller
+            if answering[0]:
+                commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
+
+        probe.node.create_subscription(JointState, pc.JOINT_STATES, answer, 10)
         try:
             spin_until(executor, lambda: _enabled(bridge), "drives operation enabled", 30.0)
             # waiting for its controller is no fault: OK, saying what it waits for
@@ -71,13 +78,16 @@ def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> 
             assert probe.value(BRIDGE, "command_losses") == "0"
 
             def commanding(until: str, level: bytes) -> None:
-                def step() -> None:
-                    commands.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 0.0]))
-                    executor.spin_once(timeout_sec=0.01)
-
+                # Answering every state keeps the commands in time: a test that commands
+                # slower than the cycle is, rightly, a late-command WARN (LateShare).
+                answering[0] = True
                 support.wait_until(
-                    lambda: probe.shows(BRIDGE, level, until), until, 30.0, step=step
+                    lambda: probe.shows(BRIDGE, level, until),
+                    until,
+                    30.0,
+                    step=lambda: executor.spin_once(timeout_sec=0.01),
                 )
+                answering[0] = False
 
             commanding("running", OK)
             # The controller stops: halt after 0.2 s, and the bridge reports it.

@@ -1,0 +1,144 @@
+"""The bridge's polled command intake: taken by the cycle, with the time rmw received each.
+
+In real time `BridgeCommands` subscribes on a node no executor spins and the master's cycle
+thread takes what came before each SYNC (`poll`). These tests run it against a recording
+master on a real rclpy context: the executor never takes a command, `poll` takes every one in
+order with a receipt time between its publication and the poll, and a poll after the bridge
+is destroyed is harmless (the cycle thread may still be running then).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+import support
+from std_msgs.msg import Float64MultiArray
+
+from lca_control import contract as pc
+from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, validate_can_bridge_params
+from lca_sim.config.loader import load_robot
+from lca_sim.ros.can_bridge_commands import BridgeCommands
+from lca_sim.ros.plant_contract import qos_profile
+
+ros_context = support.domain_contexts(110, 3)
+COMMANDS = 5
+
+
+@dataclass
+class RecordingMaster:
+    """Takes current commands as `Cia402Master.set_currents` does, and keeps them."""
+
+    taken: list[tuple[list[float], float | None]] = field(default_factory=list)
+
+    def set_currents(self, currents_a: list[float], at: float | None = None) -> str | None:
+        """Keep the command and its receipt time; refuse nothing."""
+        self.taken.append((list(currents_a), at))
+        return None
+
+
+def _commands(node: Any, master: RecordingMaster, *, active: bool = True) -> BridgeCommands:
+    p = validate_can_bridge_params(CAN_BRIDGE_PARAMETERS.defaults())
+    drives: Any = SimpleNamespace(master=master, loop=None)
+    return BridgeCommands(
+        node,
+        p,
+        load_robot(p.robot),
+        drives,
+        lambda: active,
+        lambda: "active" if active else "inactive",
+        polled=True,
+    )
+
+
+def _publish_and_wait(
+    ctx: Any, executor: Any, count: int
+) -> tuple[float, list[list[float]], Any, Any]:
+    """Publish `count` commands once matched; return when a spy in the test has them all."""
+    import rclpy
+
+    talker = rclpy.create_node("talker", context=ctx)
+    seen: list[list[float]] = []
+
+    def spy(msg: Float64MultiArray) -> None:
+        seen.append(list(msg.data))
+
+    talker.create_subscription(
+        Float64MultiArray, pc.CURRENT_COMMANDS, spy, qos_profile(pc.COMMAND_QOS)
+    )
+    executor.add_node(talker)
+    pub = talker.create_publisher(
+        Float64MultiArray, pc.CURRENT_COMMANDS, qos_profile(pc.COMMAND_QOS)
+    )
+    # The bridge's polled reader and the spy: two readers matched before the first message.
+    support.spin_until(executor, lambda: pub.get_subscription_count() >= 2, "both readers")
+    published_s = time.monotonic()
+    for k in range(count):
+        pub.publish(Float64MultiArray(data=[float(k), 0.5, -0.25, 0.0]))
+    support.spin_until(executor, lambda: len(seen) == count, "the spy has every command")
+    return published_s, seen, talker, pub
+
+
+def test_the_executor_never_takes_a_polled_command_and_poll_takes_each_with_its_receipt() -> None:
+    """Spinning the bridge's executor hands nothing on; one poll hands on all, in order.
+
+    Each carries the monotonic time rmw received it: not before it was published, not after
+    the poll (the master judges in time or late by it).
+    """
+    with ros_context() as (ctx, executor):
+        import rclpy
+
+        bridge = rclpy.create_node("can_bridge", context=ctx)
+        executor.add_node(bridge)
+        master = RecordingMaster()
+        commands = _commands(bridge, master)
+        published_s, seen, _talker, _pub = _publish_and_wait(ctx, executor, COMMANDS)
+        for _ in range(20):  # the executor runs: it must not take the polled commands
+            executor.spin_once(timeout_sec=0.01)
+        assert master.taken == []
+        support.wait_until(lambda: len(master.taken) == COMMANDS, "poll", step=commands.poll)
+        polled_s = time.monotonic()
+        assert [values for values, _ in master.taken] == seen
+        for _, at in master.taken:
+            assert at is not None
+            assert published_s - 1e-3 <= at <= polled_s, (published_s, at, polled_s)
+        assert commands.taken[pc.CURRENT_COMMANDS] == COMMANDS
+        commands.poll()  # nothing new: nothing handed on again
+        assert len(master.taken) == COMMANDS
+        commands.destroy()
+        bridge.destroy_node()  # type: ignore[no-untyped-call]
+
+
+def test_commands_while_inactive_are_counted_when_polled() -> None:
+    """Inactive: a poll counts each command as ignored, none reaches the master."""
+    with ros_context() as (ctx, executor):
+        import rclpy
+
+        bridge = rclpy.create_node("can_bridge", context=ctx)
+        master = RecordingMaster()
+        commands = _commands(bridge, master, active=False)
+        _publish_and_wait(ctx, executor, COMMANDS)
+        support.wait_until(
+            lambda: commands.ignored_inactive == COMMANDS,
+            "every command counted as ignored",
+            step=commands.poll,
+        )
+        assert master.taken == []
+        commands.destroy()
+        bridge.destroy_node()  # type: ignore[no-untyped-call]
+
+
+def test_a_poll_after_destroy_hands_on_nothing_and_raises_nothing() -> None:
+    """The cycle thread may poll once more while the node is torn down."""
+    with ros_context() as (ctx, _executor):
+        import rclpy
+
+        bridge = rclpy.create_node("can_bridge", context=ctx)
+        master = RecordingMaster()
+        commands = _commands(bridge, master)
+        commands.destroy()
+        commands.poll()
+        assert master.taken == []
+        bridge.destroy_node()  # type: ignore[no-untyped-call]
