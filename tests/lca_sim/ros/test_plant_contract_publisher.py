@@ -83,6 +83,7 @@ class Reader:
 
     def __init__(self, node: Node) -> None:
         self.got: dict[str, list[float]] = {"joint": [], "motor": [], "drive": [], "clock": []}
+        self.values: set[tuple[str, ...]] = set()  # motor effort, the pivot's keys, as text
         qos = 100
         node.create_subscription(JointState, pc.JOINT_STATES, self._on_joint, qos)
         self.motor = node.create_subscription(JointState, pc.MOTOR_STATES, self._on_motor, qos)
@@ -96,9 +97,12 @@ class Reader:
 
     def _on_motor(self, m: JointState) -> None:
         self.got["motor"].append(m.header.stamp.sec)
+        self.values.add(("motor", *m.name, *map(repr, m.effort)))
 
     def _on_drive(self, m: DiagnosticArray) -> None:
         self.got["drive"].append(m.header.stamp.sec)
+        pivot = m.status[1]
+        self.values.add((pivot.name, pivot.message, *(f"{v.key}={v.value}" for v in pivot.values)))
 
     def _on_clock(self, m: Clock) -> None:
         self.got["clock"].append(m.clock.sec)
@@ -138,6 +142,23 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
         assert got["drive"] == list(range(1, 21))
         assert got["clock"] == list(range(1, 21))
         assert built == {"motor": 20, "drive": 20}
+        assert reader.values == {
+            ("motor", *JOINTS, "0.5", "0.5", "0.5", "0.5"),
+            (
+                "drive_chain/pivot",
+                "stopped",
+                "motion_state=stop",
+                "drive_state=stopped",
+                "eta_m=0.9",
+                "eta_l=0.4",
+                "motor_torque_nm=0.02",
+                "load_torque_nm=0.01",
+                "friction_torque_nm=0.001",
+                "current_a=0.5",
+                "voltage_v=12.0",
+                "faults=none",
+            ),
+        }
 
         reader_node.destroy_subscription(reader.motor)
         reader_node.destroy_subscription(reader.drive)
