@@ -1,13 +1,14 @@
 """The plant contract's per-cycle messages as serialized CDR, ready for `Publisher.publish(bytes)`.
 
-rclpy's `publish` of a message converts it field by field from Python to C, about 50-80 us for
-a 4-joint JointState; a `bytes` payload goes to the middleware as it is. `ContractCdr` writes
-joint_states / motor_states (sensor_msgs/JointState), /clock (rosgraph_msgs/Clock) and
-drive_chain_states (diagnostic_msgs/DiagnosticArray) as the bytes rclpy's serializer produces:
-XCDR1 little endian (encapsulation 00 01 00 00, every field aligned to its size counted from
-after those four bytes, no padding after the last field), padding bytes zero (Fast CDR leaves
-them as it finds them; readers skip them). Whatever is the same every cycle (frame_id, the
-joint names, keys, status names, sequence lengths, padding) is laid out once, at construction.
+rclpy's `publish` of a message converts it field by field from Python to C, most of the CPU a
+publish costs; a `bytes` payload goes to the middleware as it is (docs/can-transport.md).
+`ContractCdr` writes joint_states / motor_states (sensor_msgs/JointState), /clock
+(rosgraph_msgs/Clock) and drive_chain_states (diagnostic_msgs/DiagnosticArray) as the bytes
+rclpy's serializer produces: XCDR1 little endian (encapsulation 00 01 00 00, every field
+aligned to its size counted from after those four bytes, no padding after the last field),
+padding bytes zero (Fast CDR leaves them as it finds them; readers skip them). Whatever is the
+same every cycle (frame_id, the joint names, keys, status names, sequence lengths, padding) is
+laid out once, at construction.
 
 The drive-chain values are the contract's strings (`lca_control.contract`): the drive-state
 name (also the status message) or UNKNOWN for a code outside the snapshot's `state_names`, the
@@ -153,7 +154,10 @@ class ContractCdr:
         self._after_message = _joiners([("string", ""), ("u32", len(keys)), ("string", keys[0])])
         after_value = [_joiners([("string", key)]) for key in keys[1:]]
         self._after_motion, self._after_drive = after_value[:2]
-        self._after_numbers = tuple(after_value[2:])
+        # a number's text is at most 31 bytes: its joiners by length, not length mod 4
+        self._after_numbers = tuple(
+            tuple(table[length & 3] for length in range(len(_HEADS))) for table in after_value[2:]
+        )
         self._after_faults = (  # the next status's level and name; nothing after the last
             *(_joiners([("u8", LEVEL_OK), ("string", status)]) for status in statuses[1:]),
             _joiners([], last=True),
@@ -215,12 +219,18 @@ class ContractCdr:
             code = drive[a]
             state, state_mod = drive_pieces[int(code)] if 0 <= code < n_names else unknown
             moving, moving_mod = motion_pieces.get(motion[a], unknown)
-            out += (state, after_message[state_mod], moving, after_motion[moving_mod])
-            out += (state, after_drive[state_mod])
+            out += (
+                state,
+                after_message[state_mod],
+                moving,
+                after_motion[moving_mod],
+                state,
+                after_drive[state_mod],
+            )
             for joiner, number in zip(after_numbers, numbers, strict=True):
                 text = repr(number).encode()
                 length = len(text)
-                out += (heads[length], text, joiner[length & 3])
+                out += (heads[length], text, joiner[length])
             fault, fault_mod = piece(faults[a]) if faults else self._no_faults
             out += (fault, after_faults[a][fault_mod])
         return b"".join(out)
