@@ -31,7 +31,7 @@ _U32 = struct.Struct("<I")
 # The length fields of the numbers' texts: repr() of a float is at most 24 characters.
 _HEADS = tuple(_U32.pack(length + 1) for length in range(32))
 
-Piece = tuple[bytes, int]  # a string's length field and UTF-8 text (no NUL), its length mod 4
+_Piece = tuple[bytes, int]  # a string's length field and UTF-8 text (no NUL), its length mod 4
 
 
 def stamp_parts(t_s: float) -> tuple[int, int]:
@@ -43,7 +43,7 @@ def stamp_parts(t_s: float) -> tuple[int, int]:
     return sec, nanosec
 
 
-def piece(text: str) -> Piece:
+def _piece(text: str) -> _Piece:
     """A string's length field (bytes with the NUL) and its UTF-8 text, without the NUL."""
     data = text.encode()
     return _U32.pack(len(data) + 1) + data, len(data) & 3
@@ -162,11 +162,11 @@ class ContractCdr:
             *(_joiners([("u8", LEVEL_OK), ("string", status)]) for status in statuses[1:]),
             _joiners([], last=True),
         )
-        self._motion_pieces = {code: piece(name) for code, name in pc.MOTION_STATE_NAMES.items()}
-        self._unknown = piece(pc.UNKNOWN)
-        self._no_faults = piece(pc.NO_FAULTS)
+        self._motion_pieces = {code: _piece(name) for code, name in pc.MOTION_STATE_NAMES.items()}
+        self._unknown = _piece(pc.UNKNOWN)
+        self._no_faults = _piece(pc.NO_FAULTS)
         self._state_names: tuple[str, ...] = ()
-        self._drive_pieces: tuple[Piece, ...] = ()
+        self._drive_pieces: tuple[_Piece, ...] = ()
 
     def joint_state(
         self, sec: int, nanosec: int, position: FloatArray, velocity: FloatArray, effort: FloatArray
@@ -197,7 +197,7 @@ class ContractCdr:
         """
         names = snap.state_names
         if names is not self._state_names:  # a robot's vocabulary: the same tuple every cycle
-            self._drive_pieces = tuple(piece(name) for name in names)
+            self._drive_pieces = tuple(_piece(name) for name in names)
             self._state_names = names
         drive_pieces = self._drive_pieces
         n_names = len(drive_pieces)
@@ -231,6 +231,6 @@ class ContractCdr:
                 text = repr(number).encode()
                 length = len(text)
                 out += (heads[length], text, joiner[length])
-            fault, fault_mod = piece(faults[a]) if faults else self._no_faults
+            fault, fault_mod = _piece(faults[a]) if faults else self._no_faults
             out += (fault, after_faults[a][fault_mod])
         return b"".join(out)
