@@ -79,10 +79,16 @@ def count_publishes(pubs: dict[str, Any]) -> dict[str, int]:
 
 
 class Reader:
-    """A node reading the four state topics; each message's stamp (s) per topic."""
+    """A node reading the state topics and ros2_control's copy: each message's stamp (s)."""
 
     def __init__(self, node: Node) -> None:
-        self.got: dict[str, list[float]] = {"joint": [], "motor": [], "drive": [], "clock": []}
+        self.got: dict[str, list[float]] = {
+            "joint": [],
+            "motor": [],
+            "drive": [],
+            "clock": [],
+            "robot_joint": [],
+        }
         self.values: set[tuple[str, ...]] = set()  # motor effort, the pivot's keys, as text
         qos = 100
         node.create_subscription(JointState, pc.JOINT_STATES, self._on_joint, qos)
@@ -91,9 +97,15 @@ class Reader:
             DiagnosticArray, pc.DRIVE_CHAIN_STATES, self._on_drive, qos
         )
         node.create_subscription(Clock, pc.CLOCK, self._on_clock, qos)
+        node.create_subscription(
+            JointState, pc.ROBOT_JOINT_STATES, self._on_robot_joint, qos
+        )  # ros2_control's copy of joint_states
 
     def _on_joint(self, m: JointState) -> None:
         self.got["joint"].append(m.position[1])
+
+    def _on_robot_joint(self, m: JointState) -> None:
+        self.got["robot_joint"].append(m.position[1])
 
     def _on_motor(self, m: JointState) -> None:
         self.got["motor"].append(m.header.stamp.sec)
@@ -114,7 +126,9 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
         reader_node = Node("reader", context=ctx)
         executor.add_node(plant_node)
         executor.add_node(reader_node)
-        publisher = PlantPublisher(plant_node, JOINTS, clock=True)
+        publisher = PlantPublisher(
+            plant_node, JOINTS, clock=True, joint_state_topic=pc.ROBOT_JOINT_STATES
+        )
         queries = count_graph_queries(
             [publisher.motor_pub, publisher.drive_pub, publisher.clock_pub]
         )
@@ -128,8 +142,9 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
                 and publisher._motor_subs.count == 1
                 and publisher._drive_subs.count == 1
                 and publisher._clock_subs.count == 1
+                and publisher._extra_subs.count == 1
             ),
-            "the reader's four subscriptions matched and their events taken",
+            "the reader's five subscriptions matched and their events taken",
         )
         for k in range(1, 21):  # one at a time: keep-last queues hold no backlog
             publisher.publish(snapshot(float(k)))
@@ -141,6 +156,7 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
         assert got["motor"] == list(range(1, 21))
         assert got["drive"] == list(range(1, 21))
         assert got["clock"] == list(range(1, 21))
+        assert got["robot_joint"] == got["joint"] == list(range(1, 21))
         assert built == {"motor": 20, "drive": 20}
         assert reader.values == {
             ("motor", *JOINTS, "0.5", "0.5", "0.5", "0.5"),
