@@ -8,8 +8,9 @@ topic names, types and QoS, so the backends cannot drift apart. The per-joint
 vocabularies (`UNKNOWN` for a code the backend has no report of) and numbers in repr form
 ('nan' for NaN).
 
-Cost: the messages are built once, as templates whose fields are rewritten in place each
-publish, and a message nobody subscribes to is not built at all (a subscriber that joins later
+Cost: the messages go out serialized (`contract_cdr.ContractCdr`: the bytes rclpy's serializer
+would make, laid out once per joint set), not as rclpy messages converted field by field on
+every publish; a message nobody subscribes to is not built at all (a subscriber that joins later
 gets it from its first match on: the optional topics' subscribers are counted from rmw's
 matched events, not asked of the graph on every cycle). joint_states always goes out: it is
 what a controller waits for, so it goes first, then motor_states, /clock and the drive chain.
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -30,17 +31,13 @@ from sensor_msgs.msg import JointState
 from lca_control import contract as pc
 from lca_control.contract import PlantSnapshot
 from lca_sim.errors import LcaHilError
-from lca_sim.ros.node_util import other_publishers, to_stamp
+from lca_sim.ros.contract_cdr import ContractCdr, stamp_parts
+from lca_sim.ros.node_util import other_publishers
 
 _RELIABILITY = {
     pc.RELIABLE: ReliabilityPolicy.RELIABLE,
     pc.BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT,
 }
-# Where each value goes in a drive_chain/<joint> status (positions in DRIVE_STATE_KEYS).
-_MOTION_AT = pc.DRIVE_STATE_KEYS.index("motion_state")
-_DRIVE_AT = pc.DRIVE_STATE_KEYS.index("drive_state")
-_NUMBERS_AT = tuple(pc.DRIVE_STATE_KEYS.index(name) for name in pc.DRIVE_NUMBER_KEYS)
-_FAULTS_AT = pc.DRIVE_STATE_KEYS.index("faults")
 
 
 # The topics only the plant publishes: a second publisher of any of them is a second plant.
@@ -71,45 +68,6 @@ class SnapshotError(LcaHilError):
 def qos_profile(spec: pc.QosSpec) -> QoSProfile:
     """The rclpy QoS profile of a contract QoS (keep-last depth, reliability, volatile)."""
     return QoSProfile(depth=spec.depth, reliability=_RELIABILITY[spec.reliability])  # type: ignore[no-untyped-call]
-
-
-def drive_chain_template(joints: Sequence[str]) -> DiagnosticArray:
-    """The drive_chain_states message, one status per joint with every key, values empty."""
-    array = DiagnosticArray()
-    array.status = [
-        DiagnosticStatus(
-            level=DiagnosticStatus.OK,
-            name=pc.DRIVE_STATUS_PREFIX + joint,
-            values=[KeyValue(key=key, value="") for key in pc.DRIVE_STATE_KEYS],
-        )
-        for joint in joints
-    ]
-    return array
-
-
-def fill_drive_chain(array: DiagnosticArray, snap: PlantSnapshot) -> None:
-    """Rewrite a `drive_chain_template` of the snapshot's joints with its values.
-
-    The status message and `drive_state` are the drive-state name, `motion_state` the
-    motion-state name (UNKNOWN for a code the backend has no report of), numbers repr(float).
-    """
-    names = snap.state_names
-    n_names = len(names)
-    motion = snap.motion_state.tolist()
-    drive = snap.drive_state.tolist()
-    columns = [getattr(snap, key).tolist() for key in pc.DRIVE_NUMBER_KEYS]
-    motion_names = pc.MOTION_STATE_NAMES
-    unknown = pc.UNKNOWN
-    for a, axis_status in enumerate(array.status):
-        code = drive[a]
-        drive_state = names[int(code)] if 0 <= code < n_names else unknown
-        axis_status.message = drive_state
-        kv = axis_status.values
-        kv[_MOTION_AT].value = motion_names.get(motion[a], unknown)
-        kv[_DRIVE_AT].value = drive_state
-        for k, column in zip(_NUMBERS_AT, columns, strict=True):
-            kv[k].value = repr(column[a])
-        kv[_FAULTS_AT].value = snap.faults[a] if snap.faults else pc.NO_FAULTS
 
 
 class PlantPublisher:
@@ -171,9 +129,7 @@ class PlantPublisher:
             if joint_state_topic
             else None
         )
-        self._joint_msg = JointState(name=list(self.joints))
-        self._motor_msg = JointState(name=list(self.joints))
-        self._drive_msg = drive_chain_template(self.joints)
+        self._cdr = ContractCdr(self.joints)
         self.published = 0
 
     def publish(self, snap: PlantSnapshot) -> None:
@@ -186,31 +142,28 @@ class PlantPublisher:
             raise SnapshotError(
                 f"snapshot joints {list(snap.joints)}, the publisher's {list(self.joints)}"
             )
-        stamp = to_stamp(snap.stamp_s)
-        joint = self._joint_msg
-        joint.header.stamp = stamp
-        joint.position = snap.position.tolist()
-        joint.velocity = snap.velocity.tolist()
-        joint.effort = snap.effort.tolist()
+        sec, nanosec = stamp_parts(snap.stamp_s)
+        cdr = self._cdr
+        joint = cdr.joint_state(sec, nanosec, snap.position, snap.velocity, snap.effort)
         self.joint_pub.publish(joint)
         extra = self.extra_joint_pub
         if extra is not None and self._extra_subs.count:  # ros2_control listens
             extra.publish(joint)
 
         if self._motor_subs.count:
-            motor = self._motor_msg
-            motor.header.stamp = stamp
-            motor.position = snap.motor_position_rad.tolist()
-            motor.velocity = snap.motor_velocity_rad_s.tolist()
-            motor.effort = snap.current_a.tolist()
-            self.motor_pub.publish(motor)
+            self.motor_pub.publish(
+                cdr.joint_state(
+                    sec,
+                    nanosec,
+                    snap.motor_position_rad,
+                    snap.motor_velocity_rad_s,
+                    snap.current_a,
+                )
+            )
         if self.clock_pub is not None and self._clock_subs.count:
-            self.clock_pub.publish(Clock(clock=stamp))
+            self.clock_pub.publish(cdr.clock(sec, nanosec))
         if self._drive_subs.count:
-            drive = self._drive_msg
-            drive.header.stamp = stamp
-            fill_drive_chain(drive, snap)
-            self.drive_pub.publish(drive)
+            self.drive_pub.publish(cdr.drive_chain(sec, nanosec, snap))
         self.published += 1
 
     def publish_diagnostics(self, array: DiagnosticArray) -> None:

@@ -56,6 +56,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -68,9 +69,9 @@ from lca_sim.config.loader import config_dir
 from lca_sim.model.state_machine import MotionState, StopState
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 from lca_sim.ros.can_drives import plant_snapshot
+from lca_sim.ros.contract_cdr import ContractCdr
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import make_executor
-from lca_sim.ros.plant_contract import drive_chain_template, fill_drive_chain
 from lca_sim.ros.simulator_node import SimulatorNode
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -665,8 +666,7 @@ def _map(snap: Snapshot, decoded: frozenset[str]) -> pc.PlantSnapshot:
 
 
 def _drive_values(snap: pc.PlantSnapshot) -> list[dict[str, str]]:
-    array = drive_chain_template(snap.joints)
-    fill_drive_chain(array, snap)
+    array = deserialize_message(ContractCdr(snap.joints).drive_chain(0, 0, snap), DiagnosticArray)
     assert [s.message for s in array.status] == [s.values[1].value for s in array.status]
     return [{kv.key: kv.value for kv in s.values} for s in array.status]
 

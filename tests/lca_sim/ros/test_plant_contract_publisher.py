@@ -79,10 +79,17 @@ def count_publishes(pubs: dict[str, Any]) -> dict[str, int]:
 
 
 class Reader:
-    """A node reading the four state topics; each message's stamp (s) per topic."""
+    """A node reading the state topics and ros2_control's copy: each message's stamp (s)."""
 
     def __init__(self, node: Node) -> None:
-        self.got: dict[str, list[float]] = {"joint": [], "motor": [], "drive": [], "clock": []}
+        self.got: dict[str, list[float]] = {
+            "joint": [],
+            "motor": [],
+            "drive": [],
+            "clock": [],
+            "robot_joint": [],
+        }
+        self.values: set[tuple[str, ...]] = set()  # motor effort, the pivot's keys, as text
         qos = 100
         node.create_subscription(JointState, pc.JOINT_STATES, self._on_joint, qos)
         self.motor = node.create_subscription(JointState, pc.MOTOR_STATES, self._on_motor, qos)
@@ -90,15 +97,24 @@ class Reader:
             DiagnosticArray, pc.DRIVE_CHAIN_STATES, self._on_drive, qos
         )
         node.create_subscription(Clock, pc.CLOCK, self._on_clock, qos)
+        node.create_subscription(
+            JointState, pc.ROBOT_JOINT_STATES, self._on_robot_joint, qos
+        )  # ros2_control's copy of joint_states
 
     def _on_joint(self, m: JointState) -> None:
         self.got["joint"].append(m.position[1])
 
+    def _on_robot_joint(self, m: JointState) -> None:
+        self.got["robot_joint"].append(m.position[1])
+
     def _on_motor(self, m: JointState) -> None:
         self.got["motor"].append(m.header.stamp.sec)
+        self.values.add(("motor", *m.name, *map(repr, m.effort)))
 
     def _on_drive(self, m: DiagnosticArray) -> None:
         self.got["drive"].append(m.header.stamp.sec)
+        pivot = m.status[1]
+        self.values.add((pivot.name, pivot.message, *(f"{v.key}={v.value}" for v in pivot.values)))
 
     def _on_clock(self, m: Clock) -> None:
         self.got["clock"].append(m.clock.sec)
@@ -110,7 +126,9 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
         reader_node = Node("reader", context=ctx)
         executor.add_node(plant_node)
         executor.add_node(reader_node)
-        publisher = PlantPublisher(plant_node, JOINTS, clock=True)
+        publisher = PlantPublisher(
+            plant_node, JOINTS, clock=True, joint_state_topic=pc.ROBOT_JOINT_STATES
+        )
         queries = count_graph_queries(
             [publisher.motor_pub, publisher.drive_pub, publisher.clock_pub]
         )
@@ -124,8 +142,9 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
                 and publisher._motor_subs.count == 1
                 and publisher._drive_subs.count == 1
                 and publisher._clock_subs.count == 1
+                and publisher._extra_subs.count == 1
             ),
-            "the reader's four subscriptions matched and their events taken",
+            "the reader's five subscriptions matched and their events taken",
         )
         for k in range(1, 21):  # one at a time: keep-last queues hold no backlog
             publisher.publish(snapshot(float(k)))
@@ -137,7 +156,25 @@ def test_optional_topics_follow_their_subscribers_without_graph_queries() -> Non
         assert got["motor"] == list(range(1, 21))
         assert got["drive"] == list(range(1, 21))
         assert got["clock"] == list(range(1, 21))
+        assert got["robot_joint"] == got["joint"] == list(range(1, 21))
         assert built == {"motor": 20, "drive": 20}
+        assert reader.values == {
+            ("motor", *JOINTS, "0.5", "0.5", "0.5", "0.5"),
+            (
+                "drive_chain/pivot",
+                "stopped",
+                "motion_state=stop",
+                "drive_state=stopped",
+                "eta_m=0.9",
+                "eta_l=0.4",
+                "motor_torque_nm=0.02",
+                "load_torque_nm=0.01",
+                "friction_torque_nm=0.001",
+                "current_a=0.5",
+                "voltage_v=12.0",
+                "faults=none",
+            ),
+        }
 
         reader_node.destroy_subscription(reader.motor)
         reader_node.destroy_subscription(reader.drive)
