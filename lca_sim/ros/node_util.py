@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import sys
@@ -30,6 +29,7 @@ from lca_sim.config.ros_params import (
     sections_for_node,
 )
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS, LcaHilError
+from lca_sim.ros.contract_cdr import stamp_parts
 from lca_sim.runtime import settle_heap
 
 
@@ -144,12 +144,9 @@ def accepted() -> SetParametersResult:
 
 
 def to_stamp(t_s: float) -> Time:
-    """Seconds (float) to builtin_interfaces/Time."""
-    sec = math.floor(t_s)
-    nanosec = round((t_s - sec) * 1e9)
-    if nanosec >= 1_000_000_000:
-        sec, nanosec = sec + 1, nanosec - 1_000_000_000
-    return Time(sec=int(sec), nanosec=int(nanosec))
+    """Seconds (float) to builtin_interfaces/Time (`contract_cdr.stamp_parts`' split)."""
+    sec, nanosec = stamp_parts(t_s)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def from_stamp(stamp: Time) -> float:
