@@ -172,7 +172,8 @@ class Cia402Master:
         with self._lock:
             axis.fresh |= bit
             axis.seen |= bit
-            if all(a.fresh == a.sync_mask for a in self._axes):
+            # this drive's set first: the other drives are looked at once per drive and SYNC
+            if axis.fresh == axis.sync_mask and all(a.fresh == a.sync_mask for a in self._axes):
                 for a in self._axes:
                     a.fresh = a.seen = 0
                 if self._completed_cycle == self._cycle:
