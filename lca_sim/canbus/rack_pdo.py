@@ -21,6 +21,10 @@ from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MappingEntry
 
+# The PDO communication and mapping objects, all four ranges (CiA 301 0x1400-0x1BFF).
+_PDO_OBJECTS_FIRST = od.RPDO_COMMUNICATION
+_PDO_OBJECTS_LAST = od.TPDO_MAPPING + 0x1FF
+
 
 class PdoEngine:
     """The PDOs of every drive of a rack.
@@ -71,6 +75,8 @@ class PdoEngine:
         Raises:
             SdoAbortedError: the write is refused (CiA 301 abort code).
         """
+        if not _PDO_OBJECTS_FIRST <= index <= _PDO_OBJECTS_LAST:
+            return value  # not a PDO object: every RPDO value comes this way
         located = _pdo_of(axis, index)
         if located is None:
             return value
@@ -244,25 +250,22 @@ class PdoEngine:
         try:
             with batched_sends(bus):
                 for axis in axes:
-                    self._send_sync_tpdos(axis, now)
+                    # type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC
+                    for pdo in axis.tpdos:
+                        if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
+                            continue
+                        if pdo.transmission_type == 0:
+                            frame = pdo.encode()
+                            if frame != pdo.last_data:
+                                self._send_tpdo(axis, pdo, frame, now)
+                            continue
+                        pdo.sync_count += 1
+                        if pdo.sync_count >= pdo.transmission_type:
+                            pdo.sync_count = 0
+                            self._send_tpdo(axis, pdo, pdo.encode(), now)
         except (can.CanError, OSError) as exc:  # the batch's one write failed
             self._counters.send_errors += 1
             self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
-
-    def _send_sync_tpdos(self, axis: Drive, now: float) -> None:
-        """Type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
-        for pdo in axis.tpdos:
-            if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
-                continue
-            if pdo.transmission_type == 0:
-                frame = _encode(pdo)
-                if frame != pdo.last_data:
-                    self._send_tpdo(axis, pdo, frame, now)
-                continue
-            pdo.sync_count += 1
-            if pdo.sync_count >= pdo.transmission_type:
-                pdo.sync_count = 0
-                self._send_tpdo(axis, pdo, _encode(pdo), now)
 
     def service_event_tpdos(self, now: float) -> None:
         """Send the event-driven TPDOs whose data changed or whose event timer expired."""
@@ -273,7 +276,7 @@ class PdoEngine:
                 if not pdo.valid or pdo.transmission_type not in cia402.TRANSMISSION_EVENT_TYPES:
                     continue
                 since_s = now - pdo.last_sent_s
-                frame = _encode(pdo)
+                frame = pdo.encode()
                 changed = frame != pdo.last_data and since_s >= pdo.inhibit_100us * 1e-4
                 timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
                 if changed or timer_due:
@@ -288,10 +291,6 @@ class PdoEngine:
         elif self._send(pdo.cob_id, frame):
             self._counters.tpdos_sent += 1
         pdo.last_data, pdo.last_sent_s = frame, now
-
-
-def _encode(pdo: Pdo) -> bytes:
-    return pdo.frame.pack(*[get() for get in pdo.getters])
 
 
 def _pdo_of(axis: Drive, index: int) -> tuple[Pdo, bool] | None:
