@@ -157,6 +157,12 @@ class DriveControl:
 
     # --- state changes -------------------------------------------------------------------
 
+    def settle(self, axes: Sequence[Drive], now: float) -> None:
+        """Take the automatic transitions that are due (`cia402.settle`), at each SYNC."""
+        for axis in axes:
+            if axis.drive.power in cia402.SETTLING_STATES:  # any other stays as it is
+                self.set_drive(axis, axis.drive, now)
+
     def set_drive(self, axis: Drive, state: Cia402AxisState, now: float) -> None:
         """Settle and store a new CiA 402 state; entering operation enabled arms SYNC loss."""
         state = cia402.settle(

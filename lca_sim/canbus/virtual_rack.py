@@ -371,8 +371,8 @@ class VirtualDriveRack:
         operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL and not a.faults.bus_off]
         for axis in operational:
             self._pdos.apply_latched(axis, now)
+        self._control.settle(self._axes, now)
         for axis in self._axes:
-            self._control.set_drive(axis, axis.drive, now)
             axis.sync_loss_reported = False
         self._pdos.send_sync_tpdos(operational, now, self._network.bus)
         # A real drive's TPDOs leave in hardware while its CPU goes on; a master in this
@@ -383,8 +383,7 @@ class VirtualDriveRack:
         if self._yield_after_tpdos:
             yield_gil()
         self._advance(now, stamp_s)
-        for axis in self._axes:
-            self._control.set_drive(axis, axis.drive, now)
+        self._control.settle(self._axes, now)
         done = self._clock()
         if self._lockstep:  # the monitor's work, at the rack's time after this cycle
             self._watchdogs.last_sync_done_s = done
