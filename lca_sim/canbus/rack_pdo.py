@@ -202,14 +202,15 @@ class PdoEngine:
         if axis.nmt != NMT_OPERATIONAL or not pdo.valid:
             self._counters.pdos_ignored_not_operational += 1
             return
-        if len(data) != pdo.size_bytes:
+        size_bytes = pdo.frame.size  # the mapping's length
+        if len(data) != size_bytes:
             # CiA 301 EMCY error codes: 0x8210 "PDO not processed due to length error", 0x8220
             # "PDO length exceeded". The frame is not applied; one EMCY per run of wrong frames
             # (each is counted), so that a flood of them does not flood the bus with EMCYs.
             self._counters.bad_frames += 1
             code = (
                 cia402.EMCY_PDO_LENGTH
-                if len(data) < pdo.size_bytes
+                if len(data) < size_bytes
                 else cia402.EMCY_PDO_LENGTH_EXCEEDED
             )
             if pdo.length_error != code:
@@ -218,7 +219,7 @@ class PdoEngine:
             self._warn_once(
                 f"rpdo-length-{axis.config.node_id}-{pdo.number}",
                 f"node {axis.config.node_id} RPDO{pdo.number}: {len(data)} bytes, "
-                f"mapping has {pdo.size_bytes}; dropped",
+                f"mapping has {size_bytes}; dropped",
             )
             return
         pdo.length_error = 0
@@ -228,12 +229,13 @@ class PdoEngine:
         else:
             self._apply(axis, pdo, data, now)
 
-    def apply_latched(self, axis: Drive, now: float) -> None:
-        """At a SYNC: the synchronous RPDOs received since the previous one (the latest wins)."""
-        for pdo in axis.rpdos:
-            if pdo.latched is not None:
-                latched, pdo.latched = pdo.latched, None
-                self._apply(axis, pdo, latched, now)
+    def apply_latched(self, axes: Sequence[Drive], now: float) -> None:
+        """At a SYNC: each drive's synchronous RPDOs received since the last (the latest wins)."""
+        for axis in axes:
+            for pdo in axis.rpdos:
+                if pdo.latched is not None:
+                    latched, pdo.latched = pdo.latched, None
+                    self._apply(axis, pdo, latched, now)
 
     def _apply(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
         for obj, value in zip(pdo.objects, pdo.frame.unpack(data), strict=True):

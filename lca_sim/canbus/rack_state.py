@@ -90,11 +90,6 @@ class Pdo:
     sync_count: int = 0
     length_error: int = 0  # RPDO: the EMCY code of the current run of wrong-length frames
 
-    @property
-    def size_bytes(self) -> int:
-        """Length of the PDO's frame."""
-        return self.frame.size
-
     def map(self, objects: list[ODVariable], getters: list[Callable[[], int]]) -> None:
         """Map `objects`, and pack and unpack the frame in one step from now on."""
         self.objects = objects

@@ -67,6 +67,7 @@ logger = logging.getLogger(__name__)
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
+_CYCLE_PERIOD = (od.CYCLE_PERIOD, 0)  # read from every drive at every SYNC (`Drive.values`)
 
 
 class VirtualDriveRack:
@@ -369,8 +370,7 @@ class VirtualDriveRack:
         if not self._faults.idle:
             self._faults.run_clock(now)
         operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL and not a.faults.bus_off]
-        for axis in operational:
-            self._pdos.apply_latched(axis, now)
+        self._pdos.apply_latched(operational, now)
         self._control.settle(self._axes, now)
         for axis in self._axes:
             axis.sync_loss_reported = False
@@ -394,7 +394,7 @@ class VirtualDriveRack:
 
     def _advance(self, now: float, stamp_s: float) -> None:
         """Command the torque demands and run the plant one SYNC's span."""
-        period_s = max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
+        period_s = max([a.values[_CYCLE_PERIOD] for a in self._axes]) * 1e-6
         if self._lockstep:
             # The master is the clock: each SYNC is one 0x1006 period, however fast it comes.
             span_s = period_s
