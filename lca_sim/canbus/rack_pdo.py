@@ -278,10 +278,12 @@ class PdoEngine:
                 if not pdo.valid or pdo.transmission_type not in cia402.TRANSMISSION_EVENT_TYPES:
                     continue
                 since_s = now - pdo.last_sent_s
-                frame = pdo.encode()
-                changed = frame != pdo.last_data and since_s >= pdo.inhibit_100us * 1e-4
                 timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
-                if changed or timer_due:
+                inhibited = since_s < pdo.inhibit_100us * 1e-4
+                if inhibited and not timer_due:
+                    continue  # nothing goes out, whatever the data: not read
+                frame = pdo.encode()
+                if timer_due or frame != pdo.last_data:
                     self._send_tpdo(axis, pdo, frame, now)
 
     def _send_tpdo(self, axis: Drive, pdo: Pdo, frame: bytes, now: float) -> None:
