@@ -175,10 +175,7 @@ class Cia402Master:
         with self._lock:
             axis.fresh |= bit
             axis.seen |= bit
-            for a in self._axes:  # a loop, not all(): no generator per TPDO
-                if a.fresh != a.sync_mask:
-                    break
-            else:
+            if all([a.fresh == a.sync_mask for a in self._axes]):  # a list: no generator
                 for a in self._axes:
                     a.fresh = a.seen = 0
                 if self._completed_cycle == self._cycle:
@@ -380,10 +377,9 @@ class Cia402Master:
             self._watch.send_failed(exc)
             return
         self._watch.send_ok()
-        counters, size = self.counters, len(data)
-        counters.frames_sent += 1
-        counters.bits_sent += bus_load.FRAME_BITS[size]
-        counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[size]
+        self.counters.frames_sent += 1
+        self.counters.bits_sent += bus_load.FRAME_BITS[len(data)]
+        self.counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
 
     @property
     def joints(self) -> tuple[str, ...]:
