@@ -103,8 +103,8 @@ def frame_encoder(
 ) -> Callable[[], bytes]:
     """A TPDO's frame of its objects' current values, built once per mapping.
 
-    Each TPDO is encoded at every SYNC (event ones too, to see a change): the getters are
-    called from C (`operator.call`) into the one struct of the mapping.
+    A TPDO is encoded when it is due, an event one at every SYNC outside its inhibit time (to
+    see a change): the getters are called from C (`operator.call`) into the mapping's struct.
     """
     pack, calls = frame.pack, tuple(getters)
 
