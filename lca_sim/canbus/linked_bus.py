@@ -43,6 +43,11 @@ class LinkedVirtualBus(VirtualBus):
         self._delivery = threading.RLock()  # one frame at a time into the listeners
         self.direct_frames = 0  # frames this bus handed over directly
         self.listener_errors = 0  # exceptions of its attached listeners (logged)
+        # The channel's other queues with their handlers (None: queued), and the channel's
+        # members and the handlers they were built from (`send` builds them again on a change).
+        self._routes: list[tuple[Any, Callable[[can.Message], None] | None]] = []
+        self._routes_members: list[Any] | None = None
+        self._routes_handlers: dict[int, Callable[[can.Message], None]] | None = None
 
     def attach(self, listeners: Iterable[Callable[[can.Message], Any]]) -> None:
         """Hand frames from other linked buses to `listeners` directly, in the sender's thread.
@@ -51,12 +56,18 @@ class LinkedVirtualBus(VirtualBus):
         called too. Frames from plain `virtual` buses still come through the queue.
         """
         live = listeners
+        seen: list[Callable[[can.Message], Any]] = []
+        receivers: tuple[Callable[[can.Message], Any], ...] = ()
 
         def handle(msg: can.Message) -> None:
+            nonlocal seen, receivers
             with self._delivery:
-                for listener in list(live):
+                if seen != live:  # a listener came or went (compared by identity, in C)
+                    seen = list(live)
+                    receivers = tuple(_receiver(listener) for listener in seen)
+                for receive in receivers:
                     try:
-                        listener(msg)
+                        receive(msg)
                     except Exception:  # a notifier would survive it too: so does the sender
                         self.listener_errors += 1
                         log.exception("listener failed on frame 0x%03X", msg.arbitration_id)
@@ -74,11 +85,17 @@ class LinkedVirtualBus(VirtualBus):
         self._check_if_open()
         timestamp = msg.timestamp if self.preserve_timestamps else time.time()
         with _handlers_lock:
-            targets = [
-                (q, _handlers.get(id(q)))
-                for q in self.channel
-                if q is not self.queue or self.receive_own_messages
-            ]
+            # routed again only when a bus joined or left the channel or (de)attached; the
+            # lists and dicts compare their items by identity first, in C
+            if self._routes_members != self.channel or self._routes_handlers != _handlers:
+                self._routes_members = list(self.channel)
+                self._routes_handlers = dict(_handlers)
+                self._routes = [
+                    (q, _handlers.get(id(q)))
+                    for q in self._routes_members
+                    if q is not self.queue or self.receive_own_messages
+                ]
+            targets = self._routes
         all_sent = True
         for bus_queue, handler in targets:
             copy = deepcopy(msg) if handler is None else msg
@@ -100,3 +117,10 @@ class LinkedVirtualBus(VirtualBus):
         """Detach, then shut down as a `VirtualBus`."""
         self.detach()
         super().shutdown()
+
+
+def _receiver(listener: Callable[[can.Message], Any]) -> Callable[[can.Message], Any]:
+    """What to call for a frame: a `can.Listener`'s `on_message_received` without its `__call__`."""
+    if isinstance(listener, can.Listener) and type(listener).__call__ is can.Listener.__call__:
+        return listener.on_message_received
+    return listener

@@ -60,16 +60,19 @@ class _BusWatch(can.Listener):
             self._on_error_frame(int(msg.arbitration_id))
             return
         c = self._counters
+        dlc = int(msg.dlc)
         c.frames_received += 1
-        c.bits_received += bus_load.frame_bits(int(msg.dlc))
-        c.nominal_bits += bus_load.frame_bits_nominal(int(msg.dlc))
+        c.bits_received += bus_load.FRAME_BITS[dlc]
+        c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[dlc]
 
 
 def _refusal(what: str, values: Sequence[float], joints: Sequence[str], nan_holds: bool) -> str:
     """Why a command array is refused ('' when it is taken): one finite value per joint."""
     if len(values) != len(joints):
         return f"expected {len(joints)} {what} ({', '.join(joints)})"
-    if not all(math.isfinite(v) or (nan_holds and math.isnan(v)) for v in values):
+    if not all(map(math.isfinite, values)) and not all(
+        math.isfinite(v) or (nan_holds and math.isnan(v)) for v in values
+    ):  # the common case, every value finite, in C
         allowed = "finite or NaN (hold)" if nan_holds else "finite"
         return f"{what} must be {allowed}, got {list(values)}"
     return ""
@@ -177,7 +180,7 @@ class Cia402Master:
         with self._lock:
             axis.fresh |= bit
             axis.seen |= bit
-            if all(a.fresh == a.sync_mask for a in self._axes):
+            if all([a.fresh == a.sync_mask for a in self._axes]):  # a list: no generator
                 for a in self._axes:
                     a.fresh = a.seen = 0
                 if self._completed_cycle == self._cycle:
@@ -195,7 +198,7 @@ class Cia402Master:
                 snapshot = Snapshot(
                     self._sync_wall_s,
                     self._cycle,
-                    tuple(copied(a.state) for a in self._axes),
+                    tuple([copied(a.state) for a in self._axes]),
                 )
         if stalled_for:
             log.warning("complete cycles again after %d SYNCs without one", stalled_for)
@@ -389,8 +392,8 @@ class Cia402Master:
             return
         self._watch.send_ok()
         self.counters.frames_sent += 1
-        self.counters.bits_sent += bus_load.frame_bits(len(data))
-        self.counters.nominal_bits += bus_load.frame_bits_nominal(len(data))
+        self.counters.bits_sent += bus_load.FRAME_BITS[len(data)]
+        self.counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
 
     @property
     def joints(self) -> tuple[str, ...]:

@@ -16,7 +16,14 @@ from lca_sim.canbus.master_state import AxisState
 from lca_sim.cia402 import controlword as ctl
 from lca_sim.cia402.codec import Codec, DriveUnits
 from lca_sim.cia402.controlword import TorqueScale, Want
-from lca_sim.cia402.device import CW_HALT, MODE_CSP, MODE_CST, MODE_CSV, PowerState
+from lca_sim.cia402.device import (
+    CW_HALT,
+    MODE_CSP,
+    MODE_CST,
+    MODE_CSV,
+    PowerState,
+    power_state_of,
+)
 
 
 @dataclass(slots=True)
@@ -71,7 +78,7 @@ class MasterAxis:
         """
         axis = self
         clamped = False
-        state = axis.state.power_state
+        state = power_state_of(axis.state.statusword)  # `AxisState.power_state`, one call
         controlword = ctl.next_controlword(state, want, axis.controlword)
         target = 0
         running = want is Want.ENABLED and state is PowerState.OPERATION_ENABLED

@@ -18,6 +18,9 @@ from lca_sim.cia402.device import Cia402AxisState, PowerState
 from lca_sim.cia402.mode_common import EMCY_FOLLOWING_ERROR, SW_BIT13
 
 _FAULT_STATES = frozenset({PowerState.FAULT_REACTION_ACTIVE, PowerState.FAULT})
+# `Drive.values` keys read at every SYNC, looked up directly (no `Drive.value` call).
+_MAX_TORQUE = (od.MAX_TORQUE, 0)
+_TARGET_TORQUE = (od.TARGET_TORQUE, 0)
 
 
 class DriveControl:
@@ -55,7 +58,7 @@ class DriveControl:
         keep the demand; CSV and CST give zero torque while halted (`cia402.torque_demand`).
         """
         drive = axis.drive
-        max_permille = axis.value(od.MAX_TORQUE)
+        max_permille = axis.values[_MAX_TORQUE]
         if drive.mode in cia402.PROFILE_MODES:
             running = drive.power is PowerState.OPERATION_ENABLED or axis.modes.quick_stopping
             if not running:
@@ -66,7 +69,7 @@ class DriveControl:
             return cia402.TorqueDemand(permille, False)
         target = axis.modes.permille if drive.mode == cia402.MODE_CSV else None
         return cia402.torque_demand(
-            drive, axis.value(od.TARGET_TORQUE) if target is None else target, max_permille
+            drive, axis.values[_TARGET_TORQUE] if target is None else target, max_permille
         )
 
     def run_loops(self, axis: Drive, dt_s: float, now: float) -> None:
@@ -156,6 +159,12 @@ class DriveControl:
         return cia402.statusword(drive, target_reached=reached, internal_limit=demand.limited)
 
     # --- state changes -------------------------------------------------------------------
+
+    def settle(self, axes: Sequence[Drive], now: float) -> None:
+        """Take the automatic transitions that are due (`cia402.settle`), at each SYNC."""
+        for axis in axes:
+            if axis.drive.power in cia402.SETTLING_STATES:  # any other stays as it is
+                self.set_drive(axis, axis.drive, now)
 
     def set_drive(self, axis: Drive, state: Cia402AxisState, now: float) -> None:
         """Settle and store a new CiA 402 state; entering operation enabled arms SYNC loss."""

@@ -89,7 +89,8 @@ class RackListener(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         """Filter the frame, then canopen's services, then the rack; never raises."""
         counters = self._counters
-        if not self._is_classical_data_frame(msg):
+        if msg.is_error_frame or msg.is_fd or msg.is_extended_id or msg.is_remote_frame:
+            self._count_not_classical(msg)
             return
         cob = msg.arbitration_id
         if len(msg.data) > 8:
@@ -115,8 +116,8 @@ class RackListener(can.Listener):
                 logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
         self._on_frame(msg)
 
-    def _is_classical_data_frame(self, msg: can.Message) -> bool:
-        """An 11-bit classical CAN data frame; anything else is counted by its kind."""
+    def _count_not_classical(self, msg: can.Message) -> None:
+        """Count a frame that is not an 11-bit classical CAN data frame by its kind."""
         counters = self._counters
         if msg.is_error_frame:
             counters.error_frames += 1
@@ -124,11 +125,8 @@ class RackListener(can.Listener):
             counters.fd_frames += 1
         elif msg.is_extended_id:
             counters.extended_frames += 1
-        elif msg.is_remote_frame:
-            counters.remote_frames += 1
         else:
-            return True
-        return False
+            counters.remote_frames += 1
 
     def on_error(self, exc: Exception) -> None:
         """The bus layer raised in the receive thread (a malformed datagram): count it, go on.

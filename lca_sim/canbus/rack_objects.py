@@ -135,10 +135,10 @@ class ObjectStore:
         state, modes, signals = self._state, self._modes, self._signals
         control, counters = self._control, self._counters
         a, gear = axis.plant_index, axis.gear_ratio
-        encode_position = codec.position(axis.units).encode
+        encode_position = codec.position(axis.units).encoder()
         loops, rad_per_increment = axis.modes, 2.0 * math.pi / axis.units.increments_per_rev
-        encode_velocity = codec.velocity(axis.units).encode
-        encode_current = codec.current(axis.units).encode
+        encode_velocity = codec.velocity(axis.units).encoder()
+        encode_current = codec.current(axis.units).encoder()
         encode_stall = codec.codec_for(od.entry(od.LONGEST_STALL)).encode
         live: dict[tuple[int, int], Callable[[], int]] = {
             (od.STATUSWORD, 0): lambda: control.statusword(axis),
@@ -170,7 +170,7 @@ class ObjectStore:
         }
         for name, obj in od.SIGNAL_OBJECTS.items():  # eta_m, eta_l, load torque, ...
             live[obj.key] = _signal_getter(
-                signals, SIGNAL_NAMES.index(name), a, codec.codec_for(obj, axis.units).encode
+                signals, SIGNAL_NAMES.index(name), a, codec.codec_for(obj, axis.units).encoder()
             )
         return live
 

@@ -21,6 +21,10 @@ from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MappingEntry
 
+# The PDO communication and mapping objects, all four ranges (CiA 301 0x1400-0x1BFF).
+_PDO_OBJECTS_FIRST = od.RPDO_COMMUNICATION
+_PDO_OBJECTS_LAST = od.TPDO_MAPPING + 0x1FF
+
 
 class PdoEngine:
     """The PDOs of every drive of a rack.
@@ -71,6 +75,8 @@ class PdoEngine:
         Raises:
             SdoAbortedError: the write is refused (CiA 301 abort code).
         """
+        if not _PDO_OBJECTS_FIRST <= index <= _PDO_OBJECTS_LAST:
+            return value  # not a PDO object: every RPDO value comes this way
         located = _pdo_of(axis, index)
         if located is None:
             return value
@@ -196,14 +202,15 @@ class PdoEngine:
         if axis.nmt != NMT_OPERATIONAL or not pdo.valid:
             self._counters.pdos_ignored_not_operational += 1
             return
-        if len(data) != pdo.size_bytes:
+        size_bytes = pdo.frame.size  # the mapping's length
+        if len(data) != size_bytes:
             # CiA 301 EMCY error codes: 0x8210 "PDO not processed due to length error", 0x8220
             # "PDO length exceeded". The frame is not applied; one EMCY per run of wrong frames
             # (each is counted), so that a flood of them does not flood the bus with EMCYs.
             self._counters.bad_frames += 1
             code = (
                 cia402.EMCY_PDO_LENGTH
-                if len(data) < pdo.size_bytes
+                if len(data) < size_bytes
                 else cia402.EMCY_PDO_LENGTH_EXCEEDED
             )
             if pdo.length_error != code:
@@ -212,7 +219,7 @@ class PdoEngine:
             self._warn_once(
                 f"rpdo-length-{axis.config.node_id}-{pdo.number}",
                 f"node {axis.config.node_id} RPDO{pdo.number}: {len(data)} bytes, "
-                f"mapping has {pdo.size_bytes}; dropped",
+                f"mapping has {size_bytes}; dropped",
             )
             return
         pdo.length_error = 0
@@ -222,12 +229,13 @@ class PdoEngine:
         else:
             self._apply(axis, pdo, data, now)
 
-    def apply_latched(self, axis: Drive, now: float) -> None:
-        """At a SYNC: the synchronous RPDOs received since the previous one (the latest wins)."""
-        for pdo in axis.rpdos:
-            if pdo.latched is not None:
-                latched, pdo.latched = pdo.latched, None
-                self._apply(axis, pdo, latched, now)
+    def apply_latched(self, axes: Sequence[Drive], now: float) -> None:
+        """At a SYNC: each drive's synchronous RPDOs received since the last (the latest wins)."""
+        for axis in axes:
+            for pdo in axis.rpdos:
+                if pdo.latched is not None:
+                    latched, pdo.latched = pdo.latched, None
+                    self._apply(axis, pdo, latched, now)
 
     def _apply(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
         for obj, value in zip(pdo.objects, pdo.frame.unpack(data), strict=True):
@@ -244,25 +252,22 @@ class PdoEngine:
         try:
             with batched_sends(bus):
                 for axis in axes:
-                    self._send_sync_tpdos(axis, now)
+                    # type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC
+                    for pdo in axis.tpdos:
+                        if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
+                            continue
+                        if pdo.transmission_type == 0:
+                            frame = pdo.encode()
+                            if frame != pdo.last_data:
+                                self._send_tpdo(axis, pdo, frame, now)
+                            continue
+                        pdo.sync_count += 1
+                        if pdo.sync_count >= pdo.transmission_type:
+                            pdo.sync_count = 0
+                            self._send_tpdo(axis, pdo, pdo.encode(), now)
         except (can.CanError, OSError) as exc:  # the batch's one write failed
             self._counters.send_errors += 1
             self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
-
-    def _send_sync_tpdos(self, axis: Drive, now: float) -> None:
-        """Type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC."""
-        for pdo in axis.tpdos:
-            if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
-                continue
-            if pdo.transmission_type == 0:
-                frame = _encode(pdo)
-                if frame != pdo.last_data:
-                    self._send_tpdo(axis, pdo, frame, now)
-                continue
-            pdo.sync_count += 1
-            if pdo.sync_count >= pdo.transmission_type:
-                pdo.sync_count = 0
-                self._send_tpdo(axis, pdo, _encode(pdo), now)
 
     def service_event_tpdos(self, now: float) -> None:
         """Send the event-driven TPDOs whose data changed or whose event timer expired."""
@@ -273,10 +278,12 @@ class PdoEngine:
                 if not pdo.valid or pdo.transmission_type not in cia402.TRANSMISSION_EVENT_TYPES:
                     continue
                 since_s = now - pdo.last_sent_s
-                frame = _encode(pdo)
-                changed = frame != pdo.last_data and since_s >= pdo.inhibit_100us * 1e-4
                 timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
-                if changed or timer_due:
+                inhibited = since_s < pdo.inhibit_100us * 1e-4
+                if inhibited and not timer_due:
+                    continue  # nothing goes out, whatever the data: not read
+                frame = pdo.encode()
+                if timer_due or frame != pdo.last_data:
                     self._send_tpdo(axis, pdo, frame, now)
 
     def _send_tpdo(self, axis: Drive, pdo: Pdo, frame: bytes, now: float) -> None:
@@ -288,10 +295,6 @@ class PdoEngine:
         elif self._send(pdo.cob_id, frame):
             self._counters.tpdos_sent += 1
         pdo.last_data, pdo.last_sent_s = frame, now
-
-
-def _encode(pdo: Pdo) -> bytes:
-    return pdo.frame.pack(*[get() for get in pdo.getters])
 
 
 def _pdo_of(axis: Drive, index: int) -> tuple[Pdo, bool] | None:

@@ -10,6 +10,7 @@ import math
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from operator import call
 from typing import TYPE_CHECKING
 
 import canopen
@@ -81,6 +82,7 @@ class Pdo:
     frame: struct.Struct = field(default_factory=lambda: struct.Struct("<"))  # the whole frame
     # TPDO: the current raw value of each mapped object, read when the frame is sent.
     getters: list[Callable[[], int]] = field(default_factory=list)
+    encode: Callable[[], bytes] = field(default=bytes)  # the TPDO's frame now (`map`)
     latched: bytes | None = None  # a synchronous RPDO waiting for the next SYNC
     last_rx_s: float | None = None  # arms the RPDO deadline
     last_data: bytes | None = None  # the TPDO last sent
@@ -88,16 +90,28 @@ class Pdo:
     sync_count: int = 0
     length_error: int = 0  # RPDO: the EMCY code of the current run of wrong-length frames
 
-    @property
-    def size_bytes(self) -> int:
-        """Length of the PDO's frame."""
-        return self.frame.size
-
     def map(self, objects: list[ODVariable], getters: list[Callable[[], int]]) -> None:
         """Map `objects`, and pack and unpack the frame in one step from now on."""
         self.objects = objects
         self.frame = frame_codec(objects)
         self.getters = getters
+        self.encode = frame_encoder(self.frame, getters)
+
+
+def frame_encoder(
+    frame: struct.Struct, getters: Sequence[Callable[[], int]]
+) -> Callable[[], bytes]:
+    """A TPDO's frame of its objects' current values, built once per mapping.
+
+    A TPDO is encoded when it is due, an event one at every SYNC outside its inhibit time (to
+    see a change): the getters are called from C (`operator.call`) into the mapping's struct.
+    """
+    pack, calls = frame.pack, tuple(getters)
+
+    def encode() -> bytes:
+        return pack(*map(call, calls))
+
+    return encode
 
 
 def frame_codec(objects: Sequence[ODVariable]) -> struct.Struct:

@@ -19,6 +19,10 @@ from lca_sim.cia402 import sync_rate
 from lca_sim.cia402.device import PowerState
 from lca_sim.runtime import discounted
 
+# `Drive.values` keys read at every SYNC, looked up directly (no `Drive.value` call).
+_HEARTBEAT_CONSUMER_1 = (od.HEARTBEAT_CONSUMER, 1)
+_CYCLE_PERIOD = (od.CYCLE_PERIOD, 0)
+
 
 class RackWatchdogs:
     """The deadlines of every drive of a rack, checked at its monitor's ticks.
@@ -108,7 +112,7 @@ class RackWatchdogs:
     def check(self, now: float) -> None:
         """Fire every watchdog whose deadline passed; each re-arms on its next frame."""
         for axis in self._axes:
-            _, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
+            _, time_ms = cia402.heartbeat_consumer_entry(axis.values[_HEARTBEAT_CONSUMER_1])
             last = axis.heartbeat_last_rx_s
             if time_ms and last is not None and now - last > time_ms * 1e-3:
                 axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
@@ -126,7 +130,7 @@ class RackWatchdogs:
                     pdo.last_rx_s = None  # re-armed by the next reception
                     self._counters.rpdo_timeouts += 1
                     self._on_expired(axis, cia402.EMCY_RPDO_TIMEOUT, now)
-            period_s = axis.value(od.CYCLE_PERIOD) * 1e-6
+            period_s = axis.values[_CYCLE_PERIOD] * 1e-6
             if (
                 period_s > 0.0
                 and axis.drive.power is PowerState.OPERATION_ENABLED

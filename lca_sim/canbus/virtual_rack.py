@@ -67,6 +67,7 @@ logger = logging.getLogger(__name__)
 MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
+_CYCLE_PERIOD = (od.CYCLE_PERIOD, 0)  # read from every drive at every SYNC (`Drive.values`)
 
 
 class VirtualDriveRack:
@@ -369,10 +370,9 @@ class VirtualDriveRack:
         if not self._faults.idle:
             self._faults.run_clock(now)
         operational = [a for a in self._axes if a.nmt == NMT_OPERATIONAL and not a.faults.bus_off]
-        for axis in operational:
-            self._pdos.apply_latched(axis, now)
+        self._pdos.apply_latched(operational, now)
+        self._control.settle(self._axes, now)
         for axis in self._axes:
-            self._control.set_drive(axis, axis.drive, now)
             axis.sync_loss_reported = False
         self._pdos.send_sync_tpdos(operational, now, self._network.bus)
         # A real drive's TPDOs leave in hardware while its CPU goes on; a master in this
@@ -383,8 +383,7 @@ class VirtualDriveRack:
         if self._yield_after_tpdos:
             yield_gil()
         self._advance(now, stamp_s)
-        for axis in self._axes:
-            self._control.set_drive(axis, axis.drive, now)
+        self._control.settle(self._axes, now)
         done = self._clock()
         if self._lockstep:  # the monitor's work, at the rack's time after this cycle
             self._watchdogs.last_sync_done_s = done
@@ -395,7 +394,7 @@ class VirtualDriveRack:
 
     def _advance(self, now: float, stamp_s: float) -> None:
         """Command the torque demands and run the plant one SYNC's span."""
-        period_s = max(a.value(od.CYCLE_PERIOD) for a in self._axes) * 1e-6
+        period_s = max([a.values[_CYCLE_PERIOD] for a in self._axes]) * 1e-6
         if self._lockstep:
             # The master is the clock: each SYNC is one 0x1006 period, however fast it comes.
             span_s = period_s

@@ -20,6 +20,12 @@ def frame_bits_nominal(data_bytes: int) -> int:
     return 47 + 8 * data_bytes
 
 
+# Both by data length, 0-64 bytes (every DLC python-can reports, CAN FD's too): a lookup for
+# each frame the master counts.
+FRAME_BITS: tuple[int, ...] = tuple(frame_bits(n) for n in range(65))
+FRAME_BITS_NOMINAL: tuple[int, ...] = tuple(frame_bits_nominal(n) for n in range(65))
+
+
 def bus_load_pct(bits_per_s: float, bitrate_bit_s: float) -> float:
     """Bus load in percent of the bit rate."""
     return 100.0 * bits_per_s / bitrate_bit_s

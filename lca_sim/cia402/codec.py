@@ -137,6 +137,40 @@ class Codec:
             )
         return raw
 
+    def encoder(self) -> Callable[[float], int]:
+        """`encode` as the cheapest callable for a per-SYNC loop: the same raw for every value.
+
+        A saturating or wrapping codec gets a closure with its limits bound; NaN (and, wrapping,
+        infinity) goes to `encode`, which returns the undefined marker or raises.
+        `Overflow.RAISE` is `encode` itself.
+        """
+        quantum, lo, hi = self.quantum, self.min_raw, self.max_raw
+        if self.overflow is Overflow.SATURATE:
+            undefined, refuse_nan, isnan = self.undefined, self.encode, math.isnan
+
+            def saturate(value: float) -> int:
+                if isnan(value):  # the undefined marker, or CodecError
+                    return refuse_nan(value) if undefined is None else undefined
+                counts = value / quantum
+                if counts >= hi:
+                    return hi
+                if counts <= lo:
+                    return lo
+                return round(counts)
+
+            return saturate
+        if self.overflow is Overflow.WRAP:
+            refuse, isfinite, span = self.encode, math.isfinite, 1 << self.data_type.bits
+
+            def wrap(value: float) -> int:
+                counts = value / quantum
+                if not isfinite(counts):  # NaN or infinite: CodecError
+                    return refuse(value)
+                return (round(counts) - lo) % span + lo
+
+            return wrap
+        return self.encode
+
     def decode(self, raw: int) -> float:
         """Raw integer (as unpacked for the data type) -> SI value; the marker -> NaN."""
         if raw == self.undefined:

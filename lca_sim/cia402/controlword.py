@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from lca_sim.cia402 import codec
@@ -85,7 +86,7 @@ class TorqueScale:
     torque_constant_nm_per_a: float
     rated_torque_nm: float
     max_torque_permille: int
-    _torque: codec.Codec = field(init=False, repr=False, compare=False)
+    _encode_torque: Callable[[float], int] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not (self.torque_constant_nm_per_a > 0.0 and math.isfinite(self.rated_torque_nm)):
@@ -98,11 +99,11 @@ class TorqueScale:
             )
         # 0x6071's codec: per mille of 0x6076 (the other two references do not enter it).
         units = codec.DriveUnits(self.rated_torque_nm, rated_current_a=1.0, increments_per_rev=1.0)
-        object.__setattr__(self, "_torque", codec.torque(units))
+        object.__setattr__(self, "_encode_torque", codec.torque(units).encoder())
 
     def target_permille(self, current_a: float) -> tuple[int, bool]:
         """The target torque (0x6071) for a finite current command, and whether it was clamped."""
-        permille = self._torque.encode(self.torque_constant_nm_per_a * current_a)
+        permille = self._encode_torque(self.torque_constant_nm_per_a * current_a)
         limit = self.max_torque_permille
         if permille > limit:
             return limit, True

@@ -294,6 +294,15 @@ def abort_connection(
     return replace(state, power=next_power_state(state.power, command, quick_stop_option))
 
 
+# The states `settle` may leave: in any other it returns the state as it is. A tuple: its
+# `in` compares by identity in C, where a set would hash the enum in Python (at every SYNC).
+SETTLING_STATES: tuple[PowerState, ...] = (
+    PowerState.NOT_READY_TO_SWITCH_ON,
+    PowerState.FAULT_REACTION_ACTIVE,
+    PowerState.QUICK_STOP_ACTIVE,
+)
+
+
 def settle(state: Cia402AxisState, *, standstill: bool, quick_stop_option: int) -> Cia402AxisState:
     """Take the automatic transitions that are due.
 

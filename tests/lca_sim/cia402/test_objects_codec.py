@@ -99,6 +99,32 @@ def test_the_fast_decoder_is_decode(name: str, units: DriveUnits, data: st.DataO
     assert fast == exact or (math.isnan(fast) and math.isnan(exact))
 
 
+def _outcome(encode: Callable[[float], int], value: float) -> tuple[object, ...]:
+    try:
+        return ("raw", encode(value))
+    except CodecError as exc:
+        return ("refused", str(exc))
+
+
+@pytest.mark.parametrize("name", QUANTITIES)
+@given(units=units_st, data=st.data())
+def test_the_fast_encoder_is_encode(name: str, units: DriveUnits, data: st.DataObject) -> None:
+    """`Codec.encoder()` (what the rack's TPDOs call per SYNC) gives encode's raw or refusal."""
+    c = QUANTITIES[name](units)
+    span = (c.max_raw - c.min_raw + 2) * c.quantum
+    value = data.draw(
+        st.one_of(
+            st.sampled_from([math.nan, math.inf, -math.inf, 0.0, -0.0]),
+            st.sampled_from([c.min_raw, c.max_raw, c.min_raw - 0.5, c.max_raw + 0.5]).map(
+                lambda raw: raw * c.quantum
+            ),
+            st.floats(-2.0 * span, 2.0 * span),
+            st.floats(allow_nan=False),
+        )
+    )
+    assert _outcome(c.encoder(), value) == _outcome(c.encode, value)
+
+
 @pytest.mark.parametrize(
     ("data_type", "lo", "hi"),
     [
