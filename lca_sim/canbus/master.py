@@ -92,9 +92,8 @@ class Cia402Master:
             simulated time, and the cycle runs only when its driver calls `cycle`.
         stamp_clock: the stamp of each SYNC's `Snapshot`, s (default `time.time`; a lockstep
             loop: the same simulated time).
-        before_cycle: called by the cycle thread (`start`) before each cycle, so before its
-            command is judged in time or late: the ROS shell takes the commands that came
-            since the last SYNC there (`BridgeCommands.poll`), not its executor per command.
+        before_cycle: called by the cycle thread (`start`) before each cycle is judged: the ROS
+            shell takes the commands since the last SYNC there (`BridgeCommands.poll`).
     """
 
     def __init__(
@@ -214,8 +213,7 @@ class Cia402Master:
     def set_velocities(self, velocities: Sequence[float], now: float | None = None) -> str | None:
         """Take a velocity command (joint rad/s or m/s, joint order) for the CSV axes.
 
-        The CST axes ignore it (they take `set_currents`); both count as the controller's
-        commands for the silence watch. None, or why it was refused.
+        The CST axes ignore it (they take `set_currents`); it counts for the silence watch.
         """
         return self._take("velocities", velocities, "command_rad_s", now)
 
@@ -227,11 +225,7 @@ class Cia402Master:
         return self._take("positions", positions, "command_rad", now)
 
     def _take(self, what: str, values: Sequence[float], field: str, at: float | None) -> str | None:
-        """Store one command per axis in `field`; None, or why it was refused.
-
-        `at`: when the command arrived, on the master's clock (a polled command's receive
-        time); None: now.
-        """
+        """Store one command per axis in `field` (`at`: received, default now); None or why not."""
         refused = _refusal(what, values, self.params.joints, field in NAN_HOLDS)
         if refused:
             self.counters.commands_rejected += 1
@@ -245,9 +239,7 @@ class Cia402Master:
 
     def _commands_arrived(self, at: float | None) -> None:
         if self._answered_cycle != self._cycle:  # the first command after this SYNC
-            self._answered_cycle = self._cycle
-            # A time given is on the master's clock, monotonic wall time unless lockstep (whose
-            # commands are never polled, so never given one).
+            self._answered_cycle = self._cycle  # `at` is monotonic: lockstep never gives one
             arrived_s = time.monotonic() if at is None else at
             self._command_latencies_s.append(arrived_s - self._sync_mono_s)
         self._watch.command(self._clock() if at is None else at)
@@ -268,16 +260,13 @@ class Cia402Master:
             self._watch.user_halt = True
 
     def recover(self) -> None:
-        """Clear the bridge's latches and reset drive faults.
+        """Clear the latches and reset drive faults.
 
         The latches: EMCY, stale drive, lost heartbeat, stall of complete cycles, bus-off, send
-        failures.
-
-        The heartbeat and stall watches start again from now, as the stale one does: a drive
-        still silent is latched again after its consumer time (or `stall_cycles` SYNCs).
-
-        The drives end up disabled: enabling again is a separate, explicit request. Each drive
-        is also sent NMT start (CiA 301 7.2.8.3.2.1, command 0x01): a drive whose
+        failures. The heartbeat and stall watches start again from now, as the stale one does:
+        a drive still silent is latched again after its consumer time (or `stall_cycles`
+        SYNCs). The drives end up disabled: enabling again is a separate, explicit request.
+        Each drive is also sent NMT start (CiA 301 7.2.8.3.2.1, command 0x01): a drive whose
         communication error took it to PRE-OPERATIONAL (0x1029 sub 1 = 0, CiA 301's default)
         sends its PDOs again; one already OPERATIONAL ignores it.
         """
