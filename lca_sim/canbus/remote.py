@@ -22,7 +22,7 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections import deque
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -47,6 +47,7 @@ from lca_sim.canbus.wire import (
 )
 
 logger = logging.getLogger(__name__)
+_BUS_LOGGER = logging.getLogger(can.bus.__name__)  # where `BusABC.recv` logs each frame
 
 INTERFACE_NAME = "lca_remote"
 CONNECT_TIMEOUT_S = 5.0
@@ -118,7 +119,13 @@ def _recv_before(sock: socket.socket, deadline: float) -> bytes:
 
 
 class RemoteTransportBus(can.BusABC):
-    """A python-can bus on a relay (`lca-can-server`) or a python-can-remote server."""
+    """A python-can bus on a relay (`lca-can-server`) or a python-can-remote server.
+
+    A read takes everything the socket has (the relay writes each sender's batch, a cycle's
+    frames, at once) and turns it into frames stamped with the read's time; `recv` hands out
+    the ones already read without touching the socket, filtered and logged as `BusABC.recv`
+    does.
+    """
 
     def __init__(
         self,
@@ -133,19 +140,27 @@ class RemoteTransportBus(can.BusABC):
         config: dict[str, Any] = {"receive_own_messages": bool(receive_own_messages)}
         config.update({k: v for k, v in kwargs.items() if isinstance(v, str | int | float | bool)})
         try:
-            self._sock, channel_info, self._buf, self._pending = _connect(
+            self._sock, channel_info, self._buf, pending = _connect(
                 host, port, url, config, connect_timeout_s
             )
         except (OSError, ValueError, KeyError, TypeError, ProtocolError) as exc:
             raise can.CanInitializationError(f"cannot connect to {url}: {exc}") from exc
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._poller = select.poll()
+        self._poller.register(self._sock, select.POLLIN)
+        # Read, not yet handed out, in order: frames, and (opcode, payload) of the others.
+        self._ready: deque[can.Message | tuple[int, bytes]] = deque()
         self._send_lock = threading.Lock()
-        self._batch: bytearray | None = None  # frames held for one write (`batch`)
+        self._batcher = _SendBatch(self)
         self._closed = False
+        self._unfiltered = True  # no filters set: every frame passes (`_apply_filters`)
+        # `BusABC.recv`'s log of each frame is on, as of the last read
+        self._log_frames = _BUS_LOGGER.isEnabledFor(self.RECV_LOGGING_LEVEL)
         self.errors_from_server = 0
         self.channel_info = channel_info
         self.url = url
         self.channel = url
+        self._queue_frames(pending, time.time())
         super().__init__(channel=url, can_filters=can_filters, **kwargs)
         logger.debug("connected to %s:%d (%s)", host, port, self.channel_info)
 
@@ -160,68 +175,88 @@ class RemoteTransportBus(can.BusABC):
             with self._send_lock:
                 if self._closed:
                     raise can.CanOperationError(f"{self.url}: bus is shut down")
-                if self._batch is not None:
-                    self._batch += data
+                held = self._batcher.held
+                if held is not None:
+                    held += data
                     return
                 self._sock.sendall(data)
         except OSError as exc:
             raise can.CanOperationError(f"{self.url}: send failed: {exc}") from exc
 
-    @contextlib.contextmanager
-    def batch(self) -> Iterator[None]:
+    def batch(self) -> contextlib.AbstractContextManager[None]:
         """Hold the frames sent meanwhile (by any thread) and write them at the end, in order.
 
         A cycle's frames (a drive's TPDOs after a SYNC, a master's RPDOs and SYNC) then cross
-        the socket and the relay in one write and one wake-up instead of one each. Nested
-        batches write at the outermost end.
+        the socket and the relay in one write and one wake-up instead of one each. While
+        batches overlap (nested, or on other threads), the frames go out when the last ends.
         """
-        with self._send_lock:
-            outer = self._batch is None
-            if outer:
-                self._batch = bytearray()
-        try:
-            yield
-        finally:
-            if outer:
-                with self._send_lock:
-                    data, self._batch = self._batch, None
-                    if data and not self._closed:
-                        try:
-                            self._sock.sendall(data)
-                        except OSError as exc:
-                            raise can.CanOperationError(f"{self.url}: send failed: {exc}") from exc
+        return self._batcher
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """`BusABC.recv`: a frame read already comes at once, filtered and logged as there."""
+        ready = self._ready
+        while ready:
+            item = ready.popleft()
+            if not isinstance(item, can.Message):
+                self._handle(*item)
+            elif self._unfiltered or self._matches_filters(item):
+                if self._log_frames:
+                    _BUS_LOGGER.log(self.RECV_LOGGING_LEVEL, "Received: %s", item)
+                return item
+        return super().recv(timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else time.monotonic() + timeout
+        wait_s = timeout
+        ready = self._ready
         while True:
-            while self._pending:
-                opcode, payload = self._pending.pop(0)
-                msg = self._handle(opcode, payload)
-                if msg is not None:
-                    return msg, False
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            try:
-                ready, _, _ = select.select([self._sock], [], [], remaining)
-                if not ready:
-                    return None, False
-                chunk = self._sock.recv(RECV_CHUNK)
-            except (OSError, ValueError) as exc:
-                raise can.CanOperationError(f"{self.url}: receive failed: {exc}") from exc
-            if not chunk:
-                raise can.CanOperationError(f"{self.url}: the server closed the connection")
-            self._buf += chunk
-            try:
-                self._pending = parse_frames(self._buf)
-            except ProtocolError as exc:
-                raise can.CanOperationError(f"{self.url}: {exc}") from exc
+            while ready:
+                item = ready.popleft()
+                if isinstance(item, can.Message):
+                    return item, False
+                self._handle(*item)
+            if not self._read(wait_s):
+                return None, False
+            if deadline is not None:
+                wait_s = max(deadline - time.monotonic(), 0.0)
 
-    def _handle(self, opcode: int, payload: bytes) -> can.Message | None:
-        if opcode == OP_BINARY:
+    def _read(self, timeout_s: float | None) -> bool:
+        """Read what the socket has, waiting up to `timeout_s` (None: for ever); False if none.
+
+        poll, not select: one call into the kernel with no lists built, every cycle.
+        """
+        try:
+            wait_ms = None if timeout_s is None else max(timeout_s, 0.0) * 1000.0
+            if not self._poller.poll(wait_ms):
+                return False
+            chunk = self._sock.recv(RECV_CHUNK)
+        except (OSError, ValueError) as exc:
+            raise can.CanOperationError(f"{self.url}: receive failed: {exc}") from exc
+        if not chunk:
+            raise can.CanOperationError(f"{self.url}: the server closed the connection")
+        self._buf += chunk
+        try:
+            frames = parse_frames(self._buf)
+        except ProtocolError as exc:
+            raise can.CanOperationError(f"{self.url}: {exc}") from exc
+        self._queue_frames(frames, time.time())
+        self._log_frames = _BUS_LOGGER.isEnabledFor(self.RECV_LOGGING_LEVEL)
+        return True
+
+    def _queue_frames(self, frames: list[tuple[int, bytes]], stamp_s: float) -> None:
+        """Turn websocket messages into frames stamped `stamp_s`, the others kept for later."""
+        ready = self._ready
+        for opcode, payload in frames:
+            if opcode != OP_BINARY:
+                ready.append((opcode, payload))
+                continue
             try:
-                return decode_message(payload, time.time())
+                ready.append(decode_message(payload, stamp_s))
             except ValueError as exc:
                 logger.warning("%s: dropped a message: %s", self.url, exc)
-                return None
+
+    def _handle(self, opcode: int, payload: bytes) -> None:
+        """A websocket message that is not a frame, in its turn among the frames."""
         if opcode == OP_PING:
             with self._send_lock:
                 if not self._closed:
@@ -231,7 +266,10 @@ class RemoteTransportBus(can.BusABC):
         elif opcode == OP_TEXT:
             self.errors_from_server += 1
             logger.warning("%s: server says %s", self.url, payload[:200].decode(errors="replace"))
-        return None
+
+    def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
+        """Filters stay python-can's (in software); this notes whether there are any."""
+        self._unfiltered = filters is None
 
     def shutdown(self) -> None:
         """Stop the periodic tasks, say goodbye to the server, close the socket."""
@@ -247,6 +285,36 @@ class RemoteTransportBus(can.BusABC):
                 except OSError:
                     pass
                 self._sock.close()
+
+
+class _SendBatch:
+    """`RemoteTransportBus.batch()`, one per bus: open batches counted, the last one writes."""
+
+    __slots__ = ("_bus", "_open", "held")
+
+    def __init__(self, bus: RemoteTransportBus) -> None:
+        self._bus = bus
+        self._open = 0
+        self.held: bytearray | None = None  # the frames sent while a batch is open
+
+    def __enter__(self) -> None:
+        with self._bus._send_lock:
+            if self.held is None:
+                self.held = bytearray()
+            self._open += 1
+
+    def __exit__(self, *exc_info: object) -> None:
+        bus = self._bus
+        with bus._send_lock:
+            self._open -= 1
+            if self._open:
+                return
+            data, self.held = self.held, None
+            if data and not bus._closed:
+                try:
+                    bus._sock.sendall(data)
+                except OSError as exc:
+                    raise can.CanOperationError(f"{bus.url}: send failed: {exc}") from exc
 
 
 def batched_sends(bus: can.BusABC | None) -> contextlib.AbstractContextManager[None]:

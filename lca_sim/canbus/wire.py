@@ -60,17 +60,26 @@ def decode_message(payload: bytes | bytearray, timestamp: float) -> can.Message:
     if len(payload) < HEADER.size or payload[0] != MESSAGE_TYPE:
         raise InvalidValueError(f"not a CAN frame message ({len(payload)} bytes)")
     _type, _sent, arbitration_id, dlc, flags = HEADER.unpack_from(payload)
+    data = payload[HEADER.size :]
+    if not flags:  # a classical base data frame (all of CANopen's): half the keywords to parse
+        return can.Message(
+            timestamp=timestamp,
+            arbitration_id=arbitration_id,
+            is_extended_id=False,
+            dlc=dlc,
+            data=data,
+        )
     return can.Message(
         timestamp=timestamp,
         arbitration_id=arbitration_id,
-        is_extended_id=bool(flags & IS_EXTENDED_ID),
-        is_remote_frame=bool(flags & IS_REMOTE_FRAME),
-        is_error_frame=bool(flags & IS_ERROR_FRAME),
-        is_fd=bool(flags & IS_FD),
-        bitrate_switch=bool(flags & IS_BRS),
-        error_state_indicator=bool(flags & IS_ESI),
+        is_extended_id=flags & IS_EXTENDED_ID != 0,
+        is_remote_frame=flags & IS_REMOTE_FRAME != 0,
+        is_error_frame=flags & IS_ERROR_FRAME != 0,
+        is_fd=flags & IS_FD != 0,
+        bitrate_switch=flags & IS_BRS != 0,
+        error_state_indicator=flags & IS_ESI != 0,
         dlc=dlc,
-        data=bytes(payload[HEADER.size :]),
+        data=data,
     )
 
 

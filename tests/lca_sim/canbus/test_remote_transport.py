@@ -368,6 +368,52 @@ def test_a_batch_is_one_write_and_arrives_whole_in_order(
         assert in_process_relay.stats.frames_in == len(frames)
 
 
+def test_overlapping_batches_write_when_the_last_ends(in_process_relay: RelayServer) -> None:
+    """A batch opened inside another holds its frames until the outer one ends too."""
+    url = in_process_relay.url
+    with (
+        can.Bus(interface="lca_remote", channel=url) as a,
+        can.Bus(interface="lca_remote", channel=url) as b,
+    ):
+        frames = [can.Message(arbitration_id=0x201 + k, data=bytes([k])) for k in range(3)]
+        with remote.batched_sends(a):
+            a.send(frames[0])
+            with remote.batched_sends(a):
+                a.send(frames[1])
+            assert b.recv(0.2) is None  # the inner end wrote nothing
+            a.send(frames[2])
+        for msg in frames:
+            got = b.recv(10.0)
+            assert got is not None and _same(got, msg), (msg, got)
+
+
+def test_frames_read_at_once_come_out_filtered_in_order_and_stamped(
+    in_process_relay: RelayServer,
+) -> None:
+    """A batch's frames, read at once, pass the filters one by one, in order, stamped on read."""
+    url = in_process_relay.url
+    wanted = [{"can_id": 0x181, "can_mask": 0x7FF, "extended": False}]
+    with (
+        can.Bus(interface="lca_remote", channel=url) as a,
+        can.Bus(interface="lca_remote", channel=url, can_filters=wanted) as b,
+    ):
+        sent = [
+            can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes([k]))
+            for k in range(4)
+        ]
+        sent.insert(2, can.Message(arbitration_id=0x80, is_extended_id=False, data=b""))
+        before_s = time.time()
+        with remote.batched_sends(a):
+            for msg in sent:
+                a.send(msg)
+        got = [b.recv(10.0) for _ in range(4)]
+        after_s = time.time()
+        assert b.recv(0.05) is None  # the SYNC was filtered out
+        assert [bytes(m.data) for m in got if m is not None] == [bytes([k]) for k in range(4)]
+        stamps = [m.timestamp for m in got if m is not None]
+        assert stamps == sorted(stamps) and before_s <= stamps[0] and stamps[-1] <= after_s
+
+
 def test_filters_and_periodic_send(in_process_relay: RelayServer) -> None:
     """python-can's own filters and software periodic send, with a data change mid-way."""
     url = in_process_relay.url
