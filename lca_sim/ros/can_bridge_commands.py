@@ -33,6 +33,7 @@ from lca_sim.canbus.master import Cia402Master
 from lca_sim.config.can_bridge_params import CanBridgeNodeParams
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.can_drives import CanDrives
+from lca_sim.ros.contract_cdr import CdrError, float64_multi_array_data
 from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, unserved_axes
 from lca_sim.ros.plant_contract import qos_profile
 
@@ -77,6 +78,7 @@ class BridgeCommands:
         }
         self.taken = dict.fromkeys(self._axes_of, 0)  # command arrays taken, per topic
         self.wrong_interface = 0
+        self.undecodable = 0  # polled command bytes that were no Float64MultiArray
         self.ignored_inactive = 0  # commands that came while not active
         # ros2_control's topic-based interface: the commands in force, joint order, so a
         # JointState naming some joints leaves the others as they are.
@@ -122,11 +124,26 @@ class BridgeCommands:
     def _subscribe(
         self, msg_type: Any, topic: str, handler: Callable[[Any, float | None], None], node: Node
     ) -> None:
+        """Subscribe `handler(values or message, receipt time or None)` to `topic`.
+
+        A Float64MultiArray handler gets its data as a list; polled, it is read from the
+        serialized bytes (`float64_multi_array_data`), without building the message.
+        """
         qos = qos_profile(pc.COMMAND_QOS)
+        arrays = msg_type is Float64MultiArray
         if self._poll_node is None:
-            node.create_subscription(msg_type, topic, lambda msg: handler(msg, None), qos)
+            if arrays:
+
+                def on_array(msg: Float64MultiArray) -> None:
+                    handler(list(msg.data), None)
+
+                node.create_subscription(msg_type, topic, on_array, qos)
+            else:
+                node.create_subscription(msg_type, topic, lambda msg: handler(msg, None), qos)
             return
-        sub = self._poll_node.create_subscription(msg_type, topic, lambda _msg: None, qos)
+        sub = self._poll_node.create_subscription(
+            msg_type, topic, lambda _msg: None, qos, raw=arrays
+        )
         self._polled.append((sub, handler))
 
     def poll(self) -> None:
@@ -144,7 +161,7 @@ class BridgeCommands:
                 while True:
                     try:
                         with sub.handle:
-                            taken = sub.handle.take_message(sub.msg_type, False)
+                            taken = sub.handle.take_message(sub.msg_type, sub.raw)
                     except InvalidHandle:  # destroyed: the node is shutting down
                         return
                     if taken is None:
@@ -154,7 +171,18 @@ class BridgeCommands:
                     # rmw stamps the receipt on the system clock; the master judges on the
                     # monotonic one. No receipt time (an rmw without it): now.
                     at_s = min(now_s, (received_ns - offset_ns) * 1e-9) if received_ns else now_s
-                    handler(msg, at_s)
+                    if not sub.raw:
+                        handler(msg, at_s)
+                        continue
+                    try:
+                        handler(float64_multi_array_data(msg), at_s)
+                    except CdrError as exc:
+                        self.undecodable += 1
+                        self._log.warning(
+                            f"{sub.topic_name}: cannot read a command ({self.undecodable} so "
+                            f"far): {exc}",
+                            throttle_duration_sec=1.0,
+                        )
 
     def destroy(self) -> None:
         """Destroy the polled subscriptions' node (with the bridge node)."""
@@ -186,10 +214,10 @@ class BridgeCommands:
         )
         return None
 
-    def _on_current(self, msg: Float64MultiArray, at: float | None) -> None:
+    def _on_current(self, values: list[float], at: float | None) -> None:
         master = self._commanding()
         if master is not None:
-            self._set_currents(master, list(msg.data), at)
+            self._set_currents(master, values, at)
             self.taken[pc.CURRENT_COMMANDS] += 1
             if not (self.velocity_axes or self.position_axes):
                 self._answered()
@@ -218,18 +246,18 @@ class BridgeCommands:
                 throttle_duration_sec=1.0,
             )
 
-    def _on_velocity(self, msg: Float64MultiArray, at: float | None) -> None:
+    def _on_velocity(self, values: list[float], at: float | None) -> None:
         master = self._commanding()
         if master is not None:
-            self._set_velocities(master, list(msg.data), at)
+            self._set_velocities(master, values, at)
             self.taken[pc.VELOCITY_COMMANDS] += 1
             if not self.position_axes:
                 self._answered()
 
-    def _on_position(self, msg: Float64MultiArray, at: float | None) -> None:
+    def _on_position(self, values: list[float], at: float | None) -> None:
         master = self._commanding()
         if master is not None:
-            self._set_positions(master, list(msg.data), at)
+            self._set_positions(master, values, at)
             self.taken[pc.POSITION_COMMANDS] += 1
             self._answered()
 
@@ -281,7 +309,7 @@ class BridgeCommands:
             self._log.warning(adapter.warning(cmd.problems), throttle_duration_sec=1.0)
         self._answered()
 
-    def _on_voltage(self, _msg: Float64MultiArray, _at: float | None) -> None:
+    def _on_voltage(self, _values: list[float], _at: float | None) -> None:
         self.wrong_interface += 1
         self._log.warning(
             f"ignoring voltage commands ({self.wrong_interface} so far): CiA 402 drives take "

@@ -421,12 +421,13 @@ class CanBridgeNode(LifecycleNode):
             counts={
                 "states_published": self._published,
                 "commands_wrong_interface": commands.wrong_interface,
+                "commands_undecodable": commands.undecodable,
                 "commands_ignored_inactive": commands.ignored_inactive,
                 "joint_commands_accepted": counts["accepted"],
                 "joint_commands_refused": counts["refused"],
                 "joint_command_unknown_names": counts["unknown_names"],
             },
-            refused=bool(commands.wrong_interface or counts["refused"]),
+            refused=bool(commands.wrong_interface or commands.undecodable or counts["refused"]),
             warnings=tuple(filter(None, [commands.unserved()])),
         )
         array = DiagnosticArray()

@@ -1,5 +1,8 @@
 """The plant contract's per-cycle messages as serialized CDR, ready for `Publisher.publish(bytes)`.
 
+And the other way for the command arrays: `float64_multi_array_data` reads a taken
+Float64MultiArray's data from its bytes (the bridge's polled commands, `BridgeCommands.poll`).
+
 rclpy's `publish` of a message converts it field by field from Python to C, most of the CPU a
 publish costs; a `bytes` payload goes to the middleware as it is (docs/can-transport.md).
 `ContractCdr` writes joint_states / motor_states (sensor_msgs/JointState), /clock
@@ -234,3 +237,34 @@ class ContractCdr:
             fault, fault_mod = _piece(faults[a]) if faults else self._no_faults
             out += (fault, after_faults[a][fault_mod])
         return b"".join(out)
+
+
+class CdrError(ValueError):
+    """Bytes that are not the serialized message they were taken as."""
+
+
+def float64_multi_array_data(cdr: bytes) -> list[float]:
+    """The `data` of a serialized std_msgs/Float64MultiArray (XCDR1 little endian).
+
+    The layout (its dims' labels, sizes and strides, and data_offset) is read past, not kept:
+    the command topics carry plain arrays in joint order (docs/contract.md).
+
+    Raises:
+        CdrError: not little-endian CDR, or shorter than its lengths say.
+    """
+    if cdr[:2] != ENCAPSULATION[:2]:
+        raise CdrError(f"not little-endian CDR: encapsulation {cdr[:4].hex()}")
+    try:
+        (n_dims,) = _U32.unpack_from(cdr, 4)
+        at = 8
+        for _ in range(n_dims):  # MultiArrayDimension: label (string), size, stride (uint32)
+            (label_length,) = _U32.unpack_from(cdr, at)
+            at += 4 + label_length
+            at += -(at - 4) % 4 + 8
+        at += -(at - 4) % 4 + 4  # data_offset
+        (count,) = _U32.unpack_from(cdr, at)
+        at += 4
+        at += -(at - 4) % 8
+        return list(struct.unpack_from(f"<{count}d", cdr, at))
+    except struct.error as exc:
+        raise CdrError(f"a Float64MultiArray cut short ({len(cdr)} bytes): {exc}") from exc

@@ -27,10 +27,16 @@ from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from lca_control import contract as pc
 from lca_control.contract import PlantSnapshot
-from lca_sim.ros.contract_cdr import ContractCdr, stamp_parts
+from lca_sim.ros.contract_cdr import (
+    CdrError,
+    ContractCdr,
+    float64_multi_array_data,
+    stamp_parts,
+)
 from lca_sim.ros.node_util import to_stamp
 
 ENCAPSULATION = 4  # bytes before the CDR body; alignment counts from after them
@@ -259,3 +265,43 @@ def test_serialization_needs_no_ros_context() -> None:
     )
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": "218"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
+
+
+label_st = st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E), max_size=9)
+dims_st = st.lists(
+    st.builds(
+        MultiArrayDimension,
+        label=label_st,
+        size=st.integers(0, 2**32 - 1),
+        stride=st.integers(0, 2**32 - 1),
+    ),
+    max_size=3,
+)
+
+
+@given(
+    dims=dims_st,
+    data_offset=st.integers(0, 2**32 - 1),
+    data=st.lists(any_float_st, max_size=8),
+)
+@settings(deadline=None)
+def test_a_command_array_reads_back_from_rclpy_bytes(
+    dims: list[Any], data_offset: int, data: list[float]
+) -> None:
+    """Any layout (labels of every length mod 4), any floats: the data, bit for bit."""
+    msg = Float64MultiArray(data=data)
+    msg.layout.dim = dims
+    msg.layout.data_offset = data_offset
+    cdr = serialize_message(msg)
+    assert struct.pack(f"<{len(data)}d", *float64_multi_array_data(cdr)) == struct.pack(
+        f"<{len(data)}d", *data
+    )
+    with pytest.raises(CdrError, match="cut short"):
+        float64_multi_array_data(cdr[: len(cdr) - 1] if data else cdr[:10])
+
+
+def test_big_endian_bytes_are_refused_not_misread() -> None:
+    """CDR_BE (encapsulation 00 00) is no command this host's rmw sends: an error, not numbers."""
+    cdr = serialize_message(Float64MultiArray(data=[1.0, 2.0]))
+    with pytest.raises(CdrError, match="not little-endian"):
+        float64_multi_array_data(b"\x00\x00" + cdr[2:])
