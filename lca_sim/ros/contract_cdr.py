@@ -27,6 +27,7 @@ from collections.abc import Sequence
 
 from lca_control import contract as pc
 from lca_control.contract import FloatArray, PlantSnapshot
+from lca_sim.errors import LcaHilError
 
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE: representation 0x0001, options 0
 LEVEL_OK = 0  # diagnostic_msgs/DiagnosticStatus.OK
@@ -239,7 +240,7 @@ class ContractCdr:
         return b"".join(out)
 
 
-class CdrError(ValueError):
+class CdrError(LcaHilError, ValueError):
     """Bytes that are not the serialized message they were taken as."""
 
 
