@@ -10,8 +10,9 @@ In real time the subscriptions are polled, not spun: the master's cycle thread t
 since the last SYNC (`poll`, just before it builds the RPDOs), each command with the time rmw
 received it, so in time and late are judged as before. Spinning them woke the executor's
 thread for every command, a second thread taking the GIL in each 2 ms cycle (about 100 us of
-CPU per command; docs/can-transport.md). A polled subscription lives on a node of its own that
-no executor spins (`<bridge>_commands`).
+CPU per command; docs/can-transport.md). A polled subscription is the bridge node's, as the
+graph shows, but not registered with it, so no executor takes from it
+(`node_util.unspun_subscription`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from lca_sim.model.params import RobotParams
 from lca_sim.ros.can_drives import CanDrives
 from lca_sim.ros.contract_cdr import CdrError, float64_multi_array_data
 from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, unserved_axes
+from lca_sim.ros.node_util import destroy_unspun, unspun_subscription
 from lca_sim.ros.plant_contract import qos_profile
 
 
@@ -101,15 +103,8 @@ class BridgeCommands:
             position_joints=self.position_axes,
             position_refused=lambda j: f"position for {j}: their drives do not run csp (modes)",
         )
-        self._poll_node: Node | None = None
-        if polled:  # the same context, remappings and namespace; no executor spins it
-            self._poll_node = Node(
-                f"{node.get_name()}_commands",
-                namespace=node.get_namespace(),
-                context=node.context,
-                start_parameter_services=False,
-                enable_rosout=False,
-            )
+        self._node = node
+        self._polls = polled
         self._polled: list[tuple[Subscription, Callable[[Any, float | None], None]]] = []
         self._poll_lock = threading.Lock()  # the cycle thread and the diagnostics timer
         self._subscribe(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current, node)
@@ -131,7 +126,7 @@ class BridgeCommands:
         """
         qos = qos_profile(pc.COMMAND_QOS)
         arrays = msg_type is Float64MultiArray
-        if self._poll_node is None:
+        if not self._polls:
             if arrays:
 
                 def on_array(msg: Float64MultiArray) -> None:
@@ -141,10 +136,7 @@ class BridgeCommands:
             else:
                 node.create_subscription(msg_type, topic, lambda msg: handler(msg, None), qos)
             return
-        sub = self._poll_node.create_subscription(
-            msg_type, topic, lambda _msg: None, qos, raw=arrays
-        )
-        self._polled.append((sub, handler))
+        self._polled.append((unspun_subscription(node, msg_type, topic, qos, raw=arrays), handler))
 
     def poll(self) -> None:
         """Take every command that came since the last poll, with its receive time (real time).
@@ -185,12 +177,11 @@ class BridgeCommands:
                         )
 
     def destroy(self) -> None:
-        """Destroy the polled subscriptions' node (with the bridge node)."""
-        poll_node, self._poll_node = self._poll_node, None
+        """Destroy the polled subscriptions (before the bridge node)."""
         with self._poll_lock:
-            self._polled = []
-        if poll_node is not None:
-            poll_node.destroy_node()  # type: ignore[no-untyped-call]
+            polled, self._polled = self._polled, []
+        for sub, _ in polled:
+            destroy_unspun(self._node, sub)
 
     def unserved(self) -> str:
         """Axes no command topic serves while another does (`unserved_axes`).

@@ -8,17 +8,22 @@ import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, TypeVar, cast
 
 import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.context import Context
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
+from rclpy.type_support import check_is_valid_msg_type
 from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import remove_ros_args
 
@@ -199,6 +204,47 @@ def make_executor(context: Context | None = None, kind: str = "events") -> Execu
         else:
             return EventsExecutor(context=context)
     return SingleThreadedExecutor(context=context)
+
+
+def unspun_subscription(
+    node: Node, msg_type: Any, topic: str, qos: QoSProfile, *, raw: bool
+) -> Subscription:
+    """A subscription of `node` that no executor takes from: its owner takes, when it chooses.
+
+    Built as `Node.create_subscription` builds one (the node's remappings and namespace apply,
+    and the graph shows the node as the topic's subscriber), but not registered with the node,
+    so an executor spinning the node never takes its messages: the owner calls
+    `sub.handle.take_message`. Its QoS-event handlers are the node's, as usual. The owner
+    destroys it (`destroy_unspun`) before the node.
+    """
+    check_is_valid_msg_type(msg_type)
+    with node.handle:
+        impl = _rclpy.Subscription(node.handle, msg_type, topic, qos.get_c_qos_profile())
+    sub = Subscription(
+        impl,
+        msg_type,
+        topic,
+        lambda _msg: None,
+        node.default_callback_group,
+        qos,
+        raw,
+        SubscriptionEventCallbacks(),
+    )
+    for handler in _event_handlers(sub):
+        node.add_waitable(handler)
+    return sub
+
+
+def destroy_unspun(node: Node, sub: Subscription) -> None:
+    """Destroy an `unspun_subscription` of `node` and its event handlers."""
+    for handler in _event_handlers(sub):
+        node.remove_waitable(handler)
+    sub.destroy()
+
+
+def _event_handlers(sub: Subscription) -> list[Any]:
+    """A subscription's QoS-event handlers (a list; rclpy annotates it as one handler)."""
+    return list(cast(Any, sub.event_handlers))
 
 
 def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = None) -> int:

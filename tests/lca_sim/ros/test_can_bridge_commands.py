@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
 import support
 from std_msgs.msg import Float64MultiArray
 
@@ -21,6 +22,7 @@ from lca_control import contract as pc
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, validate_can_bridge_params
 from lca_sim.config.loader import load_robot
 from lca_sim.ros.can_bridge_commands import BridgeCommands
+from lca_sim.ros.node_util import make_executor
 from lca_sim.ros.plant_contract import qos_profile
 
 ros_context = support.domain_contexts(110, 3)
@@ -81,22 +83,29 @@ def _publish_and_wait(
     return published_s, seen, talker, pub
 
 
-def test_the_executor_never_takes_a_polled_command_and_poll_takes_each_with_its_receipt() -> None:
+@pytest.mark.parametrize("kind", ["events", "single"])
+def test_the_executor_never_takes_a_polled_command_and_poll_takes_each_with_its_receipt(
+    kind: str,
+) -> None:
     """Spinning the bridge's executor hands nothing on; one poll hands on all, in order.
 
-    Each carries the monotonic time rmw received it: not before it was published, not after
-    the poll (the master judges in time or late by it).
+    The subscription is the bridge node's in the graph. Each command carries the monotonic
+    time rmw received it: not before it was published, not after the poll (the master judges
+    in time or late by it).
     """
     with ros_context() as (ctx, executor):
         import rclpy
 
         bridge = rclpy.create_node("can_bridge", context=ctx)
-        executor.add_node(bridge)
+        bridge_executor = make_executor(ctx, kind)
+        bridge_executor.add_node(bridge)
         master = RecordingMaster()
         commands = _commands(bridge, master)
-        published_s, seen, _talker, _pub = _publish_and_wait(ctx, executor, COMMANDS)
+        published_s, seen, talker, _pub = _publish_and_wait(ctx, executor, COMMANDS)
+        subscribed = talker.get_subscriptions_info_by_topic(pc.CURRENT_COMMANDS)
+        assert "can_bridge" in {info.node_name for info in subscribed}
         for _ in range(20):  # the executor runs: it must not take the polled commands
-            executor.spin_once(timeout_sec=0.01)
+            bridge_executor.spin_once(timeout_sec=0.01)
         assert master.taken == []
         support.wait_until(lambda: len(master.taken) == COMMANDS, "poll", step=commands.poll)
         polled_s = time.monotonic()
@@ -108,6 +117,7 @@ def test_the_executor_never_takes_a_polled_command_and_poll_takes_each_with_its_
         commands.poll()  # nothing new: nothing handed on again
         assert len(master.taken) == COMMANDS
         commands.destroy()
+        bridge_executor.shutdown()
         bridge.destroy_node()  # type: ignore[no-untyped-call]
 
 
