@@ -61,7 +61,11 @@ def _enabled(bridge: CanBridgeNode) -> bool:
 def test_a_silent_controller_halts_then_quick_stops_and_the_bridge_says_so() -> None:
     """OK waiting, WARN "halted" after command_timeout_s, OK on commands, ERROR at quick stop."""
     with ros_context() as (ctx, executor):
-        bridge = _bridge(ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0)
+        # 50 Hz: this thread's executor answers each state well within a period, so the
+        # late-command WARN (LateShare) stays away and the OK of "commands again" shows.
+        bridge = _bridge(
+            ctx, executor, command_timeout_s=0.2, quick_stop_after_s=1.0, cycle_hz=50.0
+        )
         probe = Diagnostics(ctx, executor)
         commands = probe.node.create_publisher(Float64MultiArray, pc.CURRENT_COMMANDS, 10)
         answering = [False]
