@@ -107,24 +107,24 @@ class BridgeCommands:
         self._polls = polled
         self._polled: list[tuple[Subscription, Callable[[Any, float | None], None]]] = []
         self._poll_lock = threading.Lock()  # the cycle thread and the diagnostics timer
-        self._subscribe(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current, node)
-        self._subscribe(Float64MultiArray, pc.VOLTAGE_COMMANDS, self._on_voltage, node)
+        self._subscribe(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current)
+        self._subscribe(Float64MultiArray, pc.VOLTAGE_COMMANDS, self._on_voltage)
         if self.velocity_axes:  # CSV axes close their velocity loop in the drive
-            self._subscribe(Float64MultiArray, pc.VELOCITY_COMMANDS, self._on_velocity, node)
+            self._subscribe(Float64MultiArray, pc.VELOCITY_COMMANDS, self._on_velocity)
         if self.position_axes:  # CSP axes close position and velocity loops in the drive
-            self._subscribe(Float64MultiArray, pc.POSITION_COMMANDS, self._on_position, node)
+            self._subscribe(Float64MultiArray, pc.POSITION_COMMANDS, self._on_position)
         if p.joint_command_topic:
-            self._subscribe(JointState, p.joint_command_topic, self._on_joint, node)
+            self._subscribe(JointState, p.joint_command_topic, self._on_joint)
 
     def _subscribe(
-        self, msg_type: Any, topic: str, handler: Callable[[Any, float | None], None], node: Node
+        self, msg_type: Any, topic: str, handler: Callable[[Any, float | None], None]
     ) -> None:
         """Subscribe `handler(values or message, receipt time or None)` to `topic`.
 
         A Float64MultiArray handler gets its data as a list; polled, it is read from the
         serialized bytes (`float64_multi_array_data`), without building the message.
         """
-        qos = qos_profile(pc.COMMAND_QOS)
+        node, qos = self._node, qos_profile(pc.COMMAND_QOS)
         arrays = msg_type is Float64MultiArray
         if not self._polls:
             if arrays:

@@ -1,15 +1,18 @@
 """The bridge's polled command intake: taken by the cycle, with the time rmw received each.
 
-In real time `BridgeCommands` subscribes on a node no executor spins and the master's cycle
-thread takes what came before each SYNC (`poll`). These tests run it against a recording
-master on a real rclpy context: the executor never takes a command, `poll` takes every one in
-order with a receipt time between its publication and the poll, and a poll after the bridge
-is destroyed is harmless (the cycle thread may still be running then).
+In real time `BridgeCommands` subscribes without registering with the bridge node, so no
+executor takes from it, and the master's cycle thread takes what came before each SYNC
+(`poll`). These tests run it against a recording master on a real rclpy context: the executor
+never takes a command, `poll` takes every one in order with a receipt time between its
+publication and the poll, and a poll after the subscriptions are destroyed takes nothing (the
+cycle thread may still be running then).
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any
@@ -41,11 +44,19 @@ class RecordingMaster:
         return None
 
 
-def _commands(node: Any, master: RecordingMaster, *, active: bool = True) -> BridgeCommands:
+@contextmanager
+def _polled_bridge(
+    ctx: Any, *, active: bool = True
+) -> Iterator[tuple[Any, RecordingMaster, BridgeCommands]]:
+    """A node named can_bridge with polled `BridgeCommands` on a recording master, torn down."""
+    import rclpy
+
+    bridge = rclpy.create_node("can_bridge", context=ctx)
+    master = RecordingMaster()
     p = validate_can_bridge_params(CAN_BRIDGE_PARAMETERS.defaults())
     drives: Any = SimpleNamespace(master=master, loop=None)
-    return BridgeCommands(
-        node,
+    commands = BridgeCommands(
+        bridge,
         p,
         load_robot(p.robot),
         drives,
@@ -53,6 +64,11 @@ def _commands(node: Any, master: RecordingMaster, *, active: bool = True) -> Bri
         lambda: "active" if active else "inactive",
         polled=True,
     )
+    try:
+        yield bridge, master, commands
+    finally:
+        commands.destroy()
+        bridge.destroy_node()  # type: ignore[no-untyped-call]
 
 
 def _publish_and_wait(
@@ -93,14 +109,9 @@ def test_the_executor_never_takes_a_polled_command_and_poll_takes_each_with_its_
     time rmw received it: not before it was published, not after the poll (the master judges
     in time or late by it).
     """
-    with ros_context() as (ctx, executor):
-        import rclpy
-
-        bridge = rclpy.create_node("can_bridge", context=ctx)
+    with ros_context() as (ctx, executor), _polled_bridge(ctx) as (bridge, master, commands):
         bridge_executor = make_executor(ctx, kind)
         bridge_executor.add_node(bridge)
-        master = RecordingMaster()
-        commands = _commands(bridge, master)
         published_s, seen, talker, _pub = _publish_and_wait(ctx, executor, COMMANDS)
         subscribed = talker.get_subscriptions_info_by_topic(pc.CURRENT_COMMANDS)
         assert "can_bridge" in {info.node_name for info in subscribed}
@@ -116,19 +127,15 @@ def test_the_executor_never_takes_a_polled_command_and_poll_takes_each_with_its_
         assert commands.taken[pc.CURRENT_COMMANDS] == COMMANDS
         commands.poll()  # nothing new: nothing handed on again
         assert len(master.taken) == COMMANDS
-        commands.destroy()
         bridge_executor.shutdown()
-        bridge.destroy_node()  # type: ignore[no-untyped-call]
 
 
 def test_commands_while_inactive_are_counted_when_polled() -> None:
     """Inactive: a poll counts each command as ignored, none reaches the master."""
-    with ros_context() as (ctx, executor):
-        import rclpy
-
-        bridge = rclpy.create_node("can_bridge", context=ctx)
-        master = RecordingMaster()
-        commands = _commands(bridge, master, active=False)
+    with (
+        ros_context() as (ctx, executor),
+        _polled_bridge(ctx, active=False) as (_bridge, master, commands),
+    ):
         _publish_and_wait(ctx, executor, COMMANDS)
         support.wait_until(
             lambda: commands.ignored_inactive == COMMANDS,
@@ -136,19 +143,16 @@ def test_commands_while_inactive_are_counted_when_polled() -> None:
             step=commands.poll,
         )
         assert master.taken == []
-        commands.destroy()
-        bridge.destroy_node()  # type: ignore[no-untyped-call]
 
 
 def test_a_poll_after_destroy_hands_on_nothing_and_raises_nothing() -> None:
-    """The cycle thread may poll once more while the node is torn down."""
-    with ros_context() as (ctx, _executor):
-        import rclpy
+    """The cycle thread may poll once more while the node is torn down.
 
-        bridge = rclpy.create_node("can_bridge", context=ctx)
-        master = RecordingMaster()
-        commands = _commands(bridge, master)
+    Commands are waiting when the subscriptions go: the poll after must not take them.
+    """
+    with ros_context() as (ctx, executor), _polled_bridge(ctx) as (_bridge, master, commands):
+        _publish_and_wait(ctx, executor, COMMANDS)
         commands.destroy()
         commands.poll()
         assert master.taken == []
-        bridge.destroy_node()  # type: ignore[no-untyped-call]
+        assert commands.taken[pc.CURRENT_COMMANDS] == 0
