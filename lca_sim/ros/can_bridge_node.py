@@ -2,7 +2,7 @@ r"""The CAN bridge node: `ros2 run lca_hil can_bridge` (console script `lca-can-
 
 Swaps the simulator node for CiA 402 drives on a CAN bus behind the same topics (the plant
 contract, docs/contract.md): `current_commands` in; `joint_states`, `motor_states`,
-`drive_chain_states` and `/diagnostics` out, one `PlantSnapshot` per complete SYNC cycle.
+`drive_chain_states` and `/diagnostics` out, once per complete SYNC cycle.
 
     lca-can-bridge --ros-args --params-file config/ros/can_bridge.yaml           # virtual rack
     lca-can-bridge --ros-args --params-file config/ros/can_bridge.yaml \\
@@ -27,7 +27,6 @@ import canopen
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from lca_control.contract import PlantSnapshot
 from lca_control.parameters import ParameterError
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_state import Snapshot
@@ -41,7 +40,12 @@ from lca_sim.errors import FILE_NOT_FOUND, USER_ERRORS, ConfigError
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.can_bridge_commands import BridgeCommands
 from lca_sim.ros.can_bridge_diagnostics import BridgeDiagnostics, BridgeView
-from lca_sim.ros.can_drives import TORQUE_FREE_TIMEOUT_S, CanDrives, live_bridge_params
+from lca_sim.ros.can_drives import (
+    TORQUE_FREE_TIMEOUT_S,
+    CanDrives,
+    CycleValues,
+    live_bridge_params,
+)
 from lca_sim.ros.drive_services import DriveServices
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node
 from lca_sim.ros.plant_contract import PlantPublisher
@@ -91,7 +95,7 @@ class CanBridgeNode(LifecycleNode):
         self._startup_error: Exception | None = None  # a user error of that start-up
         self._transition_error = ""  # why the last transition failed, until one succeeds
         self._published = 0
-        self._last_plant: PlantSnapshot | None = None  # lockstep: sent again to a silent peer
+        self._last_plant: CycleValues | None = None  # lockstep: sent again to a silent peer
         self._create_interfaces(p, robot)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
         self.get_logger().info(
@@ -364,13 +368,16 @@ class CanBridgeNode(LifecycleNode):
         bridge = self._drives.master
         if not self._active or bridge is None:
             return
-        plant = self._drives.plant_snapshot(snap, bridge.decoded_fields())
+        plant = self._drives.cycle_values(snap, bridge.decoded_fields())
         loop = self._drives.loop
         if loop is not None:  # waiting before the state goes: the answer may be quick
             self._last_plant = plant
             loop.on_state(time.monotonic())
-        self._plant.publish(plant)
+        self._publish(plant)
         self._published += 1
+
+    def _publish(self, plant: CycleValues) -> None:
+        self._plant.publish_values(plant.stamp_s, plant.joint, plant.motor, plant.drive_chain)
 
     def _lockstep_tick(self) -> None:
         """Lockstep: start the loop once the controller listens; keep it going when stuck.
@@ -392,7 +399,7 @@ class CanBridgeNode(LifecycleNode):
             return
         action = loop.on_tick(wall_s)
         if action == "resend" and self._last_plant is not None:
-            self._plant.publish(self._last_plant)
+            self._publish(self._last_plant)
         elif action == "incomplete":
             self.get_logger().warning(
                 f"lockstep: no complete cycle for {loop.resend_s:g} s; the next SYNC goes "

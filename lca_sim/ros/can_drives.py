@@ -4,34 +4,36 @@
 bus, the canopen network, `Cia402Master` (with its `LockstepLoop` in lockstep) and, with
 `interface: virtual`, the virtual drive rack on a linked in-process bus. `bridge_params` builds
 the master's `BridgeParams` from the node's parameters field by field of `BridgeParams`, so a
-field added there cannot be forgotten here; `CanDrives.plant_snapshot` turns a SYNC cycle into
-the plant contract's snapshot.
+field added there cannot be forgotten here; `CycleValues` turns a SYNC cycle into the plant
+contract's values.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import fields, replace
+from operator import attrgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
 import canopen
-import numpy as np
 
-from lca_control.contract import FloatArray, PlantSnapshot
+from lca_control import contract as pc
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeError, BridgeParams
-from lca_sim.canbus.master_state import AxisState, Snapshot
+from lca_sim.canbus.master_state import Snapshot
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, CanBridgeNodeParams
 from lca_sim.errors import ConfigError, LcaHilError
 from lca_sim.model.params import RobotParams
+from lca_sim.ros.contract_cdr import DriveChainRows
 from lca_sim.runtime import settle_heap
 
 if TYPE_CHECKING:
@@ -113,33 +115,21 @@ def open_bus(interface: str, channel: str, bitrate: int) -> can.BusABC:
         ) from exc
 
 
-def _axis_row(a: AxisState) -> tuple[float, ...]:
-    """One drive's values in `plant_snapshot`'s row order."""
-    return (
-        a.position,
-        a.velocity,
-        a.motor_position_rad,
-        a.motor_velocity_rad_s,
-        a.current_a,
-        a.motion_state,
-        a.drive_state,
-        a.eta_m,
-        a.eta_l,
-        a.load_torque_nm,
-        a.friction_torque_nm,
-        a.voltage_v,
-    )
+# What `CycleValues` reads of each drive, in one C call per drive and cycle.
+_MOTION = attrgetter(
+    "position", "velocity", "motor_position_rad", "motor_velocity_rad_s", "current_a"
+)
+_CODES = attrgetter("motion_state", "drive_state")
+# The DRIVE_NUMBER_KEYS in order, each the AxisState field of its name, except the motor
+# torque: read as the current, times k_t.
+_TORQUE_AT = pc.DRIVE_NUMBER_KEYS.index("motor_torque_nm")
+_NUMBERS = attrgetter(
+    *("current_a" if key == "motor_torque_nm" else key for key in pc.DRIVE_NUMBER_KEYS)
+)
 
 
-def plant_snapshot(
-    snap: Snapshot,
-    joints: tuple[str, ...],
-    torque_constants_nm_per_a: FloatArray,
-    gear_ratios: FloatArray,
-    state_names: tuple[str, ...],
-    decoded: frozenset[str],
-) -> PlantSnapshot:
-    """One SYNC cycle of the drives as the plant contract's snapshot.
+class CycleValues:
+    """One SYNC cycle of the drives as the plant contract's values (`publish_values`).
 
     effort = k_t * i * N (joint side), motor torque = k_t * i (motor side, k_t from the robot
     config). A field the drives' TPDOs do not fill (`decoded`: `Cia402Master.decoded_fields`)
@@ -147,35 +137,59 @@ def plant_snapshot(
     state code becomes NaN, and the motion state is NaN unless it is mapped and has been
     reported (the drive-state code is -1 until the first drive-chain TPDO, and the motion code,
     0 by default, would read as `stop` before it).
+
+    Plain floats, no arrays: built on the master's cycle thread every SYNC, where a snapshot's
+    arrays cost about a third of what publishing them does (docs/can-transport.md). The
+    drive-chain values are worked out only when asked for (someone subscribes to them).
+
+    Args:
+        snap: the cycle's states from the master.
+        torque_constants_nm_per_a, gear_ratios: per joint, as Python floats.
+        state_names: the robot's drive-state names.
+        decoded: the AxisState fields every drive's TPDOs fill.
     """
-    rows = np.array([_axis_row(a) for a in snap.axes], dtype=np.float64).T
-    position, velocity, motor_position, motor_velocity, current, motion, drive = rows[:7]
-    if "drive_state" not in decoded:
-        drive = np.full_like(drive, np.nan)
-    if "motion_state" not in decoded:
-        motion = np.full_like(motion, np.nan)
-    elif "drive_state" in decoded:
-        motion = np.where(drive >= 0.0, motion, np.nan)
-    motor_torque = current * torque_constants_nm_per_a
-    return PlantSnapshot(
-        stamp_s=snap.sync_wall_s,
-        joints=joints,
-        position=position,
-        velocity=velocity,
-        effort=motor_torque * gear_ratios,
-        motor_position_rad=motor_position,
-        motor_velocity_rad_s=motor_velocity,
-        current_a=current,
-        motion_state=motion,
-        drive_state=drive,
-        state_names=state_names,
-        eta_m=rows[7],
-        eta_l=rows[8],
-        motor_torque_nm=motor_torque,
-        load_torque_nm=rows[9],
-        friction_torque_nm=rows[10],
-        voltage_v=rows[11],
-    )
+
+    __slots__ = ("_axes", "_decoded", "_k_t", "_state_names", "joint", "motor", "stamp_s")
+
+    def __init__(
+        self,
+        snap: Snapshot,
+        torque_constants_nm_per_a: tuple[float, ...],
+        gear_ratios: tuple[float, ...],
+        state_names: tuple[str, ...],
+        decoded: frozenset[str],
+    ) -> None:
+        position, velocity, motor_position, motor_velocity, current = zip(
+            *map(_MOTION, snap.axes), strict=True
+        )
+        torque = [i * k for i, k in zip(current, torque_constants_nm_per_a, strict=True)]
+        self.stamp_s = snap.sync_wall_s
+        self.joint = (position, velocity, [t * n for t, n in zip(torque, gear_ratios, strict=True)])
+        self.motor = (motor_position, motor_velocity, current)
+        self._axes = snap.axes
+        self._k_t = torque_constants_nm_per_a
+        self._state_names = state_names
+        self._decoded = decoded
+
+    def drive_chain(self) -> DriveChainRows:
+        """The cycle's drive_chain_states values (the NaN rules of the class docstring)."""
+        decoded = self._decoded
+        codes = list(map(_CODES, self._axes))
+        drive: list[float] = (
+            [float(d) for _, d in codes] if "drive_state" in decoded else [math.nan] * len(codes)
+        )
+        if "motion_state" not in decoded:
+            motion = [math.nan] * len(codes)
+        elif "drive_state" in decoded:
+            motion = [float(m) if d >= 0 else math.nan for m, d in codes]
+        else:
+            motion = [float(m) for m, _ in codes]
+        numbers = []
+        for row, k_t in zip(map(_NUMBERS, self._axes), self._k_t, strict=True):
+            values = list(row)
+            values[_TORQUE_AT] *= k_t
+            numbers.append(values)
+        return DriveChainRows(motion, drive, numbers, self._state_names)
 
 
 class CanDrives:
@@ -200,10 +214,9 @@ class CanDrives:
     ) -> None:
         axes = {a.name: a for a in robot.axes}
         self.joints = joints
-        self.torque_constants = np.array(
-            [axes[j].motor.torque_constant_nm_per_a for j in joints], dtype=np.float64
-        )
-        self.gear_ratios = np.array([axes[j].gear_ratio for j in joints], dtype=np.float64)
+        # Python floats: the contract's numbers are their repr (a NumPy scalar's differs).
+        self.torque_constants = tuple(float(axes[j].motor.torque_constant_nm_per_a) for j in joints)
+        self.gear_ratios = tuple(float(axes[j].gear_ratio) for j in joints)
         self.state_names = robot.state_machine.state_names
         self._eds = eds
         self._on_state = on_state
@@ -224,16 +237,14 @@ class CanDrives:
     def robot_values(self) -> dict[str, Any]:
         """The `FROM_ROBOT` fields of `BridgeParams`."""
         return {
-            "torque_constants_nm_per_a": tuple(float(k) for k in self.torque_constants),
-            "gear_ratios": tuple(float(n) for n in self.gear_ratios),
+            "torque_constants_nm_per_a": self.torque_constants,
+            "gear_ratios": self.gear_ratios,
             "drive_state_names": self.state_names,
         }
 
-    def plant_snapshot(self, snap: Snapshot, decoded: frozenset[str]) -> PlantSnapshot:
-        """A SYNC cycle as the contract's snapshot (`plant_snapshot`)."""
-        return plant_snapshot(
-            snap, self.joints, self.torque_constants, self.gear_ratios, self.state_names, decoded
-        )
+    def cycle_values(self, snap: Snapshot, decoded: frozenset[str]) -> CycleValues:
+        """A SYNC cycle as the contract's values (`CycleValues`)."""
+        return CycleValues(snap, self.torque_constants, self.gear_ratios, self.state_names, decoded)
 
     def open(self, p: CanBridgeNodeParams) -> None:
         """Open the bus (and start the rack on `virtual`), then the network and the master."""

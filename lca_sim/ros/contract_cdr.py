@@ -24,9 +24,10 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 from lca_control import contract as pc
-from lca_control.contract import FloatArray, PlantSnapshot
+from lca_control.contract import PlantSnapshot
 from lca_sim.errors import LcaHilError
 
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR_LE: representation 0x0001, options 0
@@ -36,6 +37,36 @@ _U32 = struct.Struct("<I")
 _HEADS = tuple(_U32.pack(length + 1) for length in range(32))
 
 _Piece = tuple[bytes, int]  # a string's length field and UTF-8 text (no NUL), its length mod 4
+
+
+@dataclass(frozen=True, slots=True)
+class DriveChainRows:
+    """drive_chain_states' values, per joint as plain floats, in the snapshot's joint order.
+
+    Attributes:
+        motion_state, drive_state: the codes as in `PlantSnapshot` (NaN or out of range:
+            UNKNOWN).
+        numbers: per joint, the `DRIVE_NUMBER_KEYS` values in that order.
+        state_names: the robot's drive-state names.
+        faults: per joint, the `faults` text; (): NO_FAULTS on every joint.
+    """
+
+    motion_state: Sequence[float]
+    drive_state: Sequence[float]
+    numbers: Sequence[Sequence[float]]
+    state_names: tuple[str, ...]
+    faults: tuple[str, ...] = ()
+
+
+def drive_chain_rows(snap: PlantSnapshot) -> DriveChainRows:
+    """A snapshot's drive-chain values as plain lists."""
+    return DriveChainRows(
+        snap.motion_state.tolist(),
+        snap.drive_state.tolist(),
+        list(zip(*(getattr(snap, key).tolist() for key in pc.DRIVE_NUMBER_KEYS), strict=True)),
+        snap.state_names,
+        snap.faults,
+    )
 
 
 def stamp_parts(t_s: float) -> tuple[int, int]:
@@ -173,33 +204,41 @@ class ContractCdr:
         self._drive_pieces: tuple[_Piece, ...] = ()
 
     def joint_state(
-        self, sec: int, nanosec: int, position: FloatArray, velocity: FloatArray, effort: FloatArray
+        self,
+        sec: int,
+        nanosec: int,
+        position: Sequence[float],
+        velocity: Sequence[float],
+        effort: Sequence[float],
     ) -> bytes:
-        """A sensor_msgs/JointState: the stamp, empty frame_id, the joints, the three arrays."""
+        """A sensor_msgs/JointState: the stamp, empty frame_id, the joints, the three arrays.
+
+        The values are plain floats in joint order (an array's `tolist()`).
+        """
         between = self._between
         return self._joint_state.pack(
             ENCAPSULATION,
             sec,
             nanosec,
             self._names,
-            *position.tolist(),
+            *position,
             between,
-            *velocity.tolist(),
+            *velocity,
             between,
-            *effort.tolist(),
+            *effort,
         )
 
     def clock(self, sec: int, nanosec: int) -> bytes:
         """A rosgraph_msgs/Clock."""
         return self._clock.pack(ENCAPSULATION, sec, nanosec)
 
-    def drive_chain(self, sec: int, nanosec: int, snap: PlantSnapshot) -> bytes:
+    def drive_chain(self, sec: int, nanosec: int, rows: DriveChainRows) -> bytes:
         """A diagnostic_msgs/DiagnosticArray: one `drive_chain/<joint>` status per joint.
 
         Level OK, the drive-state name as the message, no hardware_id, the DRIVE_STATE_KEYS
         values in the contract's text form (module docstring).
         """
-        names = snap.state_names
+        names = rows.state_names
         if names is not self._state_names:  # a robot's vocabulary: the same tuple every cycle
             self._drive_pieces = tuple(_piece(name) for name in names)
             self._state_names = names
@@ -214,12 +253,11 @@ class ContractCdr:
         )
         after_numbers, after_faults = self._after_numbers, self._after_faults
         heads = _HEADS
-        motion = snap.motion_state.tolist()
-        drive = snap.drive_state.tolist()
-        rows = zip(*(getattr(snap, key).tolist() for key in pc.DRIVE_NUMBER_KEYS), strict=True)
-        faults = snap.faults
+        motion = rows.motion_state
+        drive = rows.drive_state
+        faults = rows.faults
         out = [self._drive_start.pack(ENCAPSULATION, sec, nanosec, self._drive_head)]
-        for a, numbers in enumerate(rows):
+        for a, numbers in enumerate(rows.numbers):
             code = drive[a]
             state, state_mod = drive_pieces[int(code)] if 0 <= code < n_names else unknown
             moving, moving_mod = motion_pieces.get(motion[a], unknown)

@@ -1,9 +1,10 @@
 """The one builder of the plant contract's messages: every backend publishes through it.
 
 A backend (the simulator node, the CAN bridge) fills a `lca_control.contract.PlantSnapshot` and
-hands it to `PlantPublisher.publish`; this module alone turns snapshots into `joint_states`,
-`motor_states`, `drive_chain_states` (and `/clock` for a lockstep plant), with the contract's
-topic names, types and QoS, so the backends cannot drift apart. The per-joint
+hands it to `PlantPublisher.publish` (the CAN bridge hands the same values as plain lists to
+`publish_values`, without building arrays on its cycle thread); this module alone turns them
+into `joint_states`, `motor_states`, `drive_chain_states` (and `/clock` for a lockstep plant),
+with the contract's topic names, types and QoS, so the backends cannot drift apart. The per-joint
 `drive_chain/<joint>` statuses carry exactly `DRIVE_STATE_KEYS`, names from the contract's
 vocabularies (`UNKNOWN` for a code the backend has no report of) and numbers in repr form
 ('nan' for NaN).
@@ -18,7 +19,7 @@ what a controller waits for, so it goes first, then motor_states, /clock and the
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
@@ -31,8 +32,11 @@ from sensor_msgs.msg import JointState
 from lca_control import contract as pc
 from lca_control.contract import PlantSnapshot
 from lca_sim.errors import LcaHilError
-from lca_sim.ros.contract_cdr import ContractCdr, stamp_parts
+from lca_sim.ros.contract_cdr import ContractCdr, DriveChainRows, drive_chain_rows, stamp_parts
 from lca_sim.ros.node_util import other_publishers
+
+# (position, velocity, effort) of one JointState, each in joint order.
+JointValues = tuple[Sequence[float], Sequence[float], Sequence[float]]
 
 _RELIABILITY = {
     pc.RELIABLE: ReliabilityPolicy.RELIABLE,
@@ -142,28 +146,44 @@ class PlantPublisher:
             raise SnapshotError(
                 f"snapshot joints {list(snap.joints)}, the publisher's {list(self.joints)}"
             )
-        sec, nanosec = stamp_parts(snap.stamp_s)
+        self.publish_values(
+            snap.stamp_s,
+            (snap.position.tolist(), snap.velocity.tolist(), snap.effort.tolist()),
+            (
+                snap.motor_position_rad.tolist(),
+                snap.motor_velocity_rad_s.tolist(),
+                snap.current_a.tolist(),
+            ),
+            lambda: drive_chain_rows(snap),
+        )
+
+    def publish_values(
+        self,
+        stamp_s: float,
+        joint: JointValues,
+        motor: JointValues,
+        drive_chain: Callable[[], DriveChainRows],
+    ) -> None:
+        """Publish one instant from plain values in this publisher's joint order.
+
+        `joint` and `motor` are (position, velocity, effort) of joint_states and motor_states
+        (motor side: rad, rad/s, A); `drive_chain` is called only when drive_chain_states has a
+        subscriber. The CAN bridge fills these from its drives' states directly, without a
+        snapshot's arrays (`publish` is the same for a `PlantSnapshot`).
+        """
+        sec, nanosec = stamp_parts(stamp_s)
         cdr = self._cdr
-        joint = cdr.joint_state(sec, nanosec, snap.position, snap.velocity, snap.effort)
-        self.joint_pub.publish(joint)
+        joint_cdr = cdr.joint_state(sec, nanosec, *joint)
+        self.joint_pub.publish(joint_cdr)
         extra = self.extra_joint_pub
         if extra is not None and self._extra_subs.count:  # ros2_control listens
-            extra.publish(joint)
-
+            extra.publish(joint_cdr)
         if self._motor_subs.count:
-            self.motor_pub.publish(
-                cdr.joint_state(
-                    sec,
-                    nanosec,
-                    snap.motor_position_rad,
-                    snap.motor_velocity_rad_s,
-                    snap.current_a,
-                )
-            )
+            self.motor_pub.publish(cdr.joint_state(sec, nanosec, *motor))
         if self.clock_pub is not None and self._clock_subs.count:
             self.clock_pub.publish(cdr.clock(sec, nanosec))
         if self._drive_subs.count:
-            self.drive_pub.publish(cdr.drive_chain(sec, nanosec, snap))
+            self.drive_pub.publish(cdr.drive_chain(sec, nanosec, drive_chain()))
         self.published += 1
 
     def publish_diagnostics(self, array: DiagnosticArray) -> None:

@@ -34,6 +34,7 @@ from lca_control.contract import PlantSnapshot
 from lca_sim.ros.contract_cdr import (
     CdrError,
     ContractCdr,
+    drive_chain_rows,
     float64_multi_array_data,
     stamp_parts,
 )
@@ -199,11 +200,17 @@ def test_joint_and_motor_states_are_rclpys_bytes(snap: PlantSnapshot) -> None:
     cdr = ContractCdr(snap.joints)
     sec, nanosec = stamp_parts(snap.stamp_s)
     assert_rclpy_bytes(
-        cdr.joint_state(sec, nanosec, snap.position, snap.velocity, snap.effort),
+        cdr.joint_state(
+            sec, nanosec, snap.position.tolist(), snap.velocity.tolist(), snap.effort.tolist()
+        ),
         joint_state_msg(snap),
     )
     motor = cdr.joint_state(
-        sec, nanosec, snap.motor_position_rad, snap.motor_velocity_rad_s, snap.current_a
+        sec,
+        nanosec,
+        snap.motor_position_rad.tolist(),
+        snap.motor_velocity_rad_s.tolist(),
+        snap.current_a.tolist(),
     )
     assert_rclpy_bytes(motor, joint_state_msg(snap, motor=True))
 
@@ -214,7 +221,8 @@ def test_drive_chain_states_are_rclpys_bytes(snap: PlantSnapshot) -> None:
     """drive_chain_states: rclpy's bytes, the contract's texts, for any values and faults."""
     sec, nanosec = stamp_parts(snap.stamp_s)
     assert_rclpy_bytes(
-        ContractCdr(snap.joints).drive_chain(sec, nanosec, snap), drive_chain_msg(snap)
+        ContractCdr(snap.joints).drive_chain(sec, nanosec, drive_chain_rows(snap)),
+        drive_chain_msg(snap),
     )
 
 
@@ -248,9 +256,12 @@ def test_names_of_every_length_mod_4_keep_the_alignment(
         stamp_s = snap.stamp_s + shift
         sec, nanosec = stamp_parts(stamp_s)
         moved = dataclasses.replace(snap, stamp_s=stamp_s)
-        js = cdr.joint_state(sec, nanosec, snap.position, snap.velocity, snap.effort)
+        js = cdr.joint_state(
+            sec, nanosec, snap.position.tolist(), snap.velocity.tolist(), snap.effort.tolist()
+        )
         assert_rclpy_bytes(js, joint_state_msg(moved))
-        assert_rclpy_bytes(cdr.drive_chain(sec, nanosec, moved), drive_chain_msg(moved))
+        chain = cdr.drive_chain(sec, nanosec, drive_chain_rows(moved))
+        assert_rclpy_bytes(chain, drive_chain_msg(moved))
 
 
 def test_serialization_needs_no_ros_context() -> None:

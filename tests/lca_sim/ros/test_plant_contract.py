@@ -47,7 +47,6 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import pytest
 import rclpy
 import yaml
@@ -68,7 +67,7 @@ from lca_sim.canbus.master_state import AxisState, Snapshot
 from lca_sim.config.loader import config_dir
 from lca_sim.model.state_machine import MotionState, StopState
 from lca_sim.ros.can_bridge_node import CanBridgeNode
-from lca_sim.ros.can_drives import plant_snapshot
+from lca_sim.ros.can_drives import CycleValues
 from lca_sim.ros.contract_cdr import ContractCdr
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import make_executor
@@ -653,20 +652,20 @@ def _snapshot(**axis: float) -> Snapshot:
     return Snapshot(12.5, 7, tuple(AxisState(**axis) for _ in JOINTS))  # type: ignore[arg-type]
 
 
-def _map(snap: Snapshot, decoded: frozenset[str]) -> pc.PlantSnapshot:
+def _map(snap: Snapshot, decoded: frozenset[str]) -> CycleValues:
     robot = load_robot("default")
-    return plant_snapshot(
+    return CycleValues(
         snap,
-        JOINTS,
-        np.array([a.motor.torque_constant_nm_per_a for a in robot.axes]),
-        np.array([a.gear_ratio for a in robot.axes]),
+        tuple(a.motor.torque_constant_nm_per_a for a in robot.axes),
+        tuple(a.gear_ratio for a in robot.axes),
         robot.state_machine.state_names,
         decoded,
     )
 
 
-def _drive_values(snap: pc.PlantSnapshot) -> list[dict[str, str]]:
-    array = deserialize_message(ContractCdr(snap.joints).drive_chain(0, 0, snap), DiagnosticArray)
+def _drive_values(values: CycleValues) -> list[dict[str, str]]:
+    cdr = ContractCdr(JOINTS).drive_chain(0, 0, values.drive_chain())
+    array = deserialize_message(cdr, DiagnosticArray)
     assert [s.message for s in array.status] == [s.values[1].value for s in array.status]
     return [{kv.key: kv.value for kv in s.values} for s in array.status]
 
@@ -695,9 +694,10 @@ def test_bridge_map_of_a_stopped_virtual_drive() -> None:
     robot = load_robot("default")
     pivot = robot.axes[PIVOT]
     k_t = pivot.motor.torque_constant_nm_per_a
-    assert snap.effort[PIVOT] == pytest.approx(2.0 * k_t * pivot.gear_ratio)
-    assert snap.motor_torque_nm[PIVOT] == pytest.approx(2.0 * k_t)
+    assert snap.joint[2][PIVOT] == pytest.approx(2.0 * k_t * pivot.gear_ratio)  # effort
+    assert snap.motor[2][PIVOT] == 2.0  # motor_states' effort: the current
     values = _drive_values(snap)[PIVOT]
+    assert float(values["motor_torque_nm"]) == pytest.approx(2.0 * k_t)
     assert tuple(values) == pc.DRIVE_STATE_KEYS
     assert values["motion_state"] == "stop"
     assert values["drive_state"] == StopState.STOP_HOLD.name.lower()
