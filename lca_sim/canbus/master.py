@@ -46,6 +46,8 @@ log = logging.getLogger(__name__)
 NAN_HOLDS = frozenset({"command_rad"})
 # The most SYNC -> command latencies kept between two `take_command_latencies` (8 s at 500 Hz).
 LATENCY_RECORDS = 4096
+# The master's heartbeat (CiA 301 7.2.8.3.2.1): its NMT state, OPERATIONAL.
+_HEARTBEAT_OPERATIONAL = bytes([cia301.NMT_STATE_OPERATIONAL])
 
 
 class _BusWatch(can.Listener):
@@ -64,6 +66,52 @@ class _BusWatch(can.Listener):
         c.frames_received += 1
         c.bits_received += bus_load.FRAME_BITS[dlc]
         c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[dlc]
+
+
+class _Transmitter:
+    """Sends the master's frames, each as canopen's `Network.send_message` does, and counts them.
+
+    Its steps without its call per frame: a `can.Message`, the bus's send under the network's
+    `send_lock` (canopen's SDO client sends under it from other threads), then canopen's
+    `check` of the notifier's error (called only when there is one to raise).
+    """
+
+    def __init__(self, network: canopen.Network, watch: SafetyWatch, counters: Counters) -> None:
+        self._network = network
+        self._watch = watch
+        self._counters = counters
+
+    def send(self, frames: list[tuple[int, bytes]]) -> None:
+        """Send `frames` in order; a frame that fails is counted and the next one is tried."""
+        try:
+            with batched_sends(self._network.bus):  # over lca_remote: one write for the cycle
+                self._send_each(frames)
+        except can.CanError as exc:  # the batch's one write failed
+            self._watch.send_failed(exc)
+
+    def _send_each(self, frames: list[tuple[int, bytes]]) -> None:
+        network = self._network
+        watch = self._watch
+        counters = self._counters
+        for cob_id, data in frames:
+            bus = network.bus
+            if bus is None:
+                raise RuntimeError("Not connected to CAN bus")  # canopen's, disconnected
+            msg = can.Message(is_extended_id=cob_id > 0x7FF, arbitration_id=cob_id, data=data)
+            try:
+                with network.send_lock:
+                    bus.send(msg)
+                notifier = network.notifier
+                if notifier is not None and notifier.exception is not None:
+                    network.check()  # raises the notifier's error
+            except can.CanError as exc:
+                watch.send_failed(exc)
+                continue
+            if watch.send_failures_in_row:
+                watch.send_ok()
+            counters.frames_sent += 1
+            counters.bits_sent += bus_load.FRAME_BITS[len(data)]
+            counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
 
 
 def _refusal(what: str, values: Sequence[float], joints: Sequence[str], nan_holds: bool) -> str:
@@ -131,6 +179,7 @@ class Cia402Master:
         self._want = Want.DISABLED
         self._watch = SafetyWatch(params, self._axes, self.counters, self._lock, clock)
         network.notifier.add_listener(_BusWatch(self.counters, self._watch.error_frame))
+        self._transmitter = _Transmitter(network, self._watch, self.counters)
         self._setup = DriveSetup(network, params, self.counters, clock, self._mark_fresh)
         self._completed_cycle = -1  # the SYNC whose state went out last
         self._cycle = 0
@@ -349,19 +398,11 @@ class Cia402Master:
             self.counters.cycles += 1
             self._sync_wall_s = self._stamp_clock()
             self._sync_mono_s = time.monotonic()
-        try:
-            with batched_sends(self.network.bus):  # over lca_remote: one write for the cycle
-                for cob_id, data in frames:
-                    self._send(cob_id, data)
-                self._send(cia301.SYNC_COB_ID, b"")
-                if now >= self._next_heartbeat_t:
-                    self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
-                    self._send(
-                        cia301.HEARTBEAT_COB_BASE + p.master_node_id,
-                        bytes([cia301.NMT_STATE_OPERATIONAL]),
-                    )
-        except can.CanError as exc:  # the batch's one write failed
-            self._watch.send_failed(exc)
+        frames.append((cia301.SYNC_COB_ID, b""))
+        if now >= self._next_heartbeat_t:
+            self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
+            frames.append((cia301.HEARTBEAT_COB_BASE + p.master_node_id, _HEARTBEAT_OPERATIONAL))
+        self._transmitter.send(frames)
 
     def _rpdo_frames(self, want: Want) -> list[tuple[int, bytes]]:
         """Every drive's RPDO frames of this cycle; counts the clamped commands."""
@@ -372,17 +413,6 @@ class Cia402Master:
             frames += axis_frames
             self.counters.commands_clamped += int(clamped)
         return frames
-
-    def _send(self, cob_id: int, data: bytes) -> None:
-        try:
-            self.network.send_message(cob_id, data)
-        except can.CanError as exc:
-            self._watch.send_failed(exc)
-            return
-        self._watch.send_ok()
-        self.counters.frames_sent += 1
-        self.counters.bits_sent += bus_load.FRAME_BITS[len(data)]
-        self.counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
 
     @property
     def joints(self) -> tuple[str, ...]:

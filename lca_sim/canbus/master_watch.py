@@ -63,7 +63,7 @@ class SafetyWatch:
         self.stalled = False  # no complete cycle for `stall_cycles` SYNCs, until one comes
         self._stall_latched = ""  # the stall's text, latched while enabled (until recover)
         self.bus_off = False
-        self._send_failures_in_row = 0
+        self.send_failures_in_row = 0  # the master skips `send_ok` while it is 0
         self.failure_halt = False
         self.last_command_t = -math.inf
         self._previous_cycle_t = -math.inf  # the start of the last cycle (commands_late)
@@ -162,12 +162,12 @@ class SafetyWatch:
 
     def send_ok(self) -> None:
         """A send went out: the run of failures ends."""
-        self._send_failures_in_row = 0
+        self.send_failures_in_row = 0
 
     def send_failed(self, exc: can.CanError) -> None:
         """Count a failed send; `max_send_failures` of them in a row halt the axes."""
-        self._send_failures_in_row += 1
-        in_row = self._send_failures_in_row
+        self.send_failures_in_row += 1
+        in_row = self.send_failures_in_row
         halting = in_row >= self._params.max_send_failures and not self.failure_halt
         if in_row >= self._params.max_send_failures:
             self.failure_halt = True  # before the count: whoever sees the count sees the halt
@@ -224,7 +224,7 @@ class SafetyWatch:
         self._stall_armed_cycle = cycle
         self.bus_off = False
         self.failure_halt = False
-        self._send_failures_in_row = 0
+        self.send_failures_in_row = 0
         self.quick_stopped = False
         self.user_halt = False
         self.silence_halt = False

@@ -300,16 +300,18 @@ def test_send_failures_are_counted_and_halt_the_axes(rig_factory: Callable[..., 
     rig = _enabled(rig_factory(max_send_failures=5))
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
     wait_until(lambda: rig.bridge.axis_state("pivot").current_a > 1.5, "2 A flowing", 5.0)
-    real_send = rig.network.send_message
+    bus = rig.network.bus
+    assert bus is not None
+    real_send = bus.send
     failures = {"left": 5}
 
-    def flaky_send(can_id: int, data: bytes, remote: bool = False) -> None:
-        if failures["left"] > 0:
+    def flaky_send(msg: can.Message, timeout: float | None = None) -> None:
+        if failures["left"] > 0:  # where a CAN controller's full buffer is reported
             failures["left"] -= 1
             raise can.CanOperationError("Transmit buffer full")
-        real_send(can_id, data, remote)
+        real_send(msg, timeout)
 
-    rig.network.send_message = flaky_send  # type: ignore[method-assign]
+    bus.send = flaky_send  # type: ignore[method-assign]
     wait_until(lambda: rig.bridge.counters.send_failures == 5, "5 failures counted", 2.0)
     assert "5 send failures in a row" in rig.bridge.latched_reason()
     wait_until(lambda: abs(rig.bridge.axis_state("pivot").current_a) < 0.1, "halted: 0 A", 2.0)
