@@ -26,6 +26,7 @@ from typing import Any
 
 import can
 import canopen
+from canopen.network import MessageListener
 from canopen.sdo.base import SdoArray, SdoRecord
 
 from lca_sim.canbus.freeze import FreezeWatch
@@ -50,17 +51,59 @@ LATENCY_RECORDS = 4096
 _HEARTBEAT_OPERATIONAL = bytes([cia301.NMT_STATE_OPERATIONAL])
 
 
-class _BusWatch(can.Listener):
-    """Counts every frame (for the bus load) and reports error frames."""
+class _Receiver(can.Listener):
+    """The master's listener of every frame, in the place of canopen's `MessageListener`.
 
-    def __init__(self, counters: Counters, on_error_frame: Callable[[int], None]) -> None:
+    Counts each frame (for the bus load) and reports error frames. A frame on a TPDO COB-ID of
+    the drives (`tpdo_ids`, set at `init()`) goes to the callbacks canopen's `Network.notify`
+    would call: its `subscribers`, looked up per frame, so what `init()` binds (again) is
+    followed. Only canopen's `NodeScanner` is skipped for them: it records the node ids of the
+    frames it sees, nothing of lca_hil reads it, and the drives' heartbeats and SDO answers
+    still reach it. Every other frame (SDO, EMCY, heartbeat, NMT, remote frames) goes to
+    canopen's listener as before: per TPDO, canopen's listener, notify and scanner calls and a
+    second listener's are saved.
+
+    Args:
+        network: the master's network, connected: its notifier's canopen listener is replaced.
+        counters: the master's counters.
+        on_error_frame: called with an error frame's identifier (its error class bits).
+
+    Raises:
+        InvalidValueError: the notifier has no canopen listener of this network (another
+            master took its place: one master per network).
+    """
+
+    def __init__(
+        self,
+        network: canopen.Network,
+        counters: Counters,
+        on_error_frame: Callable[[int], None],
+    ) -> None:
         self._counters = counters
         self._on_error_frame = on_error_frame
+        self._subscribers = network.subscribers
+        self.tpdo_ids: frozenset[int] = frozenset()
+        listeners = network.notifier.listeners if network.notifier is not None else []
+        for k, listener in enumerate(listeners):
+            if isinstance(listener, MessageListener) and listener.network is network:
+                self._canopen: Callable[[can.Message], None] = listener.on_message_received
+                listeners[k] = self  # in place: a linked bus calls the list it was given
+                return
+        raise InvalidValueError("the network's notifier has no canopen listener of its own")
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self._on_error_frame(int(msg.arbitration_id))
             return
+        can_id = msg.arbitration_id
+        if can_id in self.tpdo_ids and not msg.is_remote_frame:
+            try:
+                for callback in self._subscribers.get(can_id, ()):
+                    callback(can_id, msg.data, msg.timestamp)
+            except Exception as exc:  # as canopen's listener: reception goes on
+                log.error("TPDO 0x%03X: %s", can_id, exc)
+        else:
+            self._canopen(msg)
         c = self._counters
         dlc = int(msg.dlc)
         c.frames_received += 1
@@ -178,7 +221,7 @@ class Cia402Master:
             raise InvalidValueError("the network must be connected (its notifier running)")
         self._want = Want.DISABLED
         self._watch = SafetyWatch(params, self._axes, self.counters, self._lock, clock)
-        network.notifier.add_listener(_BusWatch(self.counters, self._watch.error_frame))
+        self._receiver = _Receiver(network, self.counters, self._watch.error_frame)
         self._transmitter = _Transmitter(network, self._watch, self.counters)
         self._setup = DriveSetup(network, params, self.counters, clock, self._mark_fresh)
         self._completed_cycle = -1  # the SYNC whose state went out last
@@ -206,6 +249,9 @@ class Cia402Master:
         """
         for k, axis in enumerate(self._axes):
             self._setup.configure(axis, sdo_timeout_s)
+            self._receiver.tpdo_ids = frozenset(
+                cob_id for a in self._axes for cob_id in a.tpdo_cob_ids
+            )
             axis.node.emcy.add_callback(self._watch.emcy_consumer(axis))
             if axis.boot_watch is None:  # once: init() may run again
                 axis.boot_watch = self._watch.heartbeat_consumer(axis, lambda: self._initialized)

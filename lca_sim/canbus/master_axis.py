@@ -66,6 +66,7 @@ class MasterAxis:
     packer: RpdoPacker | None = None  # packs both RPDOs per cycle (None: canopen does)
     rpdo_cob_id: int = 0
     cw_cob_id: int = 0
+    tpdo_cob_ids: tuple[int, ...] = ()  # the COB-IDs of its TPDOs the master decodes
     boot_watch: Any = None  # its boot-up callback on the network, once subscribed
     statuswords_received: int = 0
     statuswords_at_reset: int = 0  # `statuswords_received` when recover() asked for a reset

@@ -718,3 +718,53 @@ def test_a_drive_that_restarts_behind_the_masters_back_stops_the_axes_until_init
     reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
     wait_until(lambda: all(v in reset for v in rig.states().values()), "faults reset", 5.0)
     _enabled(rig)
+
+
+# --- which frames the master decodes itself, and which reach canopen ----------------------
+
+
+def test_a_tpdo_moved_to_another_cob_id_before_init_again_is_decoded_there(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """The master hands a TPDO to its decoder by the COB-ID that the last init() bound.
+
+    The pivot's TPDO1 (after every SYNC: a cycle is complete only with it) moves from 0x182
+    to 0x192 over SDO (CiA 301 7.5.2.35: disabled, then enabled with the new COB-ID); init()
+    reads it there, and complete cycles go on only if its frames on 0x192 are decoded.
+    """
+    rig = rig_factory()
+    wait_until(lambda: len(rig.snapshots) >= 10, "10 complete cycles", 5.0)
+    rig.bridge.stop()
+    rig.bridge.sdo_write("pivot", 0x1800, 1, 0x80000000 | 0x192)
+    rig.bridge.sdo_write("pivot", 0x1800, 1, 0x192)
+    rig.bridge.init()
+    rig.bridge.start()
+    complete = rig.bridge.counters.complete_cycles
+    wait_until(lambda: rig.bridge.counters.complete_cycles >= complete + 25, "25 more cycles", 5.0)
+    cob_id = rig.bridge.sdo_read("pivot", 0x1800, 1)
+    assert isinstance(cob_id, int) and cob_id & 0x7FF == 0x192  # bit 30: no RTR
+    assert rig.bridge.counters.bad_pdos == 0
+
+
+def test_frames_on_a_tpdo_cob_id_reach_every_canopen_subscriber_and_the_rest_reach_canopen(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """The master decodes TPDOs itself; every other frame still reaches canopen.
+
+    A callback another user subscribed on a TPDO's COB-ID is called too; a remote frame there
+    is not a TPDO (canopen ignores it); SDO answers and heartbeats reach canopen, whose node
+    scanner still sees every drive.
+    """
+    rig = rig_factory()
+    seen: list[bytes] = []
+    rig.network.subscribe(0x182, lambda _id, data, _t: seen.append(bytes(data)))
+    wait_until(lambda: len(seen) >= 5, "5 pivot TPDO1 frames at the other subscriber", 5.0)
+    assert all(len(data) == 8 for data in seen)  # position and velocity
+    received = rig.bridge.counters.frames_received
+    rig.injector.send(can.Message(arbitration_id=0x182, is_remote_frame=True, dlc=8))
+    wait_until(
+        lambda: rig.bridge.counters.frames_received > received + 20, "more frames counted", 5.0
+    )
+    assert rig.bridge.counters.bad_pdos == 0  # the remote frame was not decoded as a TPDO
+    assert rig.bridge.sdo_read("pivot", 0x6060, 0) == 10  # an SDO answer reached canopen
+    assert set(rig.network.scanner.nodes) >= set(NODE_IDS)
