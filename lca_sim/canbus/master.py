@@ -21,6 +21,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +34,7 @@ from lca_sim.canbus.freeze import FreezeWatch
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_setup import DriveSetup, forget_invalid_nmt_state
-from lca_sim.canbus.master_state import AxisState, Counters, Snapshot, copied
+from lca_sim.canbus.master_state import AxisState, Counters, Snapshot, copied, copied_all
 from lca_sim.canbus.master_watch import SafetyWatch
 from lca_sim.canbus.remote import batched_sends
 from lca_sim.cia402 import bus_load, cia301
@@ -49,6 +50,7 @@ NAN_HOLDS = frozenset({"command_rad"})
 LATENCY_RECORDS = 4096
 # The master's heartbeat (CiA 301 7.2.8.3.2.1): its NMT state, OPERATIONAL.
 _HEARTBEAT_OPERATIONAL = bytes([cia301.NMT_STATE_OPERATIONAL])
+_STATE = attrgetter("state")  # a drive's `AxisState`, in C
 
 
 class _Receiver(can.Listener):
@@ -269,34 +271,30 @@ class Cia402Master:
 
     def _mark_fresh(self, axis: MasterAxis, bit: int, now: float) -> None:
         """An every-SYNC TPDO came (notifier thread): hand on the state once the set is whole."""
-        snapshot = None
-        stalled_for = 0
         with self._lock:
             axis.fresh |= bit
             axis.seen |= bit
-            if all([a.fresh == a.sync_mask for a in self._axes]):  # a list: no generator
-                for a in self._axes:
-                    a.fresh = a.seen = 0
-                if self._completed_cycle == self._cycle:
-                    # A second complete set after one SYNC: the TPDOs of the SYNC before came
-                    # after this one (a TPDO carries no SYNC count, CiA 301 7.2.2). One state
-                    # per SYNC: a second one would carry the same stamp, and a controller
-                    # skips a stamp it has seen, leaving this cycle without a command.
-                    self.counters.extra_complete_sets += 1
-                    return
-                self._completed_cycle = self._cycle
-                stalled_for = self._watch.complete(self._cycle)
-                self.counters.complete_cycles += 1
-                if self.keep_latencies:
-                    self.latencies_s.append(time.monotonic() - self._sync_mono_s)
-                snapshot = Snapshot(
-                    self._sync_wall_s,
-                    self._cycle,
-                    tuple([copied(a.state) for a in self._axes]),
-                )
+            for a in self._axes:  # a loop, not all(): no call per TPDO
+                if a.fresh != a.sync_mask:
+                    return  # the set is not whole yet
+            for a in self._axes:
+                a.fresh = a.seen = 0
+            if self._completed_cycle == self._cycle:
+                # A second complete set after one SYNC: the TPDOs of the SYNC before came
+                # after this one (a TPDO carries no SYNC count, CiA 301 7.2.2). One state
+                # per SYNC: a second one would carry the same stamp, and a controller
+                # skips a stamp it has seen, leaving this cycle without a command.
+                self.counters.extra_complete_sets += 1
+                return
+            self._completed_cycle = self._cycle
+            stalled_for = self._watch.complete(self._cycle)
+            self.counters.complete_cycles += 1
+            if self.keep_latencies:
+                self.latencies_s.append(time.monotonic() - self._sync_mono_s)
+            snapshot = Snapshot(self._sync_wall_s, self._cycle, copied_all(map(_STATE, self._axes)))
         if stalled_for:
             log.warning("complete cycles again after %d SYNCs without one", stalled_for)
-        if snapshot is not None and self.on_state is not None:
+        if self.on_state is not None:
             self.on_state(snapshot)
 
     # --- commands and requests (any thread) ----------------------------------------------
@@ -424,16 +422,21 @@ class Cia402Master:
         with self._lock:
             if not self._initialized or self._watch.bus_off:
                 return  # bus-off: no cyclic transmission until recover()
-            if any(a.fresh for a in self._axes) and self._cycle:
+            late = False
+            for a in self._axes:  # one loop, no generator: late TPDOs, then a new cycle
+                late = late or a.fresh != 0
+                a.fresh = 0
+            if late and self._cycle:
                 self.counters.late_cycles += 1
             self._watch.count_command_timing(now)
-            for a in self._axes:
-                a.fresh = 0
             self._watch.check(now, self._cycle, self._want is Want.ENABLED)
             want = self._want
             if want is Want.ENABLED and (self._watch.quick_stopped or self._watch.stop_reason()):
                 want = Want.QUICK_STOP
-            frames = self._rpdo_frames(want)
+            halted = self._watch.halted
+            frames: list[tuple[int, bytes]] = []  # every drive's RPDOs, then SYNC, heartbeat
+            for a in self._axes:
+                self.counters.commands_clamped += a.add_rpdo_frames(frames, want, halted)
             if self._want is Want.FAULT_RESET and all(
                 a.state.power_state is not PowerState.FAULT
                 and a.statuswords_received > a.statuswords_at_reset
@@ -449,16 +452,6 @@ class Cia402Master:
             self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
             frames.append((cia301.HEARTBEAT_COB_BASE + p.master_node_id, _HEARTBEAT_OPERATIONAL))
         self._transmitter.send(frames)
-
-    def _rpdo_frames(self, want: Want) -> list[tuple[int, bytes]]:
-        """Every drive's RPDO frames of this cycle; counts the clamped commands."""
-        halted = self._watch.halted
-        frames = []
-        for axis in self._axes:
-            axis_frames, clamped = axis.rpdo_frames(want, halted)
-            frames += axis_frames
-            self.counters.commands_clamped += int(clamped)
-        return frames
 
     @property
     def joints(self) -> tuple[str, ...]:

@@ -47,6 +47,9 @@ class SafetyWatch:
         clock: Callable[[], float],
     ) -> None:
         self._params = params
+        # Computed from the (frozen) params once, not by their properties each cycle.
+        self._stall_cycles = params.stall_cycles
+        self._heartbeat_timeout_s = params.drive_heartbeat_timeout_s
         self._axes = axes
         self._counters = counters
         self._lock = lock
@@ -271,7 +274,7 @@ class SafetyWatch:
         `recover()`. Each loss is counted and logged once, however often `recover()` latches it
         again while the drive stays silent.
         """
-        timeout_s = self._params.drive_heartbeat_timeout_s
+        timeout_s = self._heartbeat_timeout_s
         if timeout_s <= 0.0:
             return  # 0x1017 = 0: the drives send no heartbeat (CiA 301)
         for axis in self._axes:
@@ -301,7 +304,7 @@ class SafetyWatch:
         command blind: every axis stops until `recover()`, as for a stale drive (which catches
         a drive without any TPDO, not one without its cyclic one).
         """
-        if cycle - self._stall_armed_cycle <= self._params.stall_cycles:
+        if cycle - self._stall_armed_cycle <= self._stall_cycles:
             return
         if not self.stalled:
             self.stalled = True
