@@ -335,11 +335,10 @@ class SafetyWatch:
     def stop_reason(self) -> str:
         """The latches that quick-stop all axes: EMCY, stale, heartbeat, stall, restart, bus-off."""
         reasons = []
-        latched = [
-            f"{a.joint} {emcy.describe(a.emcy_code, a.has_drive_state)}"
-            for a in self._axes
-            if a.emcy_code
-        ]
+        latched = []  # a loop, not a comprehension: the cycle asks each time, no call when clear
+        for a in self._axes:
+            if a.emcy_code:
+                latched.append(f"{a.joint} {emcy.describe(a.emcy_code, a.has_drive_state)}")
         if latched:
             reasons.append("EMCY " + ", ".join(latched))
         if self.stale:

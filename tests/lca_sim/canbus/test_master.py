@@ -7,6 +7,7 @@ fixed time: `support.wait_until` polls a condition up to a deadline.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import threading
@@ -21,12 +22,17 @@ import pytest
 from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim.canbus import emcy
+from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeError
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.master_watch import CAN_ERR_BUSOFF
+from lca_sim.canbus.relay import RelayServer
+from lca_sim.canbus.remote import RemoteTransportBus
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir
+from lca_sim.config.rack import load_rack_config
 
 EDS = config_dir() / "can" / "lca_drive.eds"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -768,3 +774,57 @@ def test_frames_on_a_tpdo_cob_id_reach_every_canopen_subscriber_and_the_rest_rea
     assert rig.bridge.counters.bad_pdos == 0  # the remote frame was not decoded as a TPDO
     assert rig.bridge.sdo_read("pivot", 0x6060, 0) == 10  # an SDO answer reached canopen
     assert set(rig.network.scanner.nodes) >= set(NODE_IDS)
+
+
+def test_over_lca_remote_each_cycle_is_sent_in_one_batch() -> None:
+    """The cycle's frames (RPDOs, SYNC, heartbeat) go through the relay in one write per cycle.
+
+    The master sends past canopen's `send_message`; over lca_remote the bus's `batch()` must
+    still hold every frame of a cycle (one write), as `remote.batched_sends` gives it.
+    """
+    server = RelayServer(port=0)
+    relay = threading.Thread(target=server.serve, kwargs={"poll_s": 0.02}, daemon=True)
+    relay.start()
+    rack_bus = can.Bus(interface="lca_remote", channel=server.url)
+    rack = VirtualDriveRack(rack_bus, load_rack_config(None))
+    bus = can.Bus(interface="lca_remote", channel=server.url)
+    assert isinstance(bus, RemoteTransportBus)
+    network = canopen.Network(bus)
+    try:
+        rack.start(settle=False)
+        network.connect()
+        bridge = Cia402Master(network, bridge_params(), EDS)
+        bridge.init()
+        open_batches: list[int] = []  # batches open now (the cycle's thread is this one)
+        batches = 0
+        in_batch: list[bool] = []
+        real_batch, real_send = bus.batch, bus.send
+
+        @contextlib.contextmanager
+        def counted_batch() -> Iterator[None]:
+            nonlocal batches
+            batches += 1
+            with real_batch():
+                open_batches.append(1)
+                try:
+                    yield
+                finally:
+                    open_batches.pop()
+
+        def watched_send(msg: can.Message, timeout: float | None = None) -> None:
+            in_batch.append(bool(open_batches))
+            real_send(msg, timeout)
+
+        bus.batch = counted_batch  # type: ignore[method-assign]
+        bus.send = watched_send  # type: ignore[method-assign]
+        for _ in range(10):
+            bridge.cycle(time.monotonic())
+        assert batches == 10
+        assert len(in_batch) >= 10 * 5 and all(in_batch)  # 4 RPDOs and the SYNC at least
+        assert bridge.counters.frames_sent >= len(in_batch)
+    finally:
+        network.disconnect()
+        rack.stop()
+        rack_bus.shutdown()
+        server.stop()
+        relay.join(5.0)
