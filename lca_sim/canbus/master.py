@@ -21,20 +21,22 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
 import can
 import canopen
+from canopen.network import MessageListener
 from canopen.sdo.base import SdoArray, SdoRecord
 
 from lca_sim.canbus.freeze import FreezeWatch
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_setup import DriveSetup, forget_invalid_nmt_state
-from lca_sim.canbus.master_state import AxisState, Counters, Snapshot, copied
+from lca_sim.canbus.master_state import AxisState, Counters, Snapshot, copied, copied_all
 from lca_sim.canbus.master_watch import SafetyWatch
-from lca_sim.canbus.remote import batched_sends
+from lca_sim.canbus.remote import RemoteTransportBus, batched_sends
 from lca_sim.cia402 import bus_load, cia301
 from lca_sim.cia402.controlword import Want
 from lca_sim.cia402.device import PowerState
@@ -46,24 +48,121 @@ log = logging.getLogger(__name__)
 NAN_HOLDS = frozenset({"command_rad"})
 # The most SYNC -> command latencies kept between two `take_command_latencies` (8 s at 500 Hz).
 LATENCY_RECORDS = 4096
+# The master's heartbeat (CiA 301 7.2.8.3.2.1): its NMT state, OPERATIONAL.
+_HEARTBEAT_OPERATIONAL = bytes([cia301.NMT_STATE_OPERATIONAL])
+_STATE = attrgetter("state")  # a drive's `AxisState`, in C
 
 
-class _BusWatch(can.Listener):
-    """Counts every frame (for the bus load) and reports error frames."""
+class _Receiver(can.Listener):
+    """The master's listener of every frame, in the place of canopen's `MessageListener`.
 
-    def __init__(self, counters: Counters, on_error_frame: Callable[[int], None]) -> None:
+    Counts each frame (for the bus load) and reports error frames. A frame on a TPDO COB-ID of
+    the drives (`tpdo_ids`, set at `init()`) goes to the callbacks canopen's `Network.notify`
+    would call: its `subscribers`, looked up per frame, so what `init()` binds (again) is
+    followed. Only canopen's `NodeScanner` is skipped for them: it records the node ids of the
+    frames it sees, nothing of lca_hil reads it, and the drives' heartbeats and SDO answers
+    still reach it. Every other frame (SDO, EMCY, heartbeat, NMT, remote frames) goes to
+    canopen's listener as before: per TPDO, canopen's listener, notify and scanner calls and a
+    second listener's are saved.
+
+    Args:
+        network: the master's network, connected: its notifier's canopen listener is replaced.
+        counters: the master's counters.
+        on_error_frame: called with an error frame's identifier (its error class bits).
+
+    Raises:
+        InvalidValueError: the notifier has no canopen listener of this network (another
+            master took its place: one master per network).
+    """
+
+    def __init__(
+        self,
+        network: canopen.Network,
+        counters: Counters,
+        on_error_frame: Callable[[int], None],
+    ) -> None:
         self._counters = counters
         self._on_error_frame = on_error_frame
+        self._subscribers = network.subscribers
+        self.tpdo_ids: frozenset[int] = frozenset()
+        listeners = network.notifier.listeners if network.notifier is not None else []
+        for k, listener in enumerate(listeners):
+            if isinstance(listener, MessageListener) and listener.network is network:
+                self._canopen: Callable[[can.Message], None] = listener.on_message_received
+                listeners[k] = self  # in place: a linked bus calls the list it was given
+                return
+        raise InvalidValueError("the network's notifier has no canopen listener of its own")
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self._on_error_frame(int(msg.arbitration_id))
             return
+        can_id = msg.arbitration_id
+        if can_id in self.tpdo_ids and not msg.is_remote_frame:
+            try:
+                for callback in self._subscribers.get(can_id, ()):
+                    callback(can_id, msg.data, msg.timestamp)
+            except Exception as exc:  # as canopen's listener: reception goes on
+                log.error("TPDO 0x%03X: %s", can_id, exc)
+        else:
+            self._canopen(msg)
         c = self._counters
         dlc = int(msg.dlc)
         c.frames_received += 1
         c.bits_received += bus_load.FRAME_BITS[dlc]
         c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[dlc]
+
+
+class _Transmitter:
+    """Sends the master's frames, each as canopen's `Network.send_message` does, and counts them.
+
+    Its steps without its call per frame: a `can.Message`, the bus's send under the network's
+    `send_lock` (canopen's SDO client sends under it from other threads), then canopen's
+    `check` of the notifier's error (called only when there is one to raise).
+    """
+
+    def __init__(self, network: canopen.Network, watch: SafetyWatch, counters: Counters) -> None:
+        self._network = network
+        self._watch = watch
+        self._counters = counters
+        # Only lca_remote batches (`batched_sends`); for any other bus (fixed once the network
+        # is connected) its null context is skipped, three calls fewer per cycle.
+        self._batching = isinstance(network.bus, RemoteTransportBus)
+
+    def send(self, frames: list[tuple[int, bytes]]) -> None:
+        """Send `frames` in order; a frame that fails is counted and the next one is tried."""
+        if not self._batching:
+            self._send_each(frames)
+            return
+        try:
+            with batched_sends(self._network.bus):  # over lca_remote: one write for the cycle
+                self._send_each(frames)
+        except can.CanError as exc:  # the batch's one write failed
+            self._watch.send_failed(exc)
+
+    def _send_each(self, frames: list[tuple[int, bytes]]) -> None:
+        network = self._network
+        watch = self._watch
+        counters = self._counters
+        for cob_id, data in frames:
+            bus = network.bus
+            if bus is None:
+                raise RuntimeError("Not connected to CAN bus")  # canopen's, disconnected
+            msg = can.Message(is_extended_id=cob_id > 0x7FF, arbitration_id=cob_id, data=data)
+            try:
+                with network.send_lock:
+                    bus.send(msg)
+                notifier = network.notifier
+                if notifier is not None and notifier.exception is not None:
+                    network.check()  # raises the notifier's error
+            except can.CanError as exc:
+                watch.send_failed(exc)
+                continue
+            if watch.send_failures_in_row:
+                watch.send_ok()
+            counters.frames_sent += 1
+            counters.bits_sent += bus_load.FRAME_BITS[len(data)]
+            counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
 
 
 def _refusal(what: str, values: Sequence[float], joints: Sequence[str], nan_holds: bool) -> str:
@@ -130,7 +229,8 @@ class Cia402Master:
             raise InvalidValueError("the network must be connected (its notifier running)")
         self._want = Want.DISABLED
         self._watch = SafetyWatch(params, self._axes, self.counters, self._lock, clock)
-        network.notifier.add_listener(_BusWatch(self.counters, self._watch.error_frame))
+        self._receiver = _Receiver(network, self.counters, self._watch.error_frame)
+        self._transmitter = _Transmitter(network, self._watch, self.counters)
         self._setup = DriveSetup(network, params, self.counters, clock, self._mark_fresh)
         self._completed_cycle = -1  # the SYNC whose state went out last
         self._cycle = 0
@@ -157,6 +257,9 @@ class Cia402Master:
         """
         for k, axis in enumerate(self._axes):
             self._setup.configure(axis, sdo_timeout_s)
+            self._receiver.tpdo_ids = frozenset(
+                cob_id for a in self._axes for cob_id in a.tpdo_cob_ids
+            )
             axis.node.emcy.add_callback(self._watch.emcy_consumer(axis))
             if axis.boot_watch is None:  # once: init() may run again
                 axis.boot_watch = self._watch.heartbeat_consumer(axis, lambda: self._initialized)
@@ -174,34 +277,30 @@ class Cia402Master:
 
     def _mark_fresh(self, axis: MasterAxis, bit: int, now: float) -> None:
         """An every-SYNC TPDO came (notifier thread): hand on the state once the set is whole."""
-        snapshot = None
-        stalled_for = 0
         with self._lock:
             axis.fresh |= bit
             axis.seen |= bit
-            if all([a.fresh == a.sync_mask for a in self._axes]):  # a list: no generator
-                for a in self._axes:
-                    a.fresh = a.seen = 0
-                if self._completed_cycle == self._cycle:
-                    # A second complete set after one SYNC: the TPDOs of the SYNC before came
-                    # after this one (a TPDO carries no SYNC count, CiA 301 7.2.2). One state
-                    # per SYNC: a second one would carry the same stamp, and a controller
-                    # skips a stamp it has seen, leaving this cycle without a command.
-                    self.counters.extra_complete_sets += 1
-                    return
-                self._completed_cycle = self._cycle
-                stalled_for = self._watch.complete(self._cycle)
-                self.counters.complete_cycles += 1
-                if self.keep_latencies:
-                    self.latencies_s.append(time.monotonic() - self._sync_mono_s)
-                snapshot = Snapshot(
-                    self._sync_wall_s,
-                    self._cycle,
-                    tuple([copied(a.state) for a in self._axes]),
-                )
+            for a in self._axes:  # a loop, not all(): no call per TPDO
+                if a.fresh != a.sync_mask:
+                    return  # the set is not whole yet
+            for a in self._axes:
+                a.fresh = a.seen = 0
+            if self._completed_cycle == self._cycle:
+                # A second complete set after one SYNC: the TPDOs of the SYNC before came
+                # after this one (a TPDO carries no SYNC count, CiA 301 7.2.2). One state
+                # per SYNC: a second one would carry the same stamp, and a controller
+                # skips a stamp it has seen, leaving this cycle without a command.
+                self.counters.extra_complete_sets += 1
+                return
+            self._completed_cycle = self._cycle
+            stalled_for = self._watch.complete(self._cycle)
+            self.counters.complete_cycles += 1
+            if self.keep_latencies:
+                self.latencies_s.append(time.monotonic() - self._sync_mono_s)
+            snapshot = Snapshot(self._sync_wall_s, self._cycle, copied_all(map(_STATE, self._axes)))
         if stalled_for:
             log.warning("complete cycles again after %d SYNCs without one", stalled_for)
-        if snapshot is not None and self.on_state is not None:
+        if self.on_state is not None:
             self.on_state(snapshot)
 
     # --- commands and requests (any thread) ----------------------------------------------
@@ -233,16 +332,13 @@ class Cia402Master:
         with self._lock:
             for axis, value in zip(self._axes, values, strict=True):
                 setattr(axis, field, float(value))
-            self._commands_arrived(at)
+            if self._answered_cycle != self._cycle:  # the first command after this SYNC
+                self._answered_cycle = self._cycle  # `at` is monotonic: lockstep never gives one
+                arrived_s = time.monotonic() if at is None else at
+                self._command_latencies_s.append(arrived_s - self._sync_mono_s)
+            self._watch.command(self._clock() if at is None else at)
         self.counters.commands_accepted += 1
         return None
-
-    def _commands_arrived(self, at: float | None) -> None:
-        if self._answered_cycle != self._cycle:  # the first command after this SYNC
-            self._answered_cycle = self._cycle  # `at` is monotonic: lockstep never gives one
-            arrived_s = time.monotonic() if at is None else at
-            self._command_latencies_s.append(arrived_s - self._sync_mono_s)
-        self._watch.command(self._clock() if at is None else at)
 
     def enable(self, on: bool) -> str:
         """Walk every drive to operation enabled (or back to ready to switch on)."""
@@ -329,16 +425,21 @@ class Cia402Master:
         with self._lock:
             if not self._initialized or self._watch.bus_off:
                 return  # bus-off: no cyclic transmission until recover()
-            if any(a.fresh for a in self._axes) and self._cycle:
+            late = False
+            for a in self._axes:  # one loop, no generator: late TPDOs, then a new cycle
+                late = late or a.fresh != 0
+                a.fresh = 0
+            if late and self._cycle:
                 self.counters.late_cycles += 1
             self._watch.count_command_timing(now)
-            for a in self._axes:
-                a.fresh = 0
             self._watch.check(now, self._cycle, self._want is Want.ENABLED)
             want = self._want
             if want is Want.ENABLED and (self._watch.quick_stopped or self._watch.stop_reason()):
                 want = Want.QUICK_STOP
-            frames = self._rpdo_frames(want)
+            halted = self._watch.halted
+            frames: list[tuple[int, bytes]] = []  # every drive's RPDOs, then SYNC, heartbeat
+            for a in self._axes:
+                self.counters.commands_clamped += a.add_rpdo_frames(frames, want, halted)
             if self._want is Want.FAULT_RESET and all(
                 a.state.power_state is not PowerState.FAULT
                 and a.statuswords_received > a.statuswords_at_reset
@@ -349,40 +450,11 @@ class Cia402Master:
             self.counters.cycles += 1
             self._sync_wall_s = self._stamp_clock()
             self._sync_mono_s = time.monotonic()
-        try:
-            with batched_sends(self.network.bus):  # over lca_remote: one write for the cycle
-                for cob_id, data in frames:
-                    self._send(cob_id, data)
-                self._send(cia301.SYNC_COB_ID, b"")
-                if now >= self._next_heartbeat_t:
-                    self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
-                    self._send(
-                        cia301.HEARTBEAT_COB_BASE + p.master_node_id,
-                        bytes([cia301.NMT_STATE_OPERATIONAL]),
-                    )
-        except can.CanError as exc:  # the batch's one write failed
-            self._watch.send_failed(exc)
-
-    def _rpdo_frames(self, want: Want) -> list[tuple[int, bytes]]:
-        """Every drive's RPDO frames of this cycle; counts the clamped commands."""
-        halted = self._watch.halted
-        frames = []
-        for axis in self._axes:
-            axis_frames, clamped = axis.rpdo_frames(want, halted)
-            frames += axis_frames
-            self.counters.commands_clamped += int(clamped)
-        return frames
-
-    def _send(self, cob_id: int, data: bytes) -> None:
-        try:
-            self.network.send_message(cob_id, data)
-        except can.CanError as exc:
-            self._watch.send_failed(exc)
-            return
-        self._watch.send_ok()
-        self.counters.frames_sent += 1
-        self.counters.bits_sent += bus_load.FRAME_BITS[len(data)]
-        self.counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
+        frames.append((cia301.SYNC_COB_ID, b""))
+        if now >= self._next_heartbeat_t:
+            self._next_heartbeat_t = now + p.heartbeat_consumer_ms / 3000.0
+            frames.append((cia301.HEARTBEAT_COB_BASE + p.master_node_id, _HEARTBEAT_OPERATIONAL))
+        self._transmitter.send(frames)
 
     @property
     def joints(self) -> tuple[str, ...]:

@@ -66,15 +66,16 @@ class MasterAxis:
     packer: RpdoPacker | None = None  # packs both RPDOs per cycle (None: canopen does)
     rpdo_cob_id: int = 0
     cw_cob_id: int = 0
+    tpdo_cob_ids: tuple[int, ...] = ()  # the COB-IDs of its TPDOs the master decodes
     boot_watch: Any = None  # its boot-up callback on the network, once subscribed
     statuswords_received: int = 0
     statuswords_at_reset: int = 0  # `statuswords_received` when recover() asked for a reset
 
-    def rpdo_frames(self, want: Want, halted: bool) -> tuple[list[tuple[int, bytes]], bool]:
-        """The drive's RPDO frame(s) this cycle: the target's, and the controlword's if due.
+    def add_rpdo_frames(self, frames: list[tuple[int, bytes]], want: Want, halted: bool) -> bool:
+        """Append the drive's RPDO frame(s) this cycle: the controlword's if due, the target's.
 
         Returns:
-            The frames (COB-ID, data), and whether the current command was clamped to 0x6072.
+            Whether the current command was clamped to 0x6072.
         """
         axis = self
         clamped = False
@@ -100,7 +101,6 @@ class MasterAxis:
             cw_data, target_data = bytes(axis.cw_var.pdo_parent.data), bytes(axis.rpdo.data)
         else:
             cw_data, target_data = packer.pack(controlword, target)
-        frames = []
         cw_rpdo = axis.cw_rpdo
         if cw_rpdo is not None:
             axis.cw_age += 1
@@ -108,7 +108,7 @@ class MasterAxis:
                 axis.cw_sent, axis.cw_age = controlword, 0
                 frames.append((axis.cw_cob_id, cw_data))
         frames.append((axis.rpdo_cob_id, target_data))
-        return frames, clamped
+        return clamped
 
     def csp_target(self, commanded: bool) -> int:
         """0x607A of a CSP drive, increments: the command, or where the drive is.

@@ -153,6 +153,7 @@ class DriveSetup:
         mapped: set[int] = set()
         cyclic: set[int] = set()
         decoded: set[str] = set()
+        cob_ids: list[int] = []
         axis.sync_mask = 0
         for number in axis.node.tpdo:
             tpdo = axis.node.tpdo[number]
@@ -170,6 +171,8 @@ class DriveSetup:
             # canopen's PdoMap subscribed itself when read; decode the raw frames instead.
             self.network.unsubscribe(tpdo.cob_id, tpdo.on_message)
             self.network.subscribe(tpdo.cob_id, callback)
+            cob_ids.append(int(tpdo.cob_id))
+        axis.tpdo_cob_ids = tuple(cob_ids)
         if not REQUIRED_TPDO_OBJECTS.issubset(mapped):
             missing = ", ".join(f"0x{i:04X}" for i in sorted(REQUIRED_TPDO_OBJECTS - mapped))
             raise BridgeError(f"drive {axis.joint}: TPDOs do not map {missing}")

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, fields
+from itertools import starmap
 from operator import attrgetter
 
 from lca_sim.cia402 import controlword as ctl
@@ -81,10 +83,15 @@ class Counters:
 
 AXIS_FIELDS = frozenset(AxisState.__slots__)
 # Every field of an AxisState in its constructor's order, read in one C call: `copied` runs
-# per drive per SYNC on the notifier thread.
+# per drive per SYNC on the notifier thread (`copied_all`).
 _ALL_FIELDS = attrgetter(*(f.name for f in fields(AxisState)))
 
 
 def copied(state: AxisState) -> AxisState:
     """A copy of `state` that the master's later TPDOs do not change."""
     return AxisState(*_ALL_FIELDS(state))
+
+
+def copied_all(states: Iterable[AxisState]) -> tuple[AxisState, ...]:
+    """`copied` of each state, in one call (the snapshot of every drive at a complete cycle)."""
+    return tuple(starmap(AxisState, map(_ALL_FIELDS, states)))

@@ -47,6 +47,9 @@ class SafetyWatch:
         clock: Callable[[], float],
     ) -> None:
         self._params = params
+        # Computed from the (frozen) params once, not by their properties each cycle.
+        self._stall_cycles = params.stall_cycles
+        self._heartbeat_timeout_s = params.drive_heartbeat_timeout_s
         self._axes = axes
         self._counters = counters
         self._lock = lock
@@ -63,7 +66,7 @@ class SafetyWatch:
         self.stalled = False  # no complete cycle for `stall_cycles` SYNCs, until one comes
         self._stall_latched = ""  # the stall's text, latched while enabled (until recover)
         self.bus_off = False
-        self._send_failures_in_row = 0
+        self.send_failures_in_row = 0  # the master skips `send_ok` while it is 0
         self.failure_halt = False
         self.last_command_t = -math.inf
         self._previous_cycle_t = -math.inf  # the start of the last cycle (commands_late)
@@ -162,12 +165,12 @@ class SafetyWatch:
 
     def send_ok(self) -> None:
         """A send went out: the run of failures ends."""
-        self._send_failures_in_row = 0
+        self.send_failures_in_row = 0
 
     def send_failed(self, exc: can.CanError) -> None:
         """Count a failed send; `max_send_failures` of them in a row halt the axes."""
-        self._send_failures_in_row += 1
-        in_row = self._send_failures_in_row
+        self.send_failures_in_row += 1
+        in_row = self.send_failures_in_row
         halting = in_row >= self._params.max_send_failures and not self.failure_halt
         if in_row >= self._params.max_send_failures:
             self.failure_halt = True  # before the count: whoever sees the count sees the halt
@@ -224,7 +227,7 @@ class SafetyWatch:
         self._stall_armed_cycle = cycle
         self.bus_off = False
         self.failure_halt = False
-        self._send_failures_in_row = 0
+        self.send_failures_in_row = 0
         self.quick_stopped = False
         self.user_halt = False
         self.silence_halt = False
@@ -271,7 +274,7 @@ class SafetyWatch:
         `recover()`. Each loss is counted and logged once, however often `recover()` latches it
         again while the drive stays silent.
         """
-        timeout_s = self._params.drive_heartbeat_timeout_s
+        timeout_s = self._heartbeat_timeout_s
         if timeout_s <= 0.0:
             return  # 0x1017 = 0: the drives send no heartbeat (CiA 301)
         for axis in self._axes:
@@ -301,7 +304,7 @@ class SafetyWatch:
         command blind: every axis stops until `recover()`, as for a stale drive (which catches
         a drive without any TPDO, not one without its cyclic one).
         """
-        if cycle - self._stall_armed_cycle <= self._params.stall_cycles:
+        if cycle - self._stall_armed_cycle <= self._stall_cycles:
             return
         if not self.stalled:
             self.stalled = True
@@ -332,11 +335,10 @@ class SafetyWatch:
     def stop_reason(self) -> str:
         """The latches that quick-stop all axes: EMCY, stale, heartbeat, stall, restart, bus-off."""
         reasons = []
-        latched = [
-            f"{a.joint} {emcy.describe(a.emcy_code, a.has_drive_state)}"
-            for a in self._axes
-            if a.emcy_code
-        ]
+        latched = []  # a loop, not a comprehension: the cycle asks each time, no call when clear
+        for a in self._axes:
+            if a.emcy_code:
+                latched.append(f"{a.joint} {emcy.describe(a.emcy_code, a.has_drive_state)}")
         if latched:
             reasons.append("EMCY " + ", ".join(latched))
         if self.stale:

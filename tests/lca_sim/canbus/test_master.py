@@ -7,6 +7,7 @@ fixed time: `support.wait_until` polls a condition up to a deadline.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import threading
@@ -21,12 +22,17 @@ import pytest
 from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim.canbus import emcy
+from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeError
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.master_watch import CAN_ERR_BUSOFF
+from lca_sim.canbus.relay import RelayServer
+from lca_sim.canbus.remote import RemoteTransportBus
+from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.loader import config_dir
+from lca_sim.config.rack import load_rack_config
 
 EDS = config_dir() / "can" / "lca_drive.eds"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -300,16 +306,18 @@ def test_send_failures_are_counted_and_halt_the_axes(rig_factory: Callable[..., 
     rig = _enabled(rig_factory(max_send_failures=5))
     rig.currents_a = [0.0, 2.0, 0.0, 0.0]
     wait_until(lambda: rig.bridge.axis_state("pivot").current_a > 1.5, "2 A flowing", 5.0)
-    real_send = rig.network.send_message
+    bus = rig.network.bus
+    assert bus is not None
+    real_send = bus.send
     failures = {"left": 5}
 
-    def flaky_send(can_id: int, data: bytes, remote: bool = False) -> None:
-        if failures["left"] > 0:
+    def flaky_send(msg: can.Message, timeout: float | None = None) -> None:
+        if failures["left"] > 0:  # where a CAN controller's full buffer is reported
             failures["left"] -= 1
             raise can.CanOperationError("Transmit buffer full")
-        real_send(can_id, data, remote)
+        real_send(msg, timeout)
 
-    rig.network.send_message = flaky_send  # type: ignore[method-assign]
+    bus.send = flaky_send  # type: ignore[method-assign]
     wait_until(lambda: rig.bridge.counters.send_failures == 5, "5 failures counted", 2.0)
     assert "5 send failures in a row" in rig.bridge.latched_reason()
     wait_until(lambda: abs(rig.bridge.axis_state("pivot").current_a) < 0.1, "halted: 0 A", 2.0)
@@ -716,3 +724,107 @@ def test_a_drive_that_restarts_behind_the_masters_back_stops_the_axes_until_init
     reset = (PowerState.SWITCH_ON_DISABLED, PowerState.READY_TO_SWITCH_ON)
     wait_until(lambda: all(v in reset for v in rig.states().values()), "faults reset", 5.0)
     _enabled(rig)
+
+
+# --- which frames the master decodes itself, and which reach canopen ----------------------
+
+
+def test_a_tpdo_moved_to_another_cob_id_before_init_again_is_decoded_there(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """The master hands a TPDO to its decoder by the COB-ID that the last init() bound.
+
+    The pivot's TPDO1 (after every SYNC: a cycle is complete only with it) moves from 0x182
+    to 0x192 over SDO (CiA 301 7.5.2.35: disabled, then enabled with the new COB-ID); init()
+    reads it there, and complete cycles go on only if its frames on 0x192 are decoded.
+    """
+    rig = rig_factory()
+    wait_until(lambda: len(rig.snapshots) >= 10, "10 complete cycles", 5.0)
+    rig.bridge.stop()
+    rig.bridge.sdo_write("pivot", 0x1800, 1, 0x80000000 | 0x192)
+    rig.bridge.sdo_write("pivot", 0x1800, 1, 0x192)
+    rig.bridge.init()
+    rig.bridge.start()
+    complete = rig.bridge.counters.complete_cycles
+    wait_until(lambda: rig.bridge.counters.complete_cycles >= complete + 25, "25 more cycles", 5.0)
+    cob_id = rig.bridge.sdo_read("pivot", 0x1800, 1)
+    assert isinstance(cob_id, int) and cob_id & 0x7FF == 0x192  # bit 30: no RTR
+    assert rig.bridge.counters.bad_pdos == 0
+
+
+def test_frames_on_a_tpdo_cob_id_reach_every_canopen_subscriber_and_the_rest_reach_canopen(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """The master decodes TPDOs itself; every other frame still reaches canopen.
+
+    A callback another user subscribed on a TPDO's COB-ID is called too; a remote frame there
+    is not a TPDO (canopen ignores it); SDO answers and heartbeats reach canopen, whose node
+    scanner still sees every drive.
+    """
+    rig = rig_factory()
+    seen: list[bytes] = []
+    rig.network.subscribe(0x182, lambda _id, data, _t: seen.append(bytes(data)))
+    wait_until(lambda: len(seen) >= 5, "5 pivot TPDO1 frames at the other subscriber", 5.0)
+    assert all(len(data) == 8 for data in seen)  # position and velocity
+    received = rig.bridge.counters.frames_received
+    rig.injector.send(can.Message(arbitration_id=0x182, is_remote_frame=True, dlc=8))
+    wait_until(
+        lambda: rig.bridge.counters.frames_received > received + 20, "more frames counted", 5.0
+    )
+    assert rig.bridge.counters.bad_pdos == 0  # the remote frame was not decoded as a TPDO
+    assert rig.bridge.sdo_read("pivot", 0x6060, 0) == 10  # an SDO answer reached canopen
+    assert set(rig.network.scanner.nodes) >= set(NODE_IDS)
+
+
+def test_over_lca_remote_each_cycle_is_sent_in_one_batch() -> None:
+    """The cycle's frames (RPDOs, SYNC, heartbeat) go through the relay in one write per cycle.
+
+    The master sends past canopen's `send_message`; over lca_remote the bus's `batch()` must
+    still hold every frame of a cycle (one write), as `remote.batched_sends` gives it.
+    """
+    server = RelayServer(port=0)
+    relay = threading.Thread(target=server.serve, kwargs={"poll_s": 0.02}, daemon=True)
+    relay.start()
+    rack_bus = can.Bus(interface="lca_remote", channel=server.url)
+    rack = VirtualDriveRack(rack_bus, load_rack_config(None))
+    bus = can.Bus(interface="lca_remote", channel=server.url)
+    assert isinstance(bus, RemoteTransportBus)
+    network = canopen.Network(bus)
+    try:
+        rack.start(settle=False)
+        network.connect()
+        bridge = Cia402Master(network, bridge_params(), EDS)
+        bridge.init()
+        open_batches: list[int] = []  # batches open now (the cycle's thread is this one)
+        batches = 0
+        in_batch: list[bool] = []
+        real_batch, real_send = bus.batch, bus.send
+
+        @contextlib.contextmanager
+        def counted_batch() -> Iterator[None]:
+            nonlocal batches
+            batches += 1
+            with real_batch():
+                open_batches.append(1)
+                try:
+                    yield
+                finally:
+                    open_batches.pop()
+
+        def watched_send(msg: can.Message, timeout: float | None = None) -> None:
+            in_batch.append(bool(open_batches))
+            real_send(msg, timeout)
+
+        bus.batch = counted_batch  # type: ignore[method-assign]
+        bus.send = watched_send  # type: ignore[method-assign]
+        for _ in range(10):
+            bridge.cycle(time.monotonic())
+        assert batches == 10
+        assert len(in_batch) >= 10 * 5 and all(in_batch)  # 4 RPDOs and the SYNC at least
+        assert bridge.counters.frames_sent >= len(in_batch)
+    finally:
+        network.disconnect()
+        rack.stop()
+        rack_bus.shutdown()
+        server.stop()
+        relay.join(5.0)
