@@ -260,7 +260,9 @@ class Cia402Master:
             self._receiver.tpdo_ids = frozenset(
                 cob_id for a in self._axes for cob_id in a.tpdo_cob_ids
             )
-            axis.node.emcy.add_callback(self._watch.emcy_consumer(axis))
+            if axis.emcy_watch is None:  # once: init() may run again
+                axis.emcy_watch = self._watch.emcy_consumer(axis)
+                axis.node.emcy.add_callback(axis.emcy_watch)
             if axis.boot_watch is None:  # once: init() may run again
                 axis.boot_watch = self._watch.heartbeat_consumer(axis, lambda: self._initialized)
                 self.network.subscribe(

@@ -67,7 +67,10 @@ class MasterAxis:
     rpdo_cob_id: int = 0
     cw_cob_id: int = 0
     tpdo_cob_ids: tuple[int, ...] = ()  # the COB-IDs of its TPDOs the master decodes
+    # (COB-ID, decoder) the last init() subscribed, unsubscribed by the next one
+    tpdo_decoders: tuple[tuple[int, Any], ...] = ()
     boot_watch: Any = None  # its boot-up callback on the network, once subscribed
+    emcy_watch: Any = None  # its EMCY consumer, once added
     statuswords_received: int = 0
     statuswords_at_reset: int = 0  # `statuswords_received` when recover() asked for a reset
 

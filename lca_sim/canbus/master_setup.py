@@ -154,7 +154,11 @@ class DriveSetup:
         cyclic: set[int] = set()
         decoded: set[str] = set()
         cob_ids: list[int] = []
+        bound: list[tuple[int, Callable[[int, bytearray, float], None]]] = []
         axis.sync_mask = 0
+        for cob_id, earlier in axis.tpdo_decoders:  # an earlier init()'s: decode each TPDO once
+            if earlier in self.network.subscribers.get(cob_id, ()):
+                self.network.unsubscribe(cob_id, earlier)
         for number in axis.node.tpdo:
             tpdo = axis.node.tpdo[number]
             if not tpdo.enabled:
@@ -172,7 +176,9 @@ class DriveSetup:
             self.network.unsubscribe(tpdo.cob_id, tpdo.on_message)
             self.network.subscribe(tpdo.cob_id, callback)
             cob_ids.append(int(tpdo.cob_id))
+            bound.append((int(tpdo.cob_id), callback))
         axis.tpdo_cob_ids = tuple(cob_ids)
+        axis.tpdo_decoders = tuple(bound)
         if not REQUIRED_TPDO_OBJECTS.issubset(mapped):
             missing = ", ".join(f"0x{i:04X}" for i in sorted(REQUIRED_TPDO_OBJECTS - mapped))
             raise BridgeError(f"drive {axis.joint}: TPDOs do not map {missing}")

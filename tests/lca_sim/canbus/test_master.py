@@ -828,3 +828,46 @@ def test_over_lca_remote_each_cycle_is_sent_in_one_batch() -> None:
         rack_bus.shutdown()
         server.stop()
         relay.join(5.0)
+
+
+def test_init_again_decodes_each_tpdo_and_counts_each_emcy_once(
+    rig_factory: Callable[..., Rig],
+) -> None:
+    """A second init() binds its decoders and EMCY consumers in place of the first's.
+
+    The pivot's statuswords per complete cycle are the same before and after (the first
+    init's decoders left subscribed decoded every TPDO twice, counting its statusword twice),
+    and one advisory EMCY after it is counted once (not once per init).
+    """
+    rig = rig_factory()
+
+    def statuswords_per_cycle(cycles: int) -> float:
+        pivot = rig.bridge._axes[1]  # the pivot
+        words, complete = pivot.statuswords_received, rig.bridge.counters.complete_cycles
+        wait_until(
+            lambda: rig.bridge.counters.complete_cycles >= complete + cycles,
+            f"{cycles} more cycles",
+            5.0,
+        )
+        done = rig.bridge.counters.complete_cycles - complete
+        return (pivot.statuswords_received - words) / done
+
+    wait_until(lambda: len(rig.snapshots) >= 10, "10 complete cycles", 5.0)
+    before = statuswords_per_cycle(100)
+    rig.bridge.stop()
+    rig.bridge.init()
+    rig.bridge.start()
+    after = statuswords_per_cycle(100)
+    assert before > 0.0
+    assert after == pytest.approx(before, rel=0.1), (before, after)
+    emcy = rig.bridge.counters.emcy_received
+    advisory = can.Message(  # 0x8210 PDO not processed (length): advisory, the axes go on
+        arbitration_id=0x80 + NODE_IDS[1],
+        data=[0x10, 0x82, 0x11, 0, 0, 0, 0, 0],
+        is_extended_id=False,
+    )
+    rig.injector.send(advisory)
+    wait_until(lambda: rig.bridge.counters.emcy_received > emcy, "the EMCY counted", 2.0)
+    n = len(rig.snapshots)
+    wait_until(lambda: len(rig.snapshots) >= n + 10, "10 cycles later", 5.0)
+    assert rig.bridge.counters.emcy_received == emcy + 1
