@@ -48,6 +48,10 @@ log = logging.getLogger(__name__)
 NAN_HOLDS = frozenset({"command_rad"})
 # The most SYNC -> command latencies kept between two `take_command_latencies` (8 s at 500 Hz).
 LATENCY_RECORDS = 4096
+# The cycle thread sleeps up to this long between cycles, waits on its stop event beyond it:
+# a plain sleep costs it about 15 us of CPU less per cycle than Event.wait's condition (22 vs
+# 37 us on the 2-core host), and stop() then waits at most this long.
+SLEEP_AT_MOST_S = 0.02
 # The master's heartbeat (CiA 301 7.2.8.3.2.1): its NMT state, OPERATIONAL.
 _HEARTBEAT_OPERATIONAL = bytes([cia301.NMT_STATE_OPERATIONAL])
 _STATE = attrgetter("state")  # a drive's `AxisState`, in C
@@ -416,8 +420,10 @@ class Cia402Master:
             delay = next_t - time.monotonic()
             if delay < -period:  # more than a period late: do not burst to catch up
                 next_t = time.monotonic()
+            elif delay > SLEEP_AT_MOST_S:
+                self._stop.wait(delay)  # a long period: stop() does not wait it out
             elif delay > 0.0:
-                self._stop.wait(delay)
+                time.sleep(delay)
 
     def cycle(self, now: float) -> None:
         """One cycle: safety checks, controlwords and RPDOs, SYNC, master heartbeat."""
