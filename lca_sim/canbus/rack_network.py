@@ -13,6 +13,7 @@ import can
 import canopen
 
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
+from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301
 
 logger = logging.getLogger(__name__)
@@ -125,6 +126,10 @@ class RackListener(can.Listener):
                 logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
         self._on_frame(msg)
 
+    # python-can's Notifier calls its listeners: straight into the filter, not through
+    # `can.Listener.__call__`, one call less per frame.
+    __call__ = on_message_received
+
     def _count_not_classical(self, msg: can.Message) -> None:
         """Count a frame that is not an 11-bit classical CAN data frame by its kind."""
         counters = self._counters
@@ -184,6 +189,7 @@ class RackNetwork(canopen.Network):
         # Lockstep: periodic sends are `CycleTask`s sent by `send_due`, not threads.
         self.lockstep = False
         self.cycle_tasks: list[CycleTask] = []
+        self._send_data_frame = bus.send_data_frame if isinstance(bus, RemoteTransportBus) else None
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """Send as canopen does, except the frames of a node that fault injection silenced."""
@@ -195,11 +201,18 @@ class RackNetwork(canopen.Network):
         bus = self.bus
         if bus is None:
             raise RuntimeError("Not connected to CAN bus")
-        msg = can.Message(
-            is_extended_id=can_id > 0x7FF, arbitration_id=can_id, data=data, is_remote_frame=remote
-        )
-        with self.send_lock:
-            bus.send(msg)
+        if self._send_data_frame is not None and can_id <= 0x7FF and not remote:
+            with self.send_lock:  # over lca_remote: the same bytes, with no can.Message built
+                self._send_data_frame(can_id, data)
+        else:
+            msg = can.Message(
+                is_extended_id=can_id > 0x7FF,
+                arbitration_id=can_id,
+                data=data,
+                is_remote_frame=remote,
+            )
+            with self.send_lock:
+                bus.send(msg)
         self.check()
         if self.after_send:
             then = self.after_send.pop(can_id, None)
