@@ -107,16 +107,20 @@ class RackMonitor:
 
     def _tick(self, now: float) -> None:
         late_s = now - self._due_s
+        period_end_s = now + MONITOR_PERIOD_S
+        self._due_s = period_end_s  # if the work below raises
         if late_s > FREEZE_THRESHOLD_S:
             # It stood still, since when a tick every period after the last would have come.
             late_s = max(late_s, now - self._ticked_s - MONITOR_PERIOD_S)
+            earliest = self._watchdogs.tick(late_s, now)
+        else:  # on time (at every SYNC): no freeze to judge
+            earliest = self._watchdogs.check(now)
         self._ticked_s = now
-        self._due_s = now + MONITOR_PERIOD_S  # if the work below raises
-        earliest = self._watchdogs.tick(late_s, now)
         tpdo_due_s = self._pdos.service_event_tpdos(now)
         if now - self._last_sync_s < SYNCS_FLOW_S:
             earliest = min(earliest, tpdo_due_s, now + MONITOR_MAX_SLEEP_S)
-            self._due_s = max(earliest, now + MONITOR_PERIOD_S)
+            if earliest > period_end_s:
+                self._due_s = earliest
 
     def _run(self) -> None:
         while not self._stop.is_set():

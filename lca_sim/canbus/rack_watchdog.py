@@ -132,7 +132,8 @@ class RackWatchdogs:
                 elif last + time_ms * 1e-3 < earliest:
                     earliest = last + time_ms * 1e-3
             if axis.nmt == NMT_OPERATIONAL:  # the reaction above may have left OPERATIONAL
-                earliest = min(earliest, self._check_operational(axis, now))
+                operational_s = self._check_operational(axis, now)
+                earliest = min(earliest, operational_s)
         return earliest
 
     def _check_operational(self, axis: Drive, now: float) -> float:

@@ -106,6 +106,7 @@ class VirtualDriveRack:
         self._axes: list[Drive] = []
         self._by_name: dict[str, Drive] = {}
         sdo_servers: dict[int, Drive] = {}  # SDO request COB-ID (0x600 + id) -> its node
+        self._sdo_servers = sdo_servers
         # canopen types its listener list narrowly; any can.Listener works there.
         cast("list[can.Listener]", self._network.listeners)[:] = [
             RackListener(
@@ -357,7 +358,7 @@ class VirtualDriveRack:
             else:
                 targets = self._pdos.rpdo_table.get(cob)
                 with self._lock:
-                    poke = not targets  # SDO: its write went through canopen's server
+                    poke = cob in self._sdo_servers  # canopen's server took it: a write?
                     for axis, pdo in targets or ():
                         poke = self._pdos.receive(axis, pdo, data, now) or poke
                     if poke:
