@@ -129,38 +129,32 @@ class RackWatchdogs:
                     axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
                     self._counters.heartbeat_losses += 1
                     self._on_expired(axis, cia402.EMCY_HEARTBEAT, now)
-                elif last + time_ms * 1e-3 < earliest:
-                    earliest = last + time_ms * 1e-3
-            if axis.nmt == NMT_OPERATIONAL:  # the reaction above may have left OPERATIONAL
-                operational_s = self._check_operational(axis, now)
-                earliest = min(earliest, operational_s)
-        return earliest
-
-    def _check_operational(self, axis: Drive, now: float) -> float:
-        """The RPDO deadlines and SYNC loss of an OPERATIONAL drive; its earliest armed one."""
-        earliest = math.inf
-        for pdo in axis.rpdos:
-            last = pdo.last_rx_s
-            if pdo.event_timer_ms and last is not None:
-                if now - last > pdo.event_timer_ms * 1e-3:
-                    pdo.last_rx_s = None  # re-armed by the next reception
-                    self._counters.rpdo_timeouts += 1
-                    self._on_expired(axis, cia402.EMCY_RPDO_TIMEOUT, now)
-                elif last + pdo.event_timer_ms * 1e-3 < earliest:
-                    earliest = last + pdo.event_timer_ms * 1e-3
-        period_s = axis.values[_CYCLE_PERIOD] * 1e-6
-        if (
-            period_s > 0.0
-            and axis.drive.power is PowerState.OPERATION_ENABLED
-            and not axis.sync_loss_reported
-        ):
-            since = max(self.last_sync_done_s, axis.sync_armed_s)
-            if now - since > self._sync_loss_periods * period_s:
-                axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
-                self._counters.sync_losses += 1
-                self._on_expired(axis, cia402.EMCY_SYNC_LOSS, now)
-            elif since + self._sync_loss_periods * period_s < earliest:
-                earliest = since + self._sync_loss_periods * period_s
+                else:
+                    earliest = min(earliest, last + time_ms * 1e-3)
+            if axis.nmt != NMT_OPERATIONAL:  # the reaction above may have left OPERATIONAL
+                continue
+            for pdo in axis.rpdos:
+                last = pdo.last_rx_s
+                if pdo.event_timer_ms and last is not None:
+                    if now - last > pdo.event_timer_ms * 1e-3:
+                        pdo.last_rx_s = None  # re-armed by the next reception
+                        self._counters.rpdo_timeouts += 1
+                        self._on_expired(axis, cia402.EMCY_RPDO_TIMEOUT, now)
+                    else:
+                        earliest = min(earliest, last + pdo.event_timer_ms * 1e-3)
+            period_s = axis.values[_CYCLE_PERIOD] * 1e-6
+            if (
+                period_s > 0.0
+                and axis.drive.power is PowerState.OPERATION_ENABLED
+                and not axis.sync_loss_reported
+            ):
+                since = max(self.last_sync_done_s, axis.sync_armed_s)
+                if now - since > self._sync_loss_periods * period_s:
+                    axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
+                    self._counters.sync_losses += 1
+                    self._on_expired(axis, cia402.EMCY_SYNC_LOSS, now)
+                else:
+                    earliest = min(earliest, since + self._sync_loss_periods * period_s)
         return earliest
 
     def heard(self, producer: int, data: bytes, now: float) -> bool:
