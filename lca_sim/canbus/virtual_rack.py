@@ -11,7 +11,8 @@ on (boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and 0, watchdogs, fault injec
 Its parts: `rack_state` (per-drive values), `rack_network` (the bus side and frame filter),
 `rack_objects` (object store, SDO), `rack_cia402` (power state, errors, demand), `rack_nmt`
 (NMT), `rack_pdo` (PDOs), `rack_watchdog` (deadlines, SYNC rate, freeze discount),
-`rack_faults` (fault injection). The console script is `lca_sim.cli.virtual_drive`.
+`rack_monitor` (when the deadlines are checked), `rack_faults` (fault injection). The
+console script is `lca_sim.cli.virtual_drive`.
 """
 
 from __future__ import annotations
