@@ -13,9 +13,14 @@ import can
 import canopen
 
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
+from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301
 
 logger = logging.getLogger(__name__)
+
+# canopen's NodeScanner notes the node id of frames of these services (`Network.notify`).
+_SCANNED_SERVICES = frozenset(canopen.network.NodeScanner.SERVICES)
+_SERVICE_MASK = 0x780
 
 
 class NullTask:
@@ -108,13 +113,22 @@ class RackListener(can.Listener):
                 return
         # An NMT frame of the wrong length goes to the rack (which counts it) only: canopen's
         # NMT slave would act on the first two bytes of a longer one.
-        if cob != cia301.NMT_COB_ID or len(msg.data) == 2:
+        # Only frames canopen takes (SDO, NMT) or its node scanner notes: not the cycle's RPDOs
+        # and SYNC, which would only cost the lookups.
+        network = self._network
+        if (cob in network.subscribers or cob & _SERVICE_MASK in _SCANNED_SERVICES) and (
+            cob != cia301.NMT_COB_ID or len(msg.data) == 2
+        ):
             try:
-                self._network.notify(cob, msg.data, msg.timestamp)
+                network.notify(cob, msg.data, msg.timestamp)
             except Exception:
                 counters.handler_errors += 1
                 logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
         self._on_frame(msg)
+
+    # python-can's Notifier calls its listeners: straight into the filter, not through
+    # `can.Listener.__call__`, one call less per frame.
+    __call__ = on_message_received
 
     def _count_not_classical(self, msg: can.Message) -> None:
         """Count a frame that is not an 11-bit classical CAN data frame by its kind."""
@@ -175,6 +189,7 @@ class RackNetwork(canopen.Network):
         # Lockstep: periodic sends are `CycleTask`s sent by `send_due`, not threads.
         self.lockstep = False
         self.cycle_tasks: list[CycleTask] = []
+        self._send_data_frame = bus.send_data_frame if isinstance(bus, RemoteTransportBus) else None
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """Send as canopen does, except the frames of a node that fault injection silenced."""
@@ -182,10 +197,27 @@ class RackNetwork(canopen.Network):
             if self.on_dropped is not None:
                 self.on_dropped(can_id)
             return
-        super().send_message(can_id, data, remote)
-        then = self.after_send.pop(can_id, None) if self.after_send else None
-        if then is not None:
-            then()
+        # canopen's send_message, one call shorter: every TPDO goes this way.
+        bus = self.bus
+        if bus is None:
+            raise RuntimeError("Not connected to CAN bus")
+        if self._send_data_frame is not None and can_id <= 0x7FF and not remote:
+            with self.send_lock:  # over lca_remote: the same bytes, with no can.Message built
+                self._send_data_frame(can_id, data)
+        else:
+            msg = can.Message(
+                is_extended_id=can_id > 0x7FF,
+                arbitration_id=can_id,
+                data=data,
+                is_remote_frame=remote,
+            )
+            with self.send_lock:
+                bus.send(msg)
+        self.check()
+        if self.after_send:
+            then = self.after_send.pop(can_id, None)
+            if then is not None:
+                then()
 
     def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
         """Send periodically (the heartbeat) as canopen does, except a heartbeat injected off."""

@@ -41,6 +41,7 @@ from lca_sim.canbus.wire import (
     accept_key,
     channel_url,
     decode_message,
+    encode_data_frame,
     encode_message,
     parse_frames,
     ws_frame,
@@ -170,7 +171,14 @@ class RemoteTransportBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send one frame to the server (every other client receives it)."""
-        data = ws_frame(OP_BINARY, encode_message(msg), mask=True)
+        self._write(ws_frame(OP_BINARY, encode_message(msg), mask=True))
+
+    def send_data_frame(self, arbitration_id: int, data: bytes) -> None:
+        """`send` of a classical 11-bit data frame, without building its `can.Message`."""
+        self._write(ws_frame(OP_BINARY, encode_data_frame(arbitration_id, data), mask=True))
+
+    def _write(self, data: bytes) -> None:
+        """Write one websocket frame, or hold it in the open batch."""
         try:
             with self._send_lock:
                 if self._closed:

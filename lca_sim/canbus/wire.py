@@ -55,6 +55,11 @@ def encode_message(msg: can.Message) -> bytes:
     return header + bytes(msg.data)
 
 
+def encode_data_frame(arbitration_id: int, data: bytes) -> bytes:
+    """`encode_message` of a new classical 11-bit data frame (no flags, timestamp 0), at once."""
+    return HEADER.pack(MESSAGE_TYPE, 0.0, arbitration_id, len(data), 0) + bytes(data)
+
+
 def decode_message(payload: bytes | bytearray, timestamp: float) -> can.Message:
     """A binary payload back into a frame, stamped `timestamp`; ValueError if it is not one."""
     if len(payload) < HEADER.size or payload[0] != MESSAGE_TYPE:

@@ -307,6 +307,14 @@ def test_codec_round_trip(msg: can.Message) -> None:
     assert back.timestamp == 12.5  # the receiver's clock, not the sender's
 
 
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 0x7FF), st.binary(max_size=8))
+def test_a_data_frame_encodes_as_its_message_would(arbitration_id: int, data: bytes) -> None:
+    """The rack's TPDO send (`RemoteTransportBus.send_data_frame`): the bytes of `send`'s."""
+    msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+    assert wire.encode_data_frame(arbitration_id, data) == wire.encode_message(msg)
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.lists(frames, min_size=1, max_size=20), st.integers(1, 50), st.booleans())
 def test_websocket_framing_survives_any_split(
