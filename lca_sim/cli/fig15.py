@@ -52,6 +52,11 @@ from lca_sim.ros.node_util import from_stamp
 SCENARIO = "fig15"  # config/runs/fig15.yaml: the run `lca-hil run fig15` computes too
 END_WAIT_S = 60.0  # wall time for start-up and shut-down, on top of ...
 END_WAIT_PER_SIM_S = 20.0  # ... this much wall time per simulated second (a loaded machine)
+# The recorder is stopped after the simulator ended the run: nothing more is published, so it
+# takes what it already received until that falls quiet. The loop waits for the controller,
+# not for it: on a loaded host it was 2.4 s of simulated time (3,500 messages) behind, more
+# than lca-record's default half second of draining takes.
+RECORDER_DRAIN_MAX_S = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,6 +162,7 @@ def _argvs(bag: Path, duration_s: float, run: Fig15Run) -> dict[str, list[str]]:
     return {
         "recorder": [
             _script("lca-record"), "-o", str(bag), "--wait-s", "30",
+            "--drain-max-s", f"{RECORDER_DRAIN_MAX_S:g}",
             pc.JOINT_STATES, pc.MOTOR_STATES, pc.DRIVE_CHAIN_STATES, pc.VOLTAGE_COMMANDS,
             pc.CURRENT_COMMANDS, pc.VELOCITY_COMMANDS, pc.CLOCK,
             "--ros-args", "-p", "use_sim_time:=true",

@@ -57,7 +57,6 @@ GRAPH_POLL_PERIOD_S = 0.1
 REASON_IDLE = "no topic left to record"
 # After a stop request: keep taking already-received messages until none came for this long.
 DRAIN_QUIET_S = 0.05
-DRAIN_MAX_S = 0.5
 PROGRESS_PERIOD_S = 1.0
 
 
@@ -273,6 +272,8 @@ def _parse_args(own_args: list[str]) -> argparse.Namespace:
         parser.error("--depth must be >= 1")
     if not args.flush_period_s > 0 or math.isinf(args.flush_period_s):
         parser.error("--flush-period-s must be > 0 and finite")
+    if not args.drain_max_s >= 0 or math.isinf(args.drain_max_s):
+        parser.error("--drain-max-s must be >= 0 and finite")
     return args
 
 
@@ -312,7 +313,7 @@ def _record(context: Context, args: argparse.Namespace, output: Path, stop: _Sto
         reason = _spin(executor, recorder, stop, args.max_duration_s, verbose=args.verbose)
         never_seen = recorder.waiting
         recorder.stop_discovery()
-        _drain(executor, recorder)
+        _drain(executor, recorder, args.drain_max_s)
         counts = recorder.close()
         executor.shutdown(timeout_sec=1.0)
     finally:
@@ -360,15 +361,17 @@ def _spin(
             print(f"lca-record: {now_s - start_s:6.1f} s: {counts}", file=sys.stderr, flush=True)
 
 
-def _drain(executor: Executor, recorder: BagRecorder) -> None:
+def _drain(executor: Executor, recorder: BagRecorder, max_s: float) -> None:
     """Take the messages the middleware already holds: until none came for DRAIN_QUIET_S.
 
-    A live publisher keeps it going, so it stops after DRAIN_MAX_S in any case (far longer than
-    taking `STATE_QOS_DEPTH` queued messages per topic needs).
+    A live publisher keeps it going, so it stops after `max_s` (`--drain-max-s`) in any case.
+    The default is far longer than taking `STATE_QOS_DEPTH` queued messages per topic needs on
+    an idle host; a recorder seconds behind on a loaded one (a lockstep run that ended) needs
+    more, and `lca-hil fig15` gives it.
     """
     start_s = last_s = time.monotonic()
     total = recorder.total
-    while (now_s := time.monotonic()) - last_s < DRAIN_QUIET_S and now_s - start_s < DRAIN_MAX_S:
+    while (now_s := time.monotonic()) - last_s < DRAIN_QUIET_S and now_s - start_s < max_s:
         executor.spin_once(timeout_sec=0.01)
         if recorder.total != total:
             total = recorder.total

@@ -14,6 +14,9 @@ from lca_control.contract import STATE_QOS_DEPTH
 RECORD_WAIT_S = 10.0
 # A SIGKILLed recorder loses at most this much: every period the open chunk is closed and flushed.
 RECORD_FLUSH_PERIOD_S = 0.25
+# After a stop request the recorder takes what the middleware already holds for at most this
+# long: a live publisher never lets it fall quiet.
+RECORD_DRAIN_MAX_S = 0.5
 EXECUTORS = ("events", "single")
 ECHO_WAIT_S = 5.0
 RELIABILITY_CHOICES = ("auto", "reliable", "best_effort")
@@ -63,6 +66,14 @@ def record_parser() -> argparse.ArgumentParser:
         help="a killed recorder loses at most this much of what it received: the open MCAP "
         "chunk is closed and flushed every 0.4 of it "
         f"(default {RECORD_FLUSH_PERIOD_S:g})",
+    )
+    parser.add_argument(
+        "--drain-max-s",
+        type=float,
+        default=RECORD_DRAIN_MAX_S,
+        help="on a stop request, go on taking the messages already received until none came "
+        f"for 0.05 s, at most this long (default {RECORD_DRAIN_MAX_S:g}); give more when the "
+        "publishers have ended and the recorder may be behind (a loaded host)",
     )
     parser.add_argument(
         "--recover",

@@ -666,3 +666,55 @@ def test_plot_script_bad_path(tmp_path: Path) -> None:
         f"lca-plot: error: bag {tmp_path / 'no_bag'}: folder not found"
     ]
     assert proc.stdout == ""
+
+
+class _Backlog:
+    """An executor and recorder stand-in on a clock of its own: one message taken per spin.
+
+    `left` messages wait in the middleware, each taking `take_s` to record; after them the
+    spin waits its timeout for nothing (`live`: a publisher that never ends instead).
+    """
+
+    def __init__(self, left: int, take_s: float, *, live: bool = False) -> None:
+        self.left, self.take_s, self.live = left, take_s, live
+        self.total = 0
+        self.now_s = 0.0
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+    def spin_once(self, timeout_sec: float) -> None:
+        if self.left or self.live:
+            self.left = max(self.left - 1, 0)
+            self.total += 1
+            self.now_s += self.take_s
+        else:
+            self.now_s += timeout_sec
+
+
+def test_a_stopped_recorder_drains_a_backlog_for_as_long_as_it_is_given(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A recorder 3,500 messages behind at 0.4 ms each (a loaded host, fig15's CI run).
+
+    The default half second of draining leaves most of them unrecorded; lca-hil fig15, whose
+    publishers have ended when it stops the recorder, gives it RECORDER_DRAIN_MAX_S and every
+    one is taken. A live publisher still ends the drain at the limit.
+    """
+    from lca_sim.cli import fig15
+    from lca_sim.ros import record
+    from lca_sim.ros.tool_args import RECORD_DRAIN_MAX_S, record_parser
+
+    def drained(backlog: _Backlog, max_s: float) -> _Backlog:
+        monkeypatch.setattr(record, "time", backlog)
+        record._drain(backlog, backlog, max_s)  # type: ignore[arg-type]
+        return backlog
+
+    assert drained(_Backlog(3500, 4e-4), RECORD_DRAIN_MAX_S).left > 2000
+    done = drained(_Backlog(3500, 4e-4), fig15.RECORDER_DRAIN_MAX_S)
+    assert (done.left, done.total) == (0, 3500)
+    live = drained(_Backlog(0, 4e-4, live=True), 2.0)
+    assert 2.0 <= live.now_s < 2.0 + 1e-3
+    argv = fig15._argvs(Path("bag"), 13.0, fig15.fig15_run(13.0))["recorder"]
+    args = record_parser().parse_args(argv[1 : argv.index("--ros-args")])
+    assert args.drain_max_s == fig15.RECORDER_DRAIN_MAX_S
