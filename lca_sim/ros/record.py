@@ -57,6 +57,8 @@ GRAPH_POLL_PERIOD_S = 0.1
 REASON_IDLE = "no topic left to record"
 # After a stop request: keep taking already-received messages until none came for this long.
 DRAIN_QUIET_S = 0.05
+DRAIN_SPIN_S = 0.01  # one spin's wait for a message while draining
+DRAIN_QUIET_SPINS = round(DRAIN_QUIET_S / DRAIN_SPIN_S)  # ... and this many of them in a row
 PROGRESS_PERIOD_S = 1.0
 
 
@@ -362,20 +364,28 @@ def _spin(
 
 
 def _drain(executor: Executor, recorder: BagRecorder, max_s: float) -> None:
-    """Take the messages the middleware already holds: until none came for DRAIN_QUIET_S.
+    """Take the messages the middleware already holds, until none came for a while.
 
-    A live publisher keeps it going, so it stops after `max_s` (`--drain-max-s`) in any case.
-    The default is far longer than taking `STATE_QOS_DEPTH` queued messages per topic needs on
-    an idle host; a recorder seconds behind on a loaded one (a lockstep run that ended) needs
-    more, and `lca-hil fig15` gives it.
+    A while: DRAIN_QUIET_S and DRAIN_QUIET_SPINS spins in a row that took nothing, so a
+    recorder starved of the CPU (a loaded host), whose one spin can outlast the quiet time, does
+    not take its own stall for the end. A live publisher keeps it going, so it stops after
+    `max_s` (`--drain-max-s`) in any case. The default is far longer than taking
+    `STATE_QOS_DEPTH` queued messages per topic needs on an idle host; a recorder seconds
+    behind on a loaded one (a lockstep run that ended) needs more, and `lca-hil fig15` gives it.
     """
     start_s = last_s = time.monotonic()
     total = recorder.total
-    while (now_s := time.monotonic()) - last_s < DRAIN_QUIET_S and now_s - start_s < max_s:
-        executor.spin_once(timeout_sec=0.01)
+    empty_spins = 0
+    while (now_s := time.monotonic()) - start_s < max_s:
+        if now_s - last_s >= DRAIN_QUIET_S and empty_spins >= DRAIN_QUIET_SPINS:
+            return
+        executor.spin_once(timeout_sec=DRAIN_SPIN_S)
         if recorder.total != total:
             total = recorder.total
             last_s = time.monotonic()
+            empty_spins = 0
+        else:
+            empty_spins += 1
 
 
 def _print_summary(output: Path, counts: dict[str, int], reason: str) -> None:

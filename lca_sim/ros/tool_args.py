@@ -72,8 +72,8 @@ def record_parser() -> argparse.ArgumentParser:
         type=float,
         default=RECORD_DRAIN_MAX_S,
         help="on a stop request, go on taking the messages already received until none came "
-        f"for 0.05 s, at most this long (default {RECORD_DRAIN_MAX_S:g}); give more when the "
-        "publishers have ended and the recorder may be behind (a loaded host)",
+        f"for 0.05 s (five waits in a row), at most this long (default {RECORD_DRAIN_MAX_S:g}); "
+        "give more when the publishers have ended and the recorder may be behind (a loaded host)",
     )
     parser.add_argument(
         "--recover",

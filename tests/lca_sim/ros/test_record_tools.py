@@ -675,8 +675,9 @@ class _Backlog:
     spin waits its timeout for nothing (`live`: a publisher that never ends instead).
     """
 
-    def __init__(self, left: int, take_s: float, *, live: bool = False) -> None:
+    def __init__(self, left: int, take_s: float, *, live: bool = False, stall_at: int = -1) -> None:
         self.left, self.take_s, self.live = left, take_s, live
+        self.stall_at = stall_at  # after this many messages, one spin gets no CPU for 0.2 s
         self.total = 0
         self.now_s = 0.0
 
@@ -684,6 +685,10 @@ class _Backlog:
         return self.now_s
 
     def spin_once(self, timeout_sec: float) -> None:
+        if self.total == self.stall_at:
+            self.stall_at = -1
+            self.now_s += 0.2  # starved: the spin returns late, having taken nothing
+            return
         if self.left or self.live:
             self.left = max(self.left - 1, 0)
             self.total += 1
@@ -715,6 +720,11 @@ def test_a_stopped_recorder_drains_a_backlog_for_as_long_as_it_is_given(
     assert (done.left, done.total) == (0, 3500)
     live = drained(_Backlog(0, 4e-4, live=True), 2.0)
     assert 2.0 <= live.now_s < 2.0 + 1e-3
+    # A spin that got no CPU for longer than the quiet time is no end of the backlog.
+    starved = drained(_Backlog(3500, 4e-4, stall_at=1000), fig15.RECORDER_DRAIN_MAX_S)
+    assert (starved.left, starved.total) == (0, 3500)
+    idle = drained(_Backlog(10, 4e-4), fig15.RECORDER_DRAIN_MAX_S)  # an idle host: 0.05 s
+    assert idle.total == 10 and idle.now_s < 0.1
     argv = fig15._argvs(Path("bag"), 13.0, fig15.fig15_run(13.0))["recorder"]
     args = record_parser().parse_args(argv[1 : argv.index("--ros-args")])
     assert args.drain_max_s == fig15.RECORDER_DRAIN_MAX_S
