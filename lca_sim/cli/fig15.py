@@ -333,6 +333,31 @@ def _prismatic(run: Fig15Run, joint: str) -> bool:
     return next(j.prismatic for j in gantry.joints if j.name == joint)
 
 
+def recording_problems(
+    time_s: Sequence[float], duration_s: float, control_period_s: float
+) -> list[str]:
+    """What the recorded states of a lockstep run lack: its end, or states in between.
+
+    The run publishes a state at 0 and after every control period up to `duration_s`; nothing
+    paces it to the recorder, so a recorder behind by more than its depth loses the oldest
+    and one stopped while behind misses the last.
+    """
+    problems = []
+    last_s = time_s[-1]
+    if abs(last_s - duration_s) > 1e-9:
+        problems.append(
+            f"the bag's last state is at {last_s:.6f} s, not at the end of the run "
+            f"({duration_s:g} s): the recorder missed the last states"
+        )
+    expected = round(last_s / control_period_s) + 1
+    if len(time_s) < expected:
+        problems.append(
+            f"the bag holds {len(time_s)} states up to {last_s:g} s of the {expected} the run "
+            "published: the recorder fell behind and lost some"
+        )
+    return problems
+
+
 def _summarise(out: Path, bag: Path, run: Fig15Run, steps_per_s: float) -> int:
     duration_s = run.config.duration_s
     subprocess.run([_script("lca-plot"), str(bag), "--out", str(out)], env=_env(), check=False)
@@ -351,12 +376,8 @@ def _summarise(out: Path, bag: Path, run: Fig15Run, steps_per_s: float) -> int:
     transition_deg, transition_t, transition_state = _transition(joint, drive.time_s, drive.state)
     tracking = recorded_tracking(data, run)
     last_state_s = joint.time_s[-1]
-    if abs(last_state_s - duration_s) > 1e-9:
-        print(
-            f"lca-hil: warning: the bag's last state is at {last_state_s:.6f} s, not at the "
-            f"end of the run ({duration_s:g} s): the recorder missed the last states",
-            file=sys.stderr,
-        )
+    for problem in recording_problems(joint.time_s, duration_s, run.config.control_period_s):
+        print(f"lca-hil: warning: {problem}", file=sys.stderr)
     summary: dict[str, Any] = {
         "transition_from_motor_driving_deg": transition_deg,
         "transition_time_s": transition_t,

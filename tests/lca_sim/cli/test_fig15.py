@@ -150,3 +150,21 @@ def test_fig15_names_the_simulator_when_it_dies(
     assert "the simulator exited" in err and str(out / "simulator.log") in err
     assert "lockstep_end_s" in (out / "simulator.log").read_text(encoding="utf-8")
     assert not (out / "summary.json").exists()
+
+
+def test_a_recording_that_lost_states_is_reported() -> None:
+    """A bag that misses the run's end, or states in between, gets a warning each; a whole one none.
+
+    The run publishes a state at 0 and every 4 ms to 13 s: 3,251 states.
+    """
+    from lca_sim.cli import fig15
+
+    period_s, duration_s = 0.004, 13.0
+    whole = [k * period_s for k in range(3251)]
+    assert fig15.recording_problems(whole, duration_s, period_s) == []
+    cut = whole[:2661]  # fault matrix item 7's bag: stopped at 10.64 s, no gap
+    (end,) = fig15.recording_problems(cut, duration_s, period_s)
+    assert "last state is at 10.640000 s" in end
+    gap = whole[:1000] + whole[1100:]  # 100 states lost mid-run
+    (lost,) = fig15.recording_problems(gap, duration_s, period_s)
+    assert "3151 states up to 13 s of the 3251" in lost
