@@ -8,7 +8,6 @@ which SDO abort: docs/can.md, "Default PDO mapping".
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import can
@@ -195,19 +194,14 @@ class PdoEngine:
 
     # --- reception -----------------------------------------------------------------------
 
-    def receive(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> bool:
-        """An RPDO frame: latched until the next SYNC (synchronous types) or applied now.
-
-        Returns:
-            Whether it may have made something due sooner: it armed the RPDO's deadline, or was
-            applied now (an event-driven TPDO may have changed).
-        """
+    def receive(self, axis: Drive, pdo: Pdo, data: bytes, now: float) -> None:
+        """An RPDO frame: latched until the next SYNC (synchronous types) or applied now."""
         if axis.faults.bus_off:
-            return False  # its controller takes no frame
+            return  # its controller takes no frame
         self._counters.rpdos_received += 1
         if axis.nmt != NMT_OPERATIONAL or not pdo.valid:
             self._counters.pdos_ignored_not_operational += 1
-            return False
+            return
         size_bytes = pdo.frame.size  # the mapping's length
         if len(data) != size_bytes:
             # CiA 301 EMCY error codes: 0x8210 "PDO not processed due to length error", 0x8220
@@ -227,15 +221,13 @@ class PdoEngine:
                 f"node {axis.config.node_id} RPDO{pdo.number}: {len(data)} bytes, "
                 f"mapping has {size_bytes}; dropped",
             )
-            return False
+            return
         pdo.length_error = 0
-        armed = pdo.last_rx_s is None
         pdo.last_rx_s = now
         if pdo.transmission_type <= cia402.SYNC_TRANSMISSION_MAX:
             pdo.latched = data
-            return armed
-        self._apply(axis, pdo, data, now)
-        return True
+        else:
+            self._apply(axis, pdo, data, now)
 
     def apply_latched(self, axes: Sequence[Drive], now: float) -> None:
         """At a SYNC: each drive's synchronous RPDOs received since the last (the latest wins)."""
@@ -277,14 +269,8 @@ class PdoEngine:
             self._counters.send_errors += 1
             self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
 
-    def service_event_tpdos(self, now: float) -> float:
-        """Send the event-driven TPDOs whose data changed or whose event timer expired.
-
-        Returns:
-            When the next may be due with no write meanwhile (monotonic s; inf: none): an event
-            timer's expiry, or the end of an inhibit time during which a change goes unseen.
-        """
-        earliest = math.inf
+    def service_event_tpdos(self, now: float) -> None:
+        """Send the event-driven TPDOs whose data changed or whose event timer expired."""
         for axis in self._axes:
             if axis.nmt != NMT_OPERATIONAL:
                 continue
@@ -294,18 +280,11 @@ class PdoEngine:
                 since_s = now - pdo.last_sent_s
                 timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
                 inhibited = since_s < pdo.inhibit_100us * 1e-4
-                if not inhibited or timer_due:
-                    frame = pdo.encode()
-                    if timer_due or frame != pdo.last_data:
-                        self._send_tpdo(axis, pdo, frame, now)
-                # else nothing goes out, whatever the data: not read
-                due_s = pdo.last_sent_s + pdo.event_timer_ms * 1e-3
-                if pdo.event_timer_ms > 0 and due_s < earliest:
-                    earliest = due_s
-                due_s = pdo.last_sent_s + pdo.inhibit_100us * 1e-4
-                if now < due_s < earliest:
-                    earliest = due_s
-        return earliest
+                if inhibited and not timer_due:
+                    continue  # nothing goes out, whatever the data: not read
+                frame = pdo.encode()
+                if timer_due or frame != pdo.last_data:
+                    self._send_tpdo(axis, pdo, frame, now)
 
     def _send_tpdo(self, axis: Drive, pdo: Pdo, frame: bytes, now: float) -> None:
         faults = axis.faults

@@ -62,16 +62,12 @@ class RackWatchdogs:
         self._sync_judge = sync_rate.SyncRateState()
         self._sync_length_error = False  # in a run of SYNCs of the wrong length (EMCY sent)
 
-    def tick(self, late_s: float, now: float) -> float:
-        """A monitor tick `late_s` after it was due: discount a freeze, then check the deadlines.
-
-        Returns:
-            The earliest deadline still armed (`check`).
-        """
+    def tick(self, late_s: float, now: float) -> None:
+        """A monitor tick `late_s` after it was due: discount a freeze, then check the deadlines."""
         freeze = self.freeze_watch.check(late_s)
         if freeze is not None:
             self._discount(freeze, now)
-        return self.check(now)
+        self.check(now)
 
     def _discount(self, freeze: Freeze, now: float) -> None:
         """Move every armed deadline on by the freeze: this process, not the master, stood still.
@@ -113,66 +109,48 @@ class RackWatchdogs:
             axis.sync_armed_s = discounted(axis.sync_armed_s, skip_s, now)
         self.last_sync_done_s = discounted(self.last_sync_done_s, skip_s, now)
 
-    def check(self, now: float) -> float:
-        """Fire every watchdog whose deadline passed; each re-arms on its next frame.
-
-        Returns:
-            The earliest deadline still armed (monotonic s; inf: none): a silence of the master
-            fires nothing before it, until a frame or a write arms another.
-        """
-        earliest = math.inf
+    def check(self, now: float) -> None:
+        """Fire every watchdog whose deadline passed; each re-arms on its next frame."""
         for axis in self._axes:
             _, time_ms = cia402.heartbeat_consumer_entry(axis.values[_HEARTBEAT_CONSUMER_1])
             last = axis.heartbeat_last_rx_s
-            if time_ms and last is not None:
-                if now - last > time_ms * 1e-3:
-                    axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
-                    self._counters.heartbeat_losses += 1
-                    self._on_expired(axis, cia402.EMCY_HEARTBEAT, now)
-                else:
-                    earliest = min(earliest, last + time_ms * 1e-3)
+            if time_ms and last is not None and now - last > time_ms * 1e-3:
+                axis.heartbeat_last_rx_s = None  # re-armed by the next heartbeat
+                self._counters.heartbeat_losses += 1
+                self._on_expired(axis, cia402.EMCY_HEARTBEAT, now)
             if axis.nmt != NMT_OPERATIONAL:  # the reaction above may have left OPERATIONAL
                 continue
             for pdo in axis.rpdos:
                 last = pdo.last_rx_s
-                if pdo.event_timer_ms and last is not None:
-                    if now - last > pdo.event_timer_ms * 1e-3:
-                        pdo.last_rx_s = None  # re-armed by the next reception
-                        self._counters.rpdo_timeouts += 1
-                        self._on_expired(axis, cia402.EMCY_RPDO_TIMEOUT, now)
-                    else:
-                        earliest = min(earliest, last + pdo.event_timer_ms * 1e-3)
+                if (
+                    pdo.event_timer_ms
+                    and last is not None
+                    and now - last > pdo.event_timer_ms * 1e-3
+                ):
+                    pdo.last_rx_s = None  # re-armed by the next reception
+                    self._counters.rpdo_timeouts += 1
+                    self._on_expired(axis, cia402.EMCY_RPDO_TIMEOUT, now)
             period_s = axis.values[_CYCLE_PERIOD] * 1e-6
             if (
                 period_s > 0.0
                 and axis.drive.power is PowerState.OPERATION_ENABLED
                 and not axis.sync_loss_reported
+                and now - max(self.last_sync_done_s, axis.sync_armed_s)
+                > self._sync_loss_periods * period_s
             ):
-                since = max(self.last_sync_done_s, axis.sync_armed_s)
-                if now - since > self._sync_loss_periods * period_s:
-                    axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
-                    self._counters.sync_losses += 1
-                    self._on_expired(axis, cia402.EMCY_SYNC_LOSS, now)
-                else:
-                    earliest = min(earliest, since + self._sync_loss_periods * period_s)
-        return earliest
+                axis.sync_loss_reported = True  # once per loss: re-armed by the next SYNC
+                self._counters.sync_losses += 1
+                self._on_expired(axis, cia402.EMCY_SYNC_LOSS, now)
 
-    def heard(self, producer: int, data: bytes, now: float) -> bool:
-        """A heartbeat from node `producer`: re-arm every consumer that watches it (0x1016).
-
-        Returns:
-            Whether it armed a consumer that was not armed (its deadline is new).
-        """
+    def heard(self, producer: int, data: bytes, now: float) -> None:
+        """A heartbeat from node `producer`: re-arm every consumer that watches it (0x1016)."""
         if len(data) != 1:
             self._counters.bad_frames += 1
-            return False
-        armed = False
+            return
         for axis in self._axes:
             node_id, time_ms = cia402.heartbeat_consumer_entry(axis.value(od.HEARTBEAT_CONSUMER, 1))
             if node_id == producer and time_ms and not axis.faults.bus_off:
-                armed = armed or axis.heartbeat_last_rx_s is None
                 axis.heartbeat_last_rx_s = now
-        return armed
 
     def sync_length_ok(self, data: bytes) -> bool:
         """CiA 301: a SYNC carries no data, or the 1-byte counter.

@@ -11,8 +11,7 @@ on (boot, PDO timing on SYNC, modes 0x6060 = 10, 9 and 0, watchdogs, fault injec
 Its parts: `rack_state` (per-drive values), `rack_network` (the bus side and frame filter),
 `rack_objects` (object store, SDO), `rack_cia402` (power state, errors, demand), `rack_nmt`
 (NMT), `rack_pdo` (PDOs), `rack_watchdog` (deadlines, SYNC rate, freeze discount),
-`rack_monitor` (when the deadlines are checked), `rack_faults` (fault injection). The
-console script is `lca_sim.cli.virtual_drive`.
+`rack_faults` (fault injection). The console script is `lca_sim.cli.virtual_drive`.
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_cia402 import DriveControl
 from lca_sim.canbus.rack_faults import RackFaults
 from lca_sim.canbus.rack_modes import AxisModes
-from lca_sim.canbus.rack_monitor import RackMonitor
 from lca_sim.canbus.rack_network import RackListener, RackNetwork
 from lca_sim.canbus.rack_nmt import RackNmt
 from lca_sim.canbus.rack_objects import ObjectStore, drive_units
@@ -66,6 +64,7 @@ from lca_sim.runtime import (
 
 logger = logging.getLogger(__name__)
 
+MONITOR_PERIOD_S = 0.005  # watchdogs and event-driven TPDOs are checked this often
 MAX_WALL_ADVANCE_S = 0.05  # 0x1006 = 0: the plant follows the wall time, at most this per SYNC
 NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() waits for it
 _CYCLE_PERIOD = (od.CYCLE_PERIOD, 0)  # read from every drive at every SYNC (`Drive.values`)
@@ -107,7 +106,6 @@ class VirtualDriveRack:
         self._axes: list[Drive] = []
         self._by_name: dict[str, Drive] = {}
         sdo_servers: dict[int, Drive] = {}  # SDO request COB-ID (0x600 + id) -> its node
-        self._sdo_servers = sdo_servers
         # canopen types its listener list narrowly; any can.Listener works there.
         cast("list[can.Listener]", self._network.listeners)[:] = [
             RackListener(
@@ -185,7 +183,8 @@ class VirtualDriveRack:
             self._axes.append(axis)
             self._by_name[axis_config.name] = axis
             sdo_servers[cia301.SDO_REQUEST_COB_BASE + axis_config.node_id] = axis
-        self._monitor = RackMonitor(self._lock, self._watchdogs, self._pdos, self._counters)
+        self._stop_event = threading.Event()
+        self._monitor_thread: threading.Thread | None = None
         self._stopped = False
 
     # --- lifecycle -------------------------------------------------------------------------
@@ -214,8 +213,12 @@ class VirtualDriveRack:
             now = self._clock()
             for axis in self._axes:
                 self._nmt.power_on(axis, now)
-        if not self._lockstep:  # in lockstep the SYNCs run the watchdogs and timers
-            self._monitor.start()
+        if self._lockstep:
+            return  # the SYNCs run the watchdogs and timers (`_on_sync`)
+        self._monitor_thread = threading.Thread(
+            target=self._monitor, name="virtual-drive-monitor", daemon=True
+        )
+        self._monitor_thread.start()
 
     def stop(self) -> None:
         """Stop the heartbeats, the monitor and the receive thread; the bus stays open."""
@@ -224,7 +227,9 @@ class VirtualDriveRack:
         self._stopped = True
         if isinstance(self._network.bus, LinkedVirtualBus):
             self._network.bus.detach()  # a master sending on: its frames queue, unread
-        self._monitor.stop()
+        self._stop_event.set()
+        if self._monitor_thread is not None:
+            self._monitor_thread.join()
         if self._network.notifier is not None:  # first: an NMT reset would restart a heartbeat
             self._network.notifier.stop(self._network.NOTIFIER_SHUTDOWN_TIMEOUT)
         for axis in self._axes:
@@ -295,11 +300,6 @@ class VirtualDriveRack:
             return self._steps_done * self._sim.dt_s
 
     @property
-    def monitor_wakeups(self) -> int:
-        """How often the monitor's thread woke: it sleeps until something can be due."""
-        return self._monitor.wakeups
-
-    @property
     def active_faults(self) -> dict[str, dict[str, int]]:
         """The injected faults that are on, per axis: {kind: value} (`FAULT_KINDS`)."""
         with self._lock:
@@ -325,8 +325,6 @@ class VirtualDriveRack:
             ValueError: a value out of the kind's range.
         """
         self._faults.set_checked(self._axis(axis_name), kind, value)
-        with self._lock:
-            self._monitor.poke(time.monotonic())  # an event-driven TPDO may have changed
 
     def _axis(self, name: str) -> Drive:
         try:
@@ -351,19 +349,15 @@ class VirtualDriveRack:
             elif cob == cia301.NMT_COB_ID:
                 with self._lock:
                     self._nmt.on_nmt(data, now)
-                    self._monitor.poke(now)
             elif cia301.HEARTBEAT_COB_BASE < cob <= cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX:
                 with self._lock:
-                    if self._watchdogs.heard(cob - cia301.HEARTBEAT_COB_BASE, data, now):
-                        self._monitor.poke(now)  # a consumer armed: a deadline sooner
+                    self._watchdogs.heard(cob - cia301.HEARTBEAT_COB_BASE, data, now)
             else:
                 targets = self._pdos.rpdo_table.get(cob)
-                with self._lock:
-                    poke = cob in self._sdo_servers  # canopen's server took it: a write?
-                    for axis, pdo in targets or ():
-                        poke = self._pdos.receive(axis, pdo, data, now) or poke
-                    if poke:
-                        self._monitor.poke(now)
+                if targets:
+                    with self._lock:
+                        for axis, pdo in targets:
+                            self._pdos.receive(axis, pdo, data, now)
         except Exception:
             self._counters.handler_errors += 1
             logger.exception("virtual drive: error handling frame 0x%03X %s", cob, data.hex())
@@ -391,13 +385,12 @@ class VirtualDriveRack:
         self._advance(now, stamp_s)
         self._control.settle(self._axes, now)
         done = self._clock()
-        self._watchdogs.last_sync_done_s = done
         if self._lockstep:  # the monitor's work, at the rack's time after this cycle
+            self._watchdogs.last_sync_done_s = done
             self._watchdogs.check(done)
             self._network.send_due(done)
-            self._pdos.service_event_tpdos(done)
-        else:
-            self._monitor.on_sync(done)
+        self._pdos.service_event_tpdos(done)
+        self._watchdogs.last_sync_done_s = done
 
     def _advance(self, now: float, stamp_s: float) -> None:
         """Command the torque demands and run the plant one SYNC's span."""
@@ -456,6 +449,20 @@ class VirtualDriveRack:
             self._warn_once("emcy", f"EMCY send failed: {exc}")
             return
         self._counters.emcy_sent += 1
+
+    def _monitor(self) -> None:
+        due = time.monotonic() + MONITOR_PERIOD_S
+        while not self._stop_event.wait(max(due - time.monotonic(), 0.0)):
+            try:
+                with self._lock:
+                    now = time.monotonic()
+                    late_s = now - due
+                    due = now + MONITOR_PERIOD_S
+                    self._watchdogs.tick(late_s, now)
+                    self._pdos.service_event_tpdos(now)
+            except Exception:
+                self._counters.handler_errors += 1
+                logger.exception("virtual drive: error in the monitor")
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:
