@@ -30,6 +30,7 @@ import canopen
 from canopen.network import MessageListener
 from canopen.sdo.base import SdoArray, SdoRecord
 
+from lca_sim.canbus.frames import send_frame
 from lca_sim.canbus.freeze import FreezeWatch
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import BridgeParams
@@ -149,13 +150,8 @@ class _Transmitter:
         watch = self._watch
         counters = self._counters
         for cob_id, data in frames:
-            bus = network.bus
-            if bus is None:
-                raise RuntimeError("Not connected to CAN bus")  # canopen's, disconnected
-            msg = can.Message(is_extended_id=cob_id > 0x7FF, arbitration_id=cob_id, data=data)
             try:
-                with network.send_lock:
-                    bus.send(msg)
+                send_frame(network, cob_id, data)
                 notifier = network.notifier
                 if notifier is not None and notifier.exception is not None:
                     network.check()  # raises the notifier's error

@@ -12,6 +12,7 @@ from typing import Any
 import can
 import canopen
 
+from lca_sim.canbus.frames import send_frame
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
 from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301
@@ -198,21 +199,13 @@ class RackNetwork(canopen.Network):
                 self.on_dropped(can_id)
             return
         # canopen's send_message, one call shorter: every TPDO goes this way.
-        bus = self.bus
-        if bus is None:
-            raise RuntimeError("Not connected to CAN bus")
         if self._send_data_frame is not None and can_id <= 0x7FF and not remote:
+            if self.bus is None:
+                raise RuntimeError("Not connected to CAN bus")
             with self.send_lock:  # over lca_remote: the same bytes, with no can.Message built
                 self._send_data_frame(can_id, data)
         else:
-            msg = can.Message(
-                is_extended_id=can_id > 0x7FF,
-                arbitration_id=can_id,
-                data=data,
-                is_remote_frame=remote,
-            )
-            with self.send_lock:
-                bus.send(msg)
+            send_frame(self, can_id, data, remote)
         self.check()
         if self.after_send:
             then = self.after_send.pop(can_id, None)
