@@ -32,6 +32,7 @@ from canopen.sdo.base import SdoArray, SdoRecord
 
 from lca_sim.canbus.frames import send_frame
 from lca_sim.canbus.freeze import FreezeWatch
+from lca_sim.canbus.linked_bus import DataFrames, LinkedVirtualBus
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_setup import DriveSetup, forget_invalid_nmt_state
@@ -104,11 +105,7 @@ class _Receiver(can.Listener):
             return
         can_id = msg.arbitration_id
         if can_id in self.tpdo_ids and not msg.is_remote_frame:
-            try:
-                for callback in self._subscribers.get(can_id, ()):
-                    callback(can_id, msg.data, msg.timestamp)
-            except Exception as exc:  # as canopen's listener: reception goes on
-                log.error("TPDO 0x%03X: %s", can_id, exc)
+            self._tpdo(can_id, msg.data, msg.timestamp)
         else:
             self._canopen(msg)
         c = self._counters
@@ -116,6 +113,39 @@ class _Receiver(can.Listener):
         c.frames_received += 1
         c.bits_received += bus_load.FRAME_BITS[dlc]
         c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[dlc]
+
+    def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
+        """Classical data frames from a linked bus: as `on_message_received`, no message each.
+
+        Only a frame canopen takes (not a TPDO) is built into its message.
+        """
+        c = self._counters
+        tpdo_ids = self.tpdo_ids
+        for can_id, data in frames:
+            if can_id in tpdo_ids:
+                self._tpdo(can_id, data, timestamp)
+            else:
+                self._canopen(
+                    can.Message(
+                        timestamp=timestamp,
+                        arbitration_id=can_id,
+                        is_extended_id=False,
+                        data=data,
+                        is_rx=True,
+                    )
+                )
+            c.frames_received += 1
+            c.bits_received += bus_load.FRAME_BITS[len(data)]
+            c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
+
+    def _tpdo(self, can_id: int, data: bytes | bytearray, timestamp: float) -> None:
+        """A TPDO to the callbacks canopen's `Network.notify` would call for it."""
+        try:
+            for callback in self._subscribers.get(can_id, ()):
+                # canopen types the data bytearray; its PDO code only reads it, as bytes
+                callback(can_id, data, timestamp)  # type: ignore[arg-type]
+        except Exception as exc:  # as canopen's listener: reception goes on
+            log.error("TPDO 0x%03X: %s", can_id, exc)
 
 
 class _Transmitter:
@@ -133,9 +163,17 @@ class _Transmitter:
         # Only lca_remote batches (`batched_sends`); for any other bus (fixed once the network
         # is connected) its null context is skipped, three calls fewer per cycle.
         self._batching = isinstance(network.bus, RemoteTransportBus)
+        self._linked = network.bus if isinstance(network.bus, LinkedVirtualBus) else None
 
     def send(self, frames: list[tuple[int, bytes]]) -> None:
-        """Send `frames` in order; a frame that fails is counted and the next one is tried."""
+        """Send `frames` in order; a frame that fails is counted and the next one is tried.
+
+        On a linked bus (the bridge's own rack) the cycle is one `send_data_frames`: it fails
+        only as a whole (the bus shut down), and is then counted once.
+        """
+        if self._linked is not None:
+            self._send_linked(self._linked, frames)
+            return
         if not self._batching:
             self._send_each(frames)
             return
@@ -144,6 +182,27 @@ class _Transmitter:
                 self._send_each(frames)
         except can.CanError as exc:  # the batch's one write failed
             self._watch.send_failed(exc)
+
+    def _send_linked(self, bus: LinkedVirtualBus, frames: list[tuple[int, bytes]]) -> None:
+        network = self._network
+        try:
+            if network.bus is None:
+                raise RuntimeError("Not connected to CAN bus")  # canopen's error
+            with network.send_lock:
+                bus.send_data_frames(frames)
+            notifier = network.notifier
+            if notifier is not None and notifier.exception is not None:
+                network.check()  # raises the notifier's error
+        except can.CanError as exc:
+            self._watch.send_failed(exc)
+            return
+        watch, counters = self._watch, self._counters
+        if watch.send_failures_in_row:
+            watch.send_ok()
+        for _, data in frames:
+            counters.frames_sent += 1
+            counters.bits_sent += bus_load.FRAME_BITS[len(data)]
+            counters.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]
 
     def _send_each(self, frames: list[tuple[int, bytes]]) -> None:
         network = self._network

@@ -13,6 +13,7 @@ import can
 import canopen
 
 from lca_sim.canbus.frames import send_frame
+from lca_sim.canbus.linked_bus import DataFrames, LinkedVirtualBus
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
 from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301
@@ -74,7 +75,8 @@ class RackListener(can.Listener):
         network: the rack's network (canopen's services are fed through it).
         counters: the rack's counters.
         sdo_servers: SDO request COB-ID (0x600 + id) -> its drive.
-        on_frame: the rack's handling of a frame that passed (after canopen's).
+        on_frame: the rack's handling of a data frame that passed (after canopen's): its
+            COB-ID, data and reception time.
         warn_once: logs a warning the first time its key comes: (key, message).
     """
 
@@ -83,7 +85,7 @@ class RackListener(can.Listener):
         network: RackNetwork,
         counters: RackCounters,
         sdo_servers: Mapping[int, Drive],
-        on_frame: Callable[[can.Message], None],
+        on_frame: Callable[[int, bytes, float], None],
         warn_once: Callable[[str, str], None],
     ) -> None:
         self._network = network
@@ -94,17 +96,25 @@ class RackListener(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         """Filter the frame, then canopen's services, then the rack; never raises."""
-        counters = self._counters
         if msg.is_error_frame or msg.is_fd or msg.is_extended_id or msg.is_remote_frame:
             self._count_not_classical(msg)
             return
-        cob = msg.arbitration_id
-        if len(msg.data) > 8:
+        self._data_frame(msg.arbitration_id, msg.data, msg.timestamp)
+
+    def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
+        """Data frames from a linked bus (the bridge's master), as `on_message_received`."""
+        data_frame = self._data_frame
+        for cob, data in frames:
+            data_frame(cob, data, timestamp)
+
+    def _data_frame(self, cob: int, data: bytes | bytearray, timestamp: float) -> None:
+        counters = self._counters
+        if len(data) > 8:
             counters.bad_frames += 1
             return
         sdo_server = self._sdo_servers.get(cob)
         if sdo_server is not None:
-            if len(msg.data) != 8:
+            if len(data) != 8:
                 counters.bad_frames += 1  # CiA 301: an SDO request is 8 bytes; ignored otherwise
                 return
             if sdo_server.nmt == NMT_STOPPED:
@@ -118,14 +128,15 @@ class RackListener(can.Listener):
         # and SYNC, which would only cost the lookups.
         network = self._network
         if (cob in network.subscribers or cob & _SERVICE_MASK in _SCANNED_SERVICES) and (
-            cob != cia301.NMT_COB_ID or len(msg.data) == 2
+            cob != cia301.NMT_COB_ID or len(data) == 2
         ):
             try:
-                network.notify(cob, msg.data, msg.timestamp)
+                # canopen types the data bytearray; its SDO server and NMT slave only read it
+                network.notify(cob, data, timestamp)  # type: ignore[arg-type]
             except Exception:
                 counters.handler_errors += 1
                 logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
-        self._on_frame(msg)
+        self._on_frame(cob, bytes(data), timestamp)
 
     # python-can's Notifier calls its listeners: straight into the filter, not through
     # `can.Listener.__call__`, one call less per frame.
@@ -190,7 +201,10 @@ class RackNetwork(canopen.Network):
         # Lockstep: periodic sends are `CycleTask`s sent by `send_due`, not threads.
         self.lockstep = False
         self.cycle_tasks: list[CycleTask] = []
-        self._send_data_frame = bus.send_data_frame if isinstance(bus, RemoteTransportBus) else None
+        # lca_remote and the bridge's linked bus take a classical data frame as it is
+        self._send_data_frame = (
+            bus.send_data_frame if isinstance(bus, RemoteTransportBus | LinkedVirtualBus) else None
+        )
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """Send as canopen does, except the frames of a node that fault injection silenced."""
@@ -202,7 +216,7 @@ class RackNetwork(canopen.Network):
         if self._send_data_frame is not None and can_id <= 0x7FF and not remote:
             if self.bus is None:
                 raise RuntimeError("Not connected to CAN bus")
-            with self.send_lock:  # over lca_remote: the same bytes, with no can.Message built
+            with self.send_lock:  # the same frame, with no can.Message built
                 self._send_data_frame(can_id, data)
         else:
             send_frame(self, can_id, data, remote)

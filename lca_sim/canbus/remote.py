@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 
 import can
 
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.wire import (
     MAX_HTTP_REQUEST,
     OP_BINARY,
@@ -326,10 +327,10 @@ class _SendBatch:
 
 
 def batched_sends(bus: can.BusABC | None) -> contextlib.AbstractContextManager[None]:
-    """`RemoteTransportBus.batch()` for a remote bus, nothing for any other.
+    """`batch()` of a remote or linked bus (one write, one delivery), nothing for any other.
 
     On a real interface each frame is its own write, as a CAN controller sends it.
     """
-    if isinstance(bus, RemoteTransportBus):
+    if isinstance(bus, RemoteTransportBus | LinkedVirtualBus):
         return bus.batch()
     return contextlib.nullcontext()

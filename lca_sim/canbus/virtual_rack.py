@@ -334,16 +334,14 @@ class VirtualDriveRack:
 
     # --- frames ----------------------------------------------------------------------------
 
-    def _on_frame(self, msg: can.Message) -> None:
-        """Dispatch one received (filtered) frame; never raises."""
-        cob = msg.arbitration_id
-        data = bytes(msg.data)
+    def _on_frame(self, cob: int, data: bytes, timestamp: float) -> None:
+        """Dispatch one received (filtered) data frame; never raises."""
         try:
             now = self._clock()
             if cob == cia301.SYNC_COB_ID:
                 # The bus's reception stamp, not `now`: SYNCs queued while this process stood
                 # still keep their spacing for the SYNC rate check (`RackWatchdogs.sync_in_time`).
-                stamp_s = msg.timestamp if msg.timestamp > 0.0 else time.time()
+                stamp_s = timestamp if timestamp > 0.0 else time.time()
                 with self._lock:
                     self._on_sync(data, now, stamp_s)
             elif cob == cia301.NMT_COB_ID:

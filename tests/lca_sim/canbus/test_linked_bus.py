@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from collections.abc import Iterator
+from typing import Any
 
 import can
 import canopen
@@ -17,10 +19,11 @@ import pytest
 from support import wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.linked_bus import LinkedVirtualBus
+from lca_sim.canbus.linked_bus import DataFrameListener, DataFrames, LinkedVirtualBus
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.remote import batched_sends
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.config.rack import eds_path, load_rack_config
 
@@ -74,6 +77,100 @@ def test_a_failing_listener_is_counted_not_raised_into_the_sender() -> None:
         b.shutdown()
 
 
+class _Frames:
+    """A `DataFrameListener` that records each call's frames and stamp."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[list[tuple[int, bytes]], float]] = []
+        self.messages: list[can.Message] = []
+
+    def __call__(self, msg: can.Message) -> None:  # python-can's listener call
+        self.messages.append(msg)
+
+    def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
+        self.calls.append((list(frames), timestamp))
+
+
+def test_data_frames_reach_a_frame_listener_in_one_call_others_as_messages() -> None:
+    """send_data_frames: one call per attached frame listener, messages for the rest, the probe."""
+    channel = _channel()
+    a, b = LinkedVirtualBus(channel=channel), LinkedVirtualBus(channel=channel)
+    probe = can.Bus(interface="virtual", channel=channel)
+    frame_listener, plain = _Frames(), _Frames()
+    messages: list[can.Message] = []
+    frames = [(0x201, b"\x0f\x00\x10\x00"), (0x80, b""), (0x701, b"\x05")]
+    try:
+        assert isinstance(frame_listener, DataFrameListener)
+        b.attach([frame_listener, messages.append])
+        before = time.time()
+        a.send_data_frames(frames)
+        assert len(frame_listener.calls) == 1  # the cycle's frames at once, no message each
+        got, stamp = frame_listener.calls[0]
+        assert got == frames and before <= stamp <= time.time()
+        assert [(m.arbitration_id, bytes(m.data)) for m in messages] == frames
+        assert all(
+            m.is_rx and not m.is_extended_id and m.channel == channel and m.timestamp == stamp
+            for m in messages
+        )
+        seen = [probe.recv(1.0) for _ in frames]
+        assert [(m.arbitration_id, bytes(m.data)) for m in seen if m is not None] == frames
+        assert a.direct_frames == 3 and not plain.calls
+    finally:
+        for bus in (a, b, probe):
+            bus.shutdown()
+
+
+def test_a_batch_delivers_at_its_end_and_a_message_goes_after_what_it_held() -> None:
+    """The rack's TPDOs of one SYNC reach the master in one call; order on the bus is kept."""
+    channel = _channel()
+    a, b = LinkedVirtualBus(channel=channel), LinkedVirtualBus(channel=channel)
+    probe = can.Bus(interface="virtual", channel=channel)
+    listener = _Frames()
+    try:
+        b.attach([listener])
+        with batched_sends(a):
+            a.send_data_frame(0x181, b"\x01")
+            with batched_sends(a):  # nested: the outer one delivers
+                a.send_data_frame(0x182, b"\x02")
+            assert listener.calls == []
+            a.send(can.Message(arbitration_id=0x81, data=b"\x00" * 8, is_extended_id=False))
+            a.send_data_frame(0x183, b"\x03")
+            assert listener.calls[0][0] == [(0x181, b"\x01"), (0x182, b"\x02")]
+        assert [f for f, _ in listener.calls] == [
+            [(0x181, b"\x01"), (0x182, b"\x02")],
+            [(0x183, b"\x03")],
+        ]
+        assert [m.arbitration_id for m in listener.messages] == [0x81]
+        seen = [probe.recv(1.0) for _ in range(4)]
+        assert [m.arbitration_id for m in seen if m is not None] == [0x181, 0x182, 0x81, 0x183]
+    finally:
+        for bus in (a, b, probe):
+            bus.shutdown()
+
+
+def test_a_frame_listener_that_raises_is_counted_and_the_next_listener_served() -> None:
+    """As for messages: the sender (the master's cycle) goes on."""
+    channel = _channel()
+    a, b = LinkedVirtualBus(channel=channel), LinkedVirtualBus(channel=channel)
+
+    class Broken(_Frames):
+        def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
+            raise ValueError("listener bug")
+
+    after = _Frames()
+    try:
+        b.attach([Broken(), after])
+        a.send_data_frames([(0x181, b"\x00" * 8)])
+        assert b.listener_errors == 1
+        assert [f for f, _ in after.calls] == [[(0x181, b"\x00" * 8)]]
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+_rack_of: dict[Cia402Master, VirtualDriveRack] = {}  # the fixture's rack, by its master
+
+
 @pytest.fixture
 def linked(default_robot: RobotParams) -> Iterator[tuple[Cia402Master, list[Snapshot]]]:
     """The shipped rack and the master on linked buses, initialised, cycled by hand."""
@@ -97,10 +194,12 @@ def linked(default_robot: RobotParams) -> Iterator[tuple[Cia402Master, list[Snap
     )
     states: list[Snapshot] = []
     master = Cia402Master(network, params, eds_path(), on_state=states.append)
+    _rack_of[master] = rack
     try:
         master.init()
         yield master, states
     finally:
+        _rack_of.pop(master, None)
         master.stop()
         network.disconnect()
         rack.stop()
@@ -139,3 +238,55 @@ def test_one_state_per_sync_when_a_sync_s_tpdos_come_again(
     master.cycle(master.now())
     assert len(states) == 2 and states[1].cycle == states[0].cycle + 1
     assert states[1].sync_wall_s >= states[0].sync_wall_s
+
+
+class _CountingProxy:
+    """Stands in for a listener in a notifier's list: counts the batches, forwards everything."""
+
+    def __init__(self, inner: DataFrameListener) -> None:
+        self.inner = inner
+        self.batches: list[int] = []
+
+    def __call__(self, msg: can.Message) -> None:
+        self.inner(msg)  # type: ignore[operator]
+
+    def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
+        self.batches.append(len(frames))
+        self.inner.on_data_frames(frames, timestamp)
+
+
+def _proxy_frame_listener(listeners: list[Any]) -> _CountingProxy:
+    (k,) = [k for k, x in enumerate(listeners) if isinstance(x, DataFrameListener)]
+    proxy = _CountingProxy(listeners[k])
+    listeners[k] = proxy  # the linked bus sees the list change and serves the proxy
+    return proxy
+
+
+def test_a_cycle_on_the_link_is_one_delivery_each_way(
+    linked: tuple[Cia402Master, list[Snapshot]],
+) -> None:
+    """The master's RPDOs and SYNC reach the rack in one call, its four TPDOs the master in one.
+
+    Counted as well by the master (frames sent and received: the bus load on /diagnostics)
+    and the bus (`direct_frames`): the same counts as frame by frame.
+    """
+    master, states = linked
+    network = master.network
+    assert network.notifier is not None
+    master.cycle(master.now())  # the first: the drives' state machines begin
+    master_side = _proxy_frame_listener(network.notifier.listeners)
+    rack_notifier = _rack_of[master]._network.notifier  # its listener list, as the bus has it
+    assert rack_notifier is not None
+    rack_side = _proxy_frame_listener(rack_notifier.listeners)
+    sent, received = master.counters.frames_sent, master.counters.frames_received
+    master_bus = network.bus
+    assert isinstance(master_bus, LinkedVirtualBus)
+    direct = master_bus.direct_frames
+    master.cycle(master.now())
+    assert len(states) == 2
+    cycle_frames = master.counters.frames_sent - sent
+    assert rack_side.batches == [cycle_frames]  # four RPDOs, the SYNC (the heartbeat when due)
+    assert cycle_frames >= 5
+    assert master_side.batches == [4]  # one TPDO per drive, after the SYNC, at once
+    assert master_bus.direct_frames - direct == cycle_frames
+    assert master.counters.frames_received - received == 4
