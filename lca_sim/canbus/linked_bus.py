@@ -23,32 +23,19 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from copy import deepcopy
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import can
 from can.interfaces.virtual import VirtualBus
 
+from lca_sim.canbus.data_frames import AttachedListeners, DataFrames, received_message
+
 log = logging.getLogger(__name__)
 
-DataFrames = Sequence[tuple[int, bytes]]  # classical 11-bit data frames: (COB-ID, 0-8 bytes)
-
-
-@runtime_checkable
-class DataFrameListener(Protocol):
-    """A listener that takes classical data frames as they are, several at once.
-
-    `on_data_frames` handles each frame's failure itself: an exception that escapes it is
-    counted and logged by the linked bus, and the batch's later frames are lost to it.
-    """
-
-    def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
-        """Take `frames` in order, all received at `timestamp` (python-can's time.time())."""
-
-
 # queue (by id) of a linked bus -> its attached listeners
-_handlers: dict[int, _Attached] = {}
+_handlers: dict[int, AttachedListeners] = {}
 _handlers_lock = threading.Lock()
 
 
@@ -62,15 +49,14 @@ class LinkedVirtualBus(VirtualBus):
 
     def __init__(self, channel: Any = None, **kwargs: Any) -> None:
         super().__init__(channel=channel, **kwargs)
-        self._delivery = threading.RLock()  # one frame at a time into the listeners
         self.direct_frames = 0  # frames this bus handed over directly
         self._batcher = _LinkedBatch(self)
-        self.listener_errors = 0  # exceptions of its attached listeners (logged)
+        self._attached: AttachedListeners | None = None
         # The channel's other queues with their handlers (None: queued), and the channel's
         # members and the handlers they were built from (`send` builds them again on a change).
-        self._routes: list[tuple[Any, _Attached | None]] = []
+        self._routes: list[tuple[Any, AttachedListeners | None]] = []
         self._routes_members: list[Any] | None = None
-        self._routes_handlers: dict[int, _Attached] | None = None
+        self._routes_handlers: dict[int, AttachedListeners] | None = None
 
     def attach(self, listeners: Iterable[Callable[[can.Message], Any]]) -> None:
         """Hand frames from other linked buses to `listeners` directly, in the sender's thread.
@@ -79,16 +65,15 @@ class LinkedVirtualBus(VirtualBus):
         called too. Frames from plain `virtual` buses still come through the queue. A
         `DataFrameListener` gets `send_data_frames`' frames as they are, the others as messages.
         """
+        attached = AttachedListeners(listeners, self.channel_id)
+        self._attached = attached
         with _handlers_lock:
-            _handlers[id(self.queue)] = _Attached(self, listeners)
+            _handlers[id(self.queue)] = attached
 
-    def deliver(self, receive: Callable[[can.Message], Any], msg: can.Message) -> None:
-        """Hand `msg` to one attached listener; its exception is counted and logged."""
-        try:
-            receive(msg)
-        except Exception:  # a notifier would survive it too: so does the sender
-            self.listener_errors += 1
-            log.exception("listener failed on frame 0x%03X", msg.arbitration_id)
+    @property
+    def listener_errors(self) -> int:
+        """Exceptions of the listeners attached now (logged)."""
+        return 0 if self._attached is None else self._attached.errors
 
     def detach(self) -> None:
         """Back to the queue for every frame (before the listeners go)."""
@@ -137,7 +122,7 @@ class LinkedVirtualBus(VirtualBus):
                 handlers.data_frames(frames, timestamp)
                 continue
             for frame in frames:
-                msg = _received(frame, timestamp, self.channel_id)
+                msg = received_message(frame, timestamp, self.channel_id)
                 msg.is_rx = bus_queue is not self.queue
                 all_sent = _put(bus_queue, msg, None) and all_sent
         if not all_sent:
@@ -155,7 +140,7 @@ class LinkedVirtualBus(VirtualBus):
         """
         return self._batcher
 
-    def _targets(self) -> list[tuple[Any, _Attached | None]]:
+    def _targets(self) -> list[tuple[Any, AttachedListeners | None]]:
         """The channel's other queues with the handlers of their attached listeners."""
         with _handlers_lock:
             # routed again only when a bus joined or left the channel or (de)attached; the
@@ -174,67 +159,6 @@ class LinkedVirtualBus(VirtualBus):
         """Detach, then shut down as a `VirtualBus`."""
         self.detach()
         super().shutdown()
-
-
-def _receiver(listener: Callable[[can.Message], Any]) -> Callable[[can.Message], Any]:
-    """What to call for a frame: a `can.Listener`'s `on_message_received` without its `__call__`."""
-    if isinstance(listener, can.Listener) and type(listener).__call__ is can.Listener.__call__:
-        return listener.on_message_received
-    return listener
-
-
-class _Attached:
-    """The listeners attached to one linked bus, and the two ways frames reach them."""
-
-    def __init__(
-        self, bus: LinkedVirtualBus, listeners: Iterable[Callable[[can.Message], Any]]
-    ) -> None:
-        self._bus = bus
-        self._live = listeners
-        self._seen: list[Callable[[can.Message], Any]] = []
-        self._receivers: tuple[
-            tuple[Callable[[can.Message], Any], Callable[[DataFrames, float], None] | None], ...
-        ] = ()
-
-    def _refresh(self) -> None:
-        """The listeners again, after one came or went (the lists compared by identity, in C)."""
-        self._seen = list(self._live)
-        self._receivers = tuple(
-            (
-                _receiver(listener),
-                listener.on_data_frames if isinstance(listener, DataFrameListener) else None,
-            )
-            for listener in self._seen
-        )
-
-    def message(self, msg: can.Message) -> None:
-        """One message to every listener."""
-        bus = self._bus
-        with bus._delivery:
-            if self._seen != self._live:
-                self._refresh()
-            for receive, _ in self._receivers:
-                bus.deliver(receive, msg)
-
-    def data_frames(self, frames: DataFrames, timestamp: float) -> None:
-        """Data frames to every listener: as they are, or as messages built once for all."""
-        bus = self._bus
-        with bus._delivery:
-            if self._seen != self._live:
-                self._refresh()
-            messages: list[can.Message] | None = None
-            for receive, receive_frames in self._receivers:
-                if receive_frames is not None:
-                    try:
-                        receive_frames(frames, timestamp)
-                    except Exception:  # as `deliver`: the sender goes on
-                        bus.listener_errors += 1
-                        log.exception("listener failed on frames %s", _ids(frames))
-                    continue
-                if messages is None:
-                    messages = [_received(f, timestamp, bus.channel_id) for f in frames]
-                for msg in messages:
-                    bus.deliver(receive, msg)
 
 
 class _LinkedBatch:
@@ -285,19 +209,6 @@ class _LinkedBatch:
         self._bus._deliver_data_frames(frames)
 
 
-def _received(frame: tuple[int, bytes], timestamp: float, channel: Any) -> can.Message:
-    """One data frame as the message a receiving bus hands out."""
-    arbitration_id, data = frame
-    return can.Message(
-        timestamp=timestamp,
-        arbitration_id=arbitration_id,
-        is_extended_id=False,
-        data=data,
-        channel=channel,
-        is_rx=True,
-    )
-
-
 def _put(bus_queue: Any, msg: can.Message, timeout: float | None) -> bool:
     """Queue `msg` for a plain virtual bus; False when its queue is full (as python-can's)."""
     try:
@@ -305,7 +216,3 @@ def _put(bus_queue: Any, msg: can.Message, timeout: float | None) -> bool:
     except Exception:  # queue.Full, as python-can's VirtualBus reports it
         return False
     return True
-
-
-def _ids(frames: DataFrames) -> str:
-    return " ".join(f"0x{arbitration_id:03X}" for arbitration_id, _ in frames)

@@ -30,9 +30,10 @@ import canopen
 from canopen.network import MessageListener
 from canopen.sdo.base import SdoArray, SdoRecord
 
+from lca_sim.canbus.data_frames import DataFrames
 from lca_sim.canbus.frames import send_frame
 from lca_sim.canbus.freeze import FreezeWatch
-from lca_sim.canbus.linked_bus import DataFrames, LinkedVirtualBus
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_setup import DriveSetup, forget_invalid_nmt_state

@@ -12,8 +12,9 @@ from typing import Any
 import can
 import canopen
 
+from lca_sim.canbus.data_frames import DataFrames
 from lca_sim.canbus.frames import send_frame
-from lca_sim.canbus.linked_bus import DataFrames, LinkedVirtualBus
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
 from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301

@@ -23,11 +23,13 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Iterable
 from typing import Any
 from urllib.parse import urlsplit
 
 import can
 
+from lca_sim.canbus.data_frames import AttachedListeners, received_message
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.wire import (
     MAX_HTTP_REQUEST,
@@ -41,6 +43,7 @@ from lca_sim.canbus.wire import (
     ProtocolError,
     accept_key,
     channel_url,
+    decode_data_frame,
     decode_message,
     encode_data_frame,
     encode_message,
@@ -150,8 +153,10 @@ class RemoteTransportBus(can.BusABC):
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._poller = select.poll()
         self._poller.register(self._sock, select.POLLIN)
-        # Read, not yet handed out, in order: frames, and (opcode, payload) of the others.
-        self._ready: deque[can.Message | tuple[int, bytes]] = deque()
+        # Read, not yet handed out, in order: frames, runs of data frames for the attached
+        # listeners (`attach`), and (opcode, payload) of the other websocket messages.
+        self._ready: deque[can.Message | _DataRun | tuple[int, bytes]] = deque()
+        self._attached: AttachedListeners | None = None
         self._send_lock = threading.Lock()
         self._batcher = _SendBatch(self)
         self._closed = False
@@ -201,17 +206,36 @@ class RemoteTransportBus(can.BusABC):
         """
         return self._batcher
 
+    def attach(self, listeners: Iterable[Callable[[can.Message], Any]]) -> None:
+        """Hand the classical data frames read to `listeners` from `recv`'s thread, at once.
+
+        Pass the list of the notifier that reads this bus (`can.Notifier.listeners`): the
+        frames of one read go to a `DataFrameListener` (the rack's, the master's) in one call,
+        without a message each, and to its other listeners as messages; `recv` returns the
+        other frames (29-bit, remote, error, CAN FD), which the notifier hands on as before.
+        Only while no filter is set and python-can's receive log is off: else every frame is
+        a message from `recv`.
+        """
+        self._attached = AttachedListeners(listeners, self.channel)
+
+    def detach(self) -> None:
+        """Every frame from `recv` again (before the listeners go)."""
+        self._attached = None
+
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """`BusABC.recv`: a frame read already comes at once, filtered and logged as there."""
         ready = self._ready
         while ready:
             item = ready.popleft()
-            if not isinstance(item, can.Message):
+            if isinstance(item, can.Message):
+                if self._unfiltered or self._matches_filters(item):
+                    if self._log_frames:
+                        _BUS_LOGGER.log(self.RECV_LOGGING_LEVEL, "Received: %s", item)
+                    return item
+            elif isinstance(item, _DataRun):
+                self._hand_on(item)
+            else:
                 self._handle(*item)
-            elif self._unfiltered or self._matches_filters(item):
-                if self._log_frames:
-                    _BUS_LOGGER.log(self.RECV_LOGGING_LEVEL, "Received: %s", item)
-                return item
         return super().recv(timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -223,7 +247,10 @@ class RemoteTransportBus(can.BusABC):
                 item = ready.popleft()
                 if isinstance(item, can.Message):
                     return item, False
-                self._handle(*item)
+                if isinstance(item, _DataRun):
+                    self._hand_on(item)
+                else:
+                    self._handle(*item)
             if not self._read(wait_s):
                 return None, False
             if deadline is not None:
@@ -248,21 +275,48 @@ class RemoteTransportBus(can.BusABC):
             frames = parse_frames(self._buf)
         except ProtocolError as exc:
             raise can.CanOperationError(f"{self.url}: {exc}") from exc
-        self._queue_frames(frames, time.time())
         self._log_frames = _BUS_LOGGER.isEnabledFor(self.RECV_LOGGING_LEVEL)
+        self._queue_frames(frames, time.time())
         return True
 
     def _queue_frames(self, frames: list[tuple[int, bytes]], stamp_s: float) -> None:
-        """Turn websocket messages into frames stamped `stamp_s`, the others kept for later."""
+        """Turn websocket messages into frames stamped `stamp_s`, the others kept for later.
+
+        With listeners attached, no filter and no receive log, consecutive classical data
+        frames become one run for the listeners (`attach`).
+        """
         ready = self._ready
+        runs = self._attached is not None and self._unfiltered and not self._log_frames
+        run: _DataRun | None = None
         for opcode, payload in frames:
             if opcode != OP_BINARY:
                 ready.append((opcode, payload))
+                run = None
                 continue
+            if runs:
+                frame = decode_data_frame(payload)
+                if frame is not None:
+                    if run is None:
+                        run = _DataRun(stamp_s)
+                        ready.append(run)
+                    run.frames.append(frame)
+                    continue
+            run = None
             try:
                 ready.append(decode_message(payload, stamp_s))
             except ValueError as exc:
                 logger.warning("%s: dropped a message: %s", self.url, exc)
+
+    def _hand_on(self, run: _DataRun) -> None:
+        """A run of data frames to the attached listeners (as messages if they were detached)."""
+        attached = self._attached
+        if attached is not None:
+            attached.data_frames(run.frames, run.stamp_s)
+            return
+        ready = self._ready  # detached since the read: back in front, each a message
+        ready.extendleft(
+            reversed([received_message(f, run.stamp_s, self.channel) for f in run.frames])
+        )
 
     def _handle(self, opcode: int, payload: bytes) -> None:
         """A websocket message that is not a frame, in its turn among the frames."""
@@ -294,6 +348,16 @@ class RemoteTransportBus(can.BusABC):
                 except OSError:
                     pass
                 self._sock.close()
+
+
+class _DataRun:
+    """Consecutive classical data frames of one read, for the attached listeners."""
+
+    __slots__ = ("frames", "stamp_s")
+
+    def __init__(self, stamp_s: float) -> None:
+        self.stamp_s = stamp_s
+        self.frames: list[tuple[int, bytes]] = []
 
 
 class _SendBatch:

@@ -41,6 +41,7 @@ from lca_sim.canbus.rack_objects import ObjectStore, drive_units
 from lca_sim.canbus.rack_pdo import PdoEngine
 from lca_sim.canbus.rack_state import NMT_OPERATIONAL, NMT_STOPPED, Drive, FaultEvent, RackCounters
 from lca_sim.canbus.rack_watchdog import RackWatchdogs
+from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301, codec
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import DriveUnits
@@ -205,8 +206,9 @@ class VirtualDriveRack:
             settle_heap()  # before the rack's threads run: a full collection would stall them
         self._network.connect()
         bus, notifier = self._network.bus, self._network.notifier
-        if isinstance(bus, LinkedVirtualBus) and notifier is not None:
-            bus.attach(notifier.listeners)  # a linked master's frames come in its thread
+        if isinstance(bus, LinkedVirtualBus | RemoteTransportBus) and notifier is not None:
+            # a linked master's frames come in its thread; both hand data frames as they are
+            bus.attach(notifier.listeners)
         else:
             self._yield_after_tpdos = isinstance(bus, VirtualBus)
         with self._lock:
@@ -225,7 +227,7 @@ class VirtualDriveRack:
         if not self._started or self._stopped:
             return
         self._stopped = True
-        if isinstance(self._network.bus, LinkedVirtualBus):
+        if isinstance(self._network.bus, LinkedVirtualBus | RemoteTransportBus):
             self._network.bus.detach()  # a master sending on: its frames queue, unread
         self._stop_event.set()
         if self._monitor_thread is not None:

@@ -32,6 +32,7 @@ IS_FD = 0x08
 IS_BRS = 0x10
 IS_ESI = 0x20
 MAX_PAYLOAD = HEADER.size + 64  # the longest CAN FD frame
+MAX_BASE_ID = 0x7FF  # the largest 11-bit identifier
 MAX_HTTP_REQUEST = 16384
 WS_GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
 OP_TEXT, OP_BINARY, OP_CLOSE, OP_PING, OP_PONG = 0x1, 0x2, 0x8, 0x9, 0xA
@@ -58,6 +59,21 @@ def encode_message(msg: can.Message) -> bytes:
 def encode_data_frame(arbitration_id: int, data: bytes) -> bytes:
     """`encode_message` of a new classical 11-bit data frame (no flags, timestamp 0), at once."""
     return HEADER.pack(MESSAGE_TYPE, 0.0, arbitration_id, len(data), 0) + bytes(data)
+
+
+def decode_data_frame(payload: bytes | bytearray) -> tuple[int, bytes] | None:
+    """(COB-ID, data) of a classical 11-bit data frame of at most 8 bytes, else None.
+
+    Every frame of a CANopen cycle is one; `decode_message` takes the others (29-bit, remote,
+    error and CAN FD frames, a DLC that does not match the data) and refuses what is no frame.
+    """
+    if len(payload) < HEADER.size or payload[0] != MESSAGE_TYPE:
+        return None
+    _type, _sent, arbitration_id, dlc, flags = HEADER.unpack_from(payload)
+    data = bytes(payload[HEADER.size :])
+    if flags or arbitration_id > MAX_BASE_ID or dlc > 8 or dlc != len(data):
+        return None
+    return arbitration_id, data
 
 
 def decode_message(payload: bytes | bytearray, timestamp: float) -> can.Message:

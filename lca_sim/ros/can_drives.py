@@ -29,6 +29,7 @@ from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeError, BridgeParams
 from lca_sim.canbus.master_state import Snapshot
+from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, CanBridgeNodeParams
 from lca_sim.errors import ConfigError, LcaHilError
@@ -265,10 +266,12 @@ class CanDrives:
             # long enough for the rack's RPDO deadline to fire at shutdown.
             self.network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
         self.network.connect()
-        if isinstance(bus, LinkedVirtualBus) and self.network.notifier is not None:
-            # The rack's frames reach the master in the rack's thread, and the master's the
-            # rack in the master's: no copy, queue or thread hand-over per frame.
-            bus.attach(self.network.notifier.listeners)
+        notifier = self.network.notifier
+        if isinstance(bus, LinkedVirtualBus | RemoteTransportBus) and notifier is not None:
+            # Linked: the rack's frames reach the master in the rack's thread, and the master's
+            # the rack in the master's (no copy, queue or thread hand-over per frame). Both:
+            # a cycle's data frames reach the master's listener at once, no message each.
+            bus.attach(notifier.listeners)
         params = bridge_params(p, self.robot_values())
         if not self._lockstep:
             self.master = Cia402Master(

@@ -19,7 +19,8 @@ import pytest
 from support import wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.linked_bus import DataFrameListener, DataFrames, LinkedVirtualBus
+from lca_sim.canbus.data_frames import DataFrameListener, DataFrames
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_state import Snapshot

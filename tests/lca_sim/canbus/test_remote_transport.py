@@ -31,6 +31,7 @@ from hypothesis import strategies as st
 from support import bridge_params, wait_until
 
 from lca_sim.canbus import remote, wire
+from lca_sim.canbus.data_frames import DataFrames
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.relay import RelayServer
@@ -331,6 +332,80 @@ def test_websocket_framing_survives_any_split(
     assert [op for op, _ in got] == [2] * len(msgs)
     for (_, payload), msg in zip(got, msgs, strict=True):
         assert _same(wire.decode_message(payload, 0.0), msg)
+
+
+@settings(max_examples=300, deadline=None)
+@given(frames)
+def test_only_classical_data_frames_decode_as_data_frames(msg: can.Message) -> None:
+    """`decode_data_frame` takes a frame exactly when it is an 11-bit data frame of <= 8 bytes.
+
+    And then as `decode_message` would: the same identifier and data.
+    """
+    payload = wire.encode_message(msg)
+    frame = wire.decode_data_frame(payload)
+    classical = not (
+        msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd
+    ) and (msg.dlc == len(msg.data) <= 8)
+    assert (frame is not None) == classical, (msg, frame)
+    if frame is not None:
+        assert frame == (msg.arbitration_id, bytes(msg.data))
+
+
+class _Runs:
+    """A `DataFrameListener` noting each call's frames (as the rack's and master's listeners)."""
+
+    def __init__(self) -> None:
+        self.runs: list[list[tuple[int, bytes]]] = []
+        self.stamps: list[float] = []
+
+    def __call__(self, msg: can.Message) -> None:
+        raise AssertionError(f"a data frame came as a message: {msg}")
+
+    def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
+        self.runs.append(list(frames))
+        self.stamps.append(timestamp)
+
+
+def test_an_attached_bus_hands_a_read_s_data_frames_on_at_once(
+    in_process_relay: RelayServer,
+) -> None:
+    """Over lca_remote: one call for the data frames of a read, the others from `recv` in turn.
+
+    A message listener in the same list gets the data frames as messages; a 29-bit frame in
+    the middle splits the run and comes out of `recv` between its two halves.
+    """
+    url = in_process_relay.url
+    runs = _Runs()
+    as_messages: list[can.Message] = []
+    with (
+        can.Bus(interface="lca_remote", channel=url) as a,
+        can.Bus(interface="lca_remote", channel=url) as b,
+    ):
+        assert isinstance(b, remote.RemoteTransportBus)
+        b.attach([runs, as_messages.append])
+        data = [(0x201, b"\x0f\x00"), (0x202, b"\x0f\x00\x01\x02"), (0x80, b"")]
+        extended = can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, data=b"\x01")
+        before_s = time.time()
+        with remote.batched_sends(a):
+            for cob, payload in data[:2]:
+                a.send(can.Message(arbitration_id=cob, is_extended_id=False, data=payload))
+            a.send(extended)
+            a.send(can.Message(arbitration_id=0x80, is_extended_id=False, data=b""))
+        got = b.recv(10.0)
+        assert got is not None and _same(got, extended)
+        # the frames before it were handed on before it came out (in one run when the batch
+        # came in one read, as it does on loopback; a split read makes two)
+        assert [f for run in runs.runs for f in run] == data[:2]
+        before_sync = len(runs.runs)
+        assert b.recv(0.05) is None
+        assert runs.runs[before_sync:] == [data[2:]]
+        assert before_s <= runs.stamps[0] <= runs.stamps[-1] <= time.time()
+        assert [(m.arbitration_id, bytes(m.data)) for m in as_messages] == data
+        b.detach()
+        a.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x07"))
+        back = b.recv(10.0)  # detached: every frame from recv again
+        assert back is not None and back.arbitration_id == 0x181
+        assert len(runs.runs) == before_sync + 1
 
 
 def test_special_frames_cross_the_relay(in_process_relay: RelayServer) -> None:
