@@ -451,8 +451,16 @@ class VirtualDriveRack:
         self._counters.emcy_sent += 1
 
     def _monitor(self) -> None:
+        # A plain sleep, not the stop event's wait (a lock and a condition per tick, about
+        # 15 us more CPU each on the 2-core host, 200 times a second): stop() waits one tick.
         due = time.monotonic() + MONITOR_PERIOD_S
-        while not self._stop_event.wait(max(due - time.monotonic(), 0.0)):
+        stop = self._stop_event
+        while True:
+            delay_s = due - time.monotonic()
+            if delay_s > 0.0:
+                time.sleep(delay_s)
+            if stop.is_set():
+                return
             try:
                 with self._lock:
                     now = time.monotonic()
