@@ -451,15 +451,10 @@ class VirtualDriveRack:
         self._counters.emcy_sent += 1
 
     def _monitor(self) -> None:
-        # A plain sleep, not the stop event's wait (a lock and a condition per tick, about
-        # 15 us more CPU each on the 2-core host, 200 times a second): stop() waits one tick.
         due = time.monotonic() + MONITOR_PERIOD_S
-        stop = self._stop_event
-        while True:
-            delay_s = due - time.monotonic()
-            if delay_s > 0.0:
-                time.sleep(delay_s)
-            if stop.is_set():
+        while True:  # a sleep, not the stop event's wait: 15 us less CPU a tick, stop() waits one
+            time.sleep(max(due - time.monotonic(), 0.0))
+            if self._stop_event.is_set():
                 return
             try:
                 with self._lock:
