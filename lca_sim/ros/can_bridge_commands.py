@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.subscription import Subscription
@@ -81,6 +82,7 @@ class BridgeCommands:
         self.taken = dict.fromkeys(self._axes_of, 0)  # command arrays taken, per topic
         self.wrong_interface = 0
         self.undecodable = 0  # polled command bytes that were no Float64MultiArray
+        self.unpublished_skips = 0  # polls that did not ask a topic nobody publishes
         self.ignored_inactive = 0  # commands that came while not active
         # ros2_control's topic-based interface: the commands in force, joint order, so a
         # JointState naming some joints leaves the others as they are.
@@ -105,7 +107,7 @@ class BridgeCommands:
         )
         self._node = node
         self._polls = polled
-        self._polled: list[tuple[Subscription, Callable[[Any, float | None], None]]] = []
+        self._polled: list[_Polled] = []
         self._poll_lock = threading.Lock()  # the cycle thread and the diagnostics timer
         self._subscribe(Float64MultiArray, pc.CURRENT_COMMANDS, self._on_current)
         self._subscribe(Float64MultiArray, pc.VOLTAGE_COMMANDS, self._on_voltage)
@@ -136,20 +138,34 @@ class BridgeCommands:
             else:
                 node.create_subscription(msg_type, topic, lambda msg: handler(msg, None), qos)
             return
-        self._polled.append((unspun_subscription(node, msg_type, topic, qos, raw=arrays), handler))
+        publishers = _Publishers()
+        sub = unspun_subscription(
+            node, msg_type, topic, qos, raw=arrays, event_callbacks=publishers.callbacks()
+        )
+        self._polled.append(_Polled(sub, handler, publishers))
 
     def poll(self) -> None:
         """Take every command that came since the last poll, with its receive time (real time).
 
         Called by the master's cycle thread before each SYNC's RPDOs, and by the diagnostics
-        timer, which counts the commands that come while no cycle runs (unconfigured).
+        timer, which counts the commands that come while no cycle runs (unconfigured). A topic
+        nobody publishes is not asked (a take costs about 20 us at 500 Hz on the 2-core host,
+        voltage_commands' every cycle): it is drained once after its last publisher left.
         """
         if not self._polled:
             return
         with self._poll_lock:
             offset_ns = time.time_ns() - time.monotonic_ns()
             now_s = time.monotonic()
-            for sub, handler in self._polled:
+            for polled in self._polled:
+                if polled.publishers.count:
+                    polled.drained = False
+                elif polled.drained:
+                    self.unpublished_skips += 1
+                    continue
+                else:
+                    polled.drained = True  # what came before the last publisher left
+                sub, handler = polled.sub, polled.handler
                 while True:
                     try:
                         with sub.handle:
@@ -176,12 +192,16 @@ class BridgeCommands:
                             throttle_duration_sec=1.0,
                         )
 
+    def publisher_counts(self) -> dict[str, int]:
+        """Each polled topic's publishers, as its matched events last said."""
+        return {polled.sub.topic_name: polled.publishers.count for polled in self._polled}
+
     def destroy(self) -> None:
         """Destroy the polled subscriptions (before the bridge node)."""
         with self._poll_lock:
             polled, self._polled = self._polled, []
-        for sub, _ in polled:
-            destroy_unspun(self._node, sub)
+        for each in polled:
+            destroy_unspun(self._node, each.sub)
 
     def unserved(self) -> str:
         """Axes no command topic serves while another does (`unserved_axes`).
@@ -307,3 +327,33 @@ class BridgeCommands:
             "torque; run the controller with command_interface: current",
             throttle_duration_sec=5.0,
         )
+
+
+class _Publishers:
+    """A subscription's publisher count, kept from its matched events (executor thread)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def on_matched(self, info: QoSSubscriptionMatchedInfo) -> None:
+        self.count = info.current_count
+
+    def callbacks(self) -> SubscriptionEventCallbacks:
+        return SubscriptionEventCallbacks(matched=self.on_matched)
+
+
+class _Polled:
+    """A polled subscription, its handler, its publishers, and whether it was drained at 0."""
+
+    __slots__ = ("drained", "handler", "publishers", "sub")
+
+    def __init__(
+        self,
+        sub: Subscription,
+        handler: Callable[[Any, float | None], None],
+        publishers: _Publishers,
+    ) -> None:
+        self.sub = sub
+        self.handler = handler
+        self.publishers = publishers
+        self.drained = False

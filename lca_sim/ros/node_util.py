@@ -207,15 +207,21 @@ def make_executor(context: Context | None = None, kind: str = "events") -> Execu
 
 
 def unspun_subscription(
-    node: Node, msg_type: Any, topic: str, qos: QoSProfile, *, raw: bool
+    node: Node,
+    msg_type: Any,
+    topic: str,
+    qos: QoSProfile,
+    *,
+    raw: bool,
+    event_callbacks: SubscriptionEventCallbacks | None = None,
 ) -> Subscription:
     """A subscription of `node` that no executor takes from: its owner takes, when it chooses.
 
     Built as `Node.create_subscription` builds one (the node's remappings and namespace apply,
     and the graph shows the node as the topic's subscriber), but not registered with the node,
     so an executor spinning the node never takes its messages: the owner calls
-    `sub.handle.take_message`. Its QoS-event handlers are the node's, as usual. The owner
-    destroys it (`destroy_unspun`) before the node.
+    `sub.handle.take_message`. Its QoS-event handlers (`event_callbacks`) are the node's, as
+    usual: the executor calls them. The owner destroys it (`destroy_unspun`) before the node.
     """
     check_is_valid_msg_type(msg_type)
     with node.handle:
@@ -228,7 +234,7 @@ def unspun_subscription(
         node.default_callback_group,
         qos,
         raw,
-        SubscriptionEventCallbacks(),
+        event_callbacks or SubscriptionEventCallbacks(),
     )
     for handler in _event_handlers(sub):
         node.add_waitable(handler)

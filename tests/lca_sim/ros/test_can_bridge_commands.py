@@ -156,3 +156,76 @@ def test_a_poll_after_destroy_hands_on_nothing_and_raises_nothing() -> None:
         commands.poll()
         assert master.taken == []
         assert commands.taken[pc.CURRENT_COMMANDS] == 0
+
+
+def _spun_polled_bridge(ctx: Any) -> Any:
+    """The bridge node spun by an executor of its own: its subscriptions' matched events."""
+    from lca_sim.ros.node_util import make_executor as executor_of
+
+    return executor_of(ctx, "single")
+
+
+def test_a_topic_nobody_publishes_is_not_asked_and_is_drained_when_its_publisher_goes() -> None:
+    """voltage_commands: asked only while it has a publisher, then once more after the last.
+
+    A take costs about 20 us of the 500 Hz cycle on the 2-core host; nothing publishes
+    voltage_commands to a CAN bridge unless a controller is misconfigured, and then each of its
+    commands is still counted and warned about, including the ones it sent just before it
+    went (drained at the first poll after its publisher left).
+    """
+    import rclpy
+
+    with ros_context() as (ctx, executor), _polled_bridge(ctx) as (bridge, _master, commands):
+        bridge_executor = _spun_polled_bridge(ctx)
+        bridge_executor.add_node(bridge)
+        for _ in range(5):
+            commands.poll()
+        # the first poll drained each topic once; no topic has a publisher: none asked since
+        topics = 3  # current_commands, voltage_commands, the JointState command topic (cst)
+        assert commands.unpublished_skips == 4 * topics
+        talker = rclpy.create_node("voltage_talker", context=ctx)
+        spied: list[Float64MultiArray] = []
+        spy = rclpy.create_node("voltage_spy", context=ctx)  # its readers see what the bridge's do
+        spy.create_subscription(
+            Float64MultiArray, pc.VOLTAGE_COMMANDS, spied.append, qos_profile(pc.COMMAND_QOS)
+        )
+        executor.add_node(talker)
+        executor.add_node(spy)
+        pub = talker.create_publisher(
+            Float64MultiArray, pc.VOLTAGE_COMMANDS, qos_profile(pc.COMMAND_QOS)
+        )
+        support.spin_until(executor, lambda: pub.get_subscription_count() >= 2, "both readers")
+
+        def skipped_in_one_poll() -> int:
+            before = commands.unpublished_skips
+            commands.poll()
+            return commands.unpublished_skips - before
+
+        support.spin_until(
+            bridge_executor,
+            lambda: skipped_in_one_poll() == topics - 1,
+            "the bridge sees the publisher (its matched event); the other topics still skipped",
+        )
+        for k in range(3):
+            pub.publish(Float64MultiArray(data=[float(k)] * 4))
+        support.spin_until(
+            bridge_executor,
+            lambda: commands.poll() is None and commands.wrong_interface == 3,
+            "each voltage command counted",
+        )
+        for k in range(2):  # sent, then the publisher goes before the bridge polls
+            pub.publish(Float64MultiArray(data=[float(k)] * 4))
+        support.spin_until(executor, lambda: len(spied) == 5, "the spy has all five")
+        talker.destroy_publisher(pub)
+        support.spin_until(
+            bridge_executor,
+            lambda: commands.publisher_counts()["/" + pc.VOLTAGE_COMMANDS] == 0,
+            "the bridge sees the publisher gone (no poll meanwhile)",
+        )
+        assert commands.wrong_interface == 3
+        assert skipped_in_one_poll() == topics - 1  # the one drain after the last publisher
+        assert commands.wrong_interface == 5  # the two sent before it went
+        assert skipped_in_one_poll() == topics  # and not asked again
+        talker.destroy_node()  # type: ignore[no-untyped-call]
+        spy.destroy_node()  # type: ignore[no-untyped-call]
+        bridge_executor.shutdown()
