@@ -208,9 +208,13 @@ def test_a_topic_nobody_publishes_is_not_asked_and_is_drained_when_its_publisher
         )
         for k in range(3):
             pub.publish(Float64MultiArray(data=[float(k)] * 4))
+        def voltage_commands_after_a_poll() -> int:
+            commands.poll()
+            return commands.wrong_interface
+
         support.spin_until(
             bridge_executor,
-            lambda: commands.poll() is None and commands.wrong_interface == 3,
+            lambda: voltage_commands_after_a_poll() == 3,
             "each voltage command counted",
         )
         for k in range(2):  # sent, then the publisher goes before the bridge polls
