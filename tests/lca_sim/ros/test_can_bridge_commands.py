@@ -208,6 +208,7 @@ def test_a_topic_nobody_publishes_is_not_asked_and_is_drained_when_its_publisher
         )
         for k in range(3):
             pub.publish(Float64MultiArray(data=[float(k)] * 4))
+
         def voltage_commands_after_a_poll() -> int:
             commands.poll()
             return commands.wrong_interface
