@@ -23,7 +23,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.subscription import Subscription
@@ -37,7 +36,7 @@ from lca_sim.model.params import RobotParams
 from lca_sim.ros.can_drives import CanDrives
 from lca_sim.ros.contract_cdr import CdrError, float64_multi_array_data
 from lca_sim.ros.joint_command import JointCommandAdapter, effort_scales, unserved_axes
-from lca_sim.ros.node_util import destroy_unspun, unspun_subscription
+from lca_sim.ros.node_util import MatchedCount, destroy_unspun, unspun_subscription
 from lca_sim.ros.plant_contract import qos_profile
 
 
@@ -138,9 +137,14 @@ class BridgeCommands:
             else:
                 node.create_subscription(msg_type, topic, lambda msg: handler(msg, None), qos)
             return
-        publishers = _Publishers()
+        publishers = MatchedCount()
         sub = unspun_subscription(
-            node, msg_type, topic, qos, raw=arrays, event_callbacks=publishers.callbacks()
+            node,
+            msg_type,
+            topic,
+            qos,
+            raw=arrays,
+            event_callbacks=publishers.subscription_callbacks(),
         )
         self._polled.append(_Polled(sub, handler, publishers))
 
@@ -329,19 +333,6 @@ class BridgeCommands:
         )
 
 
-class _Publishers:
-    """A subscription's publisher count, kept from its matched events (executor thread)."""
-
-    def __init__(self) -> None:
-        self.count = 0
-
-    def on_matched(self, info: QoSSubscriptionMatchedInfo) -> None:
-        self.count = info.current_count
-
-    def callbacks(self) -> SubscriptionEventCallbacks:
-        return SubscriptionEventCallbacks(matched=self.on_matched)
-
-
 class _Polled:
     """A polled subscription, its handler, its publishers, and whether it was drained at 0."""
 
@@ -351,7 +342,7 @@ class _Polled:
         self,
         sub: Subscription,
         handler: Callable[[Any, float | None], None],
-        publishers: _Publishers,
+        publishers: MatchedCount,
     ) -> None:
         self.sub = sub
         self.handler = handler

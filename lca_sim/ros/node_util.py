@@ -15,7 +15,12 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.context import Context
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.event_handler import (
+    PublisherEventCallbacks,
+    QoSPublisherMatchedInfo,
+    QoSSubscriptionMatchedInfo,
+    SubscriptionEventCallbacks,
+)
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -204,6 +209,30 @@ def make_executor(context: Context | None = None, kind: str = "events") -> Execu
         else:
             return EventsExecutor(context=context)
     return SingleThreadedExecutor(context=context)
+
+
+class MatchedCount:
+    """The endpoints matched to a publisher or a subscription, from its matched events.
+
+    Kept by the executor's thread (the node's event handlers), read on any thread: asking the
+    graph instead (`get_subscription_count`, a call into rmw, about 6 us) on every cycle cost
+    the CAN bridge 4 % of a 500 Hz cycle for three optional topics.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def on_matched(self, info: QoSPublisherMatchedInfo | QoSSubscriptionMatchedInfo) -> None:
+        """A matched event: the count it reports now."""
+        self.count = info.current_count
+
+    def publisher_callbacks(self) -> PublisherEventCallbacks:
+        """For `create_publisher`: count its subscribers."""
+        return PublisherEventCallbacks(matched=self.on_matched)
+
+    def subscription_callbacks(self) -> SubscriptionEventCallbacks:
+        """For a subscription (`unspun_subscription`): count its publishers."""
+        return SubscriptionEventCallbacks(matched=self.on_matched)
 
 
 def unspun_subscription(

@@ -22,7 +22,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -33,7 +32,7 @@ from lca_control import contract as pc
 from lca_control.contract import PlantSnapshot
 from lca_sim.errors import LcaHilError
 from lca_sim.ros.contract_cdr import ContractCdr, DriveChainRows, drive_chain_rows, stamp_parts
-from lca_sim.ros.node_util import other_publishers
+from lca_sim.ros.node_util import MatchedCount, other_publishers
 
 # (position, velocity, effort) of one JointState, each in joint order.
 JointValues = tuple[Sequence[float], Sequence[float], Sequence[float]]
@@ -46,23 +45,6 @@ _RELIABILITY = {
 
 # The topics only the plant publishes: a second publisher of any of them is a second plant.
 STATE_TOPICS = (pc.JOINT_STATES, pc.MOTOR_STATES, pc.DRIVE_CHAIN_STATES)
-
-
-class _Subscribers:
-    """A publisher's subscriber count, kept from its matched events (executor thread).
-
-    Asking the graph (`get_subscription_count`, a call into rmw, about 6 us) for three optional
-    topics on every publish was 4 % of a 500 Hz CAN cycle.
-    """
-
-    def __init__(self) -> None:
-        self.count = 0
-
-    def on_matched(self, info: QoSPublisherMatchedInfo) -> None:
-        self.count = info.current_count
-
-    def callbacks(self) -> PublisherEventCallbacks:
-        return PublisherEventCallbacks(matched=self.on_matched)
 
 
 class SnapshotError(LcaHilError):
@@ -98,17 +80,20 @@ class PlantPublisher:
         self._log = node.get_logger()  # type: ignore[no-untyped-call]  # rclpy is untyped here
         self._other_publishers: tuple[str, ...] = ()
         state_qos = qos_profile(pc.STATE_QOS)
-        self._motor_subs, self._drive_subs = _Subscribers(), _Subscribers()
-        self._clock_subs, self._extra_subs = _Subscribers(), _Subscribers()
+        self._motor_subs, self._drive_subs = MatchedCount(), MatchedCount()
+        self._clock_subs, self._extra_subs = MatchedCount(), MatchedCount()
         self.joint_pub: Publisher = node.create_publisher(JointState, pc.JOINT_STATES, state_qos)
         self.motor_pub: Publisher = node.create_publisher(
-            JointState, pc.MOTOR_STATES, state_qos, event_callbacks=self._motor_subs.callbacks()
+            JointState,
+            pc.MOTOR_STATES,
+            state_qos,
+            event_callbacks=self._motor_subs.publisher_callbacks(),
         )
         self.drive_pub: Publisher = node.create_publisher(
             DiagnosticArray,
             pc.DRIVE_CHAIN_STATES,
             state_qos,
-            event_callbacks=self._drive_subs.callbacks(),
+            event_callbacks=self._drive_subs.publisher_callbacks(),
         )
         self.diagnostics_pub: Publisher = node.create_publisher(
             DiagnosticArray, pc.DIAGNOSTICS, qos_profile(pc.DIAGNOSTICS_QOS)
@@ -118,7 +103,7 @@ class PlantPublisher:
                 Clock,
                 pc.CLOCK,
                 qos_profile(pc.CLOCK_QOS),
-                event_callbacks=self._clock_subs.callbacks(),
+                event_callbacks=self._clock_subs.publisher_callbacks(),
             )
             if clock
             else None
@@ -128,7 +113,7 @@ class PlantPublisher:
                 JointState,
                 joint_state_topic,
                 state_qos,
-                event_callbacks=self._extra_subs.callbacks(),
+                event_callbacks=self._extra_subs.publisher_callbacks(),
             )
             if joint_state_topic
             else None
