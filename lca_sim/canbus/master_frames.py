@@ -13,7 +13,7 @@ import can
 import canopen
 from canopen.network import MessageListener
 
-from lca_sim.canbus.data_frames import DataFrames
+from lca_sim.canbus.data_frames import DataFrames, received_message
 from lca_sim.canbus.frames import send_frame
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master_state import Counters
@@ -92,15 +92,7 @@ class FrameReceiver(can.Listener):
             if can_id in tpdo_ids:
                 self._tpdo(can_id, data, timestamp)
             else:
-                self._canopen(
-                    can.Message(
-                        timestamp=timestamp,
-                        arbitration_id=can_id,
-                        is_extended_id=False,
-                        data=data,
-                        is_rx=True,
-                    )
-                )
+                self._canopen(received_message((can_id, data), timestamp, None))
             c.frames_received += 1
             c.bits_received += bus_load.FRAME_BITS[len(data)]
             c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[len(data)]

@@ -17,6 +17,7 @@ from lca_sim.canbus.frames import send_frame
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
 from lca_sim.canbus.remote import RemoteTransportBus
+from lca_sim.canbus.wire import MAX_BASE_ID
 from lca_sim.cia402 import cia301
 
 logger = logging.getLogger(__name__)
@@ -214,7 +215,7 @@ class RackNetwork(canopen.Network):
                 self.on_dropped(can_id)
             return
         # canopen's send_message, one call shorter: every TPDO goes this way.
-        if self._send_data_frame is not None and can_id <= 0x7FF and not remote:
+        if self._send_data_frame is not None and can_id <= MAX_BASE_ID and not remote:
             if self.bus is None:
                 raise RuntimeError("Not connected to CAN bus")
             with self.send_lock:  # the same frame, with no can.Message built

@@ -158,13 +158,6 @@ def test_a_poll_after_destroy_hands_on_nothing_and_raises_nothing() -> None:
         assert commands.taken[pc.CURRENT_COMMANDS] == 0
 
 
-def _spun_polled_bridge(ctx: Any) -> Any:
-    """The bridge node spun by an executor of its own: its subscriptions' matched events."""
-    from lca_sim.ros.node_util import make_executor as executor_of
-
-    return executor_of(ctx, "single")
-
-
 def test_a_topic_nobody_publishes_is_not_asked_and_is_drained_when_its_publisher_goes() -> None:
     """voltage_commands: asked only while it has a publisher, then once more after the last.
 
@@ -176,7 +169,7 @@ def test_a_topic_nobody_publishes_is_not_asked_and_is_drained_when_its_publisher
     import rclpy
 
     with ros_context() as (ctx, executor), _polled_bridge(ctx) as (bridge, _master, commands):
-        bridge_executor = _spun_polled_bridge(ctx)
+        bridge_executor = make_executor(ctx, "single")  # handles the matched events
         bridge_executor.add_node(bridge)
         for _ in range(5):
             commands.poll()
