@@ -5,11 +5,32 @@
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="${LCA_HIL_VENV:-$root/.venv}"
-python="${PYTHON:-python3.11}"
-command -v "$python" >/dev/null 2>&1 || python=python3
+
+# The interpreter: $PYTHON if set; else the first Python 3.11 that can make a venv and has the
+# interpreter in its executable, not loaded from libpython3.11.so; else the first one that can
+# make a venv. A shared-libpython build (pyenv's default, `--enable-shared`) calls the C API
+# through the PLT as position-independent code: on the project's 2-core host the CAN bridge's
+# master and rack cycle cost 0.82 of their CPU on Debian's /usr/bin/python3.11 against pyenv's
+# 3.11.7 (docs/can-transport.md, "The interpreter"). An existing venv is kept as it is.
+pick_python() {
+  local candidate first=""
+  for candidate in python3.11 /usr/bin/python3.11 /usr/local/bin/python3.11; do
+    command -v "$candidate" >/dev/null 2>&1 || continue
+    "$candidate" -c 'import sys, venv, ensurepip; sys.exit(sys.version_info[:2] != (3, 11))' \
+      >/dev/null 2>&1 || continue
+    [ -n "$first" ] || first="$candidate"
+    if "$candidate" -c 'import sys; sys.exit(any("libpython" in l for l in open("/proc/self/maps")))' \
+      >/dev/null 2>&1; then
+      echo "$candidate"
+      return
+    fi
+  done
+  echo "${first:-python3}"
+}
+python="${PYTHON:-$(pick_python)}"
 
 if [ ! -x "$venv/bin/python" ]; then
-  echo "setup: creating $venv with $("$python" --version)"
+  echo "setup: creating $venv with $("$python" --version) ($(command -v "$python"))"
   "$python" -m venv "$venv"
 fi
 
