@@ -6,8 +6,9 @@ synchronous torque mode, and a stand-in controller that answers every complete s
 current command (0.5 A on the pivot), as the controller node does, against the virtual drive rack
 (four CANopen nodes, one coupled lca_sim plant):
 
-* in-process: as `lca-can-bridge` runs it with `interface: virtual`, the rack on one python-can
-  virtual bus instance of this process, the master on another (one GIL for both);
+* in-process: as `lca-can-bridge` runs it with `interface: virtual`, the rack on one linked
+  virtual bus of this process, the master on another (`LinkedVirtualBus`: a cycle is one call
+  in the master's thread; one GIL for both);
 * cross-process: as the three-terminal recipe of docs/can-transport.md runs it, the relay
   `lca-can-server` and the rack `lca-virtual-drive --interface lca_remote` as two more processes
   on 127.0.0.1, the master on `interface: lca_remote`. It also reports the CPU each process used
@@ -50,11 +51,12 @@ from pathlib import Path
 from typing import Any
 
 import can
-import canopen
 import numpy as np
 
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeParams
+from lca_sim.canbus.master_setup import master_network
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.bus_load import bus_load_pct
@@ -146,13 +148,13 @@ Rig = tuple[can.BusABC, dict[str, int], Callable[[], None]]
 
 @contextmanager
 def in_process_rack(rate_hz: int, switch_interval_s: float | None = None) -> Iterator[Rig]:
-    """The rack on a virtual bus of this process; the bus for the master."""
+    """The rack on a linked virtual bus of this process; the master's, as the bridge opens both."""
     channel = f"bench_can_cycle_{rate_hz}_{os.getpid()}"
-    rack_bus = can.Bus(interface="virtual", channel=channel)
+    rack_bus = LinkedVirtualBus(channel=channel)
     rack = VirtualDriveRack(rack_bus, load_rack_config(None))
     try:
         rack.start()
-        yield can.Bus(interface="virtual", channel=channel), {}, rack.stop
+        yield LinkedVirtualBus(channel=channel), {}, rack.stop
     finally:
         rack.stop()  # first: a drive outliving the bridge would rightly report SYNC loss
         rack_bus.shutdown()
@@ -223,10 +225,9 @@ def _measure(
     window_s: float,
     warmup_s: float,
 ) -> JsonDict:
-    network = canopen.Network(master_bus)
+    network = master_network(master_bus)  # the bridge's: linked or lca_remote, attached
     bridge: Cia402Master | None = None
     try:
-        network.connect()
 
         def on_state(_snapshot: Snapshot) -> None:
             assert bridge is not None

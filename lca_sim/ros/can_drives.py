@@ -28,8 +28,8 @@ from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeError, BridgeParams
+from lca_sim.canbus.master_setup import master_network
 from lca_sim.canbus.master_state import Snapshot
-from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, CanBridgeNodeParams
 from lca_sim.errors import ConfigError, LcaHilError
@@ -40,8 +40,6 @@ from lca_sim.runtime import settle_heap
 if TYPE_CHECKING:
     from lca_sim.canbus.virtual_rack import VirtualDriveRack
 
-# How long the master's notifier waits in one receive on the linked virtual bus, s.
-NOTIFIER_POLL_S = 0.05
 # How long shutdown and error processing wait for the drives to leave OPERATION ENABLED: a
 # disable is one cycle, its statusword the next slow TPDO (50 Hz by default).
 TORQUE_FREE_TIMEOUT_S = 0.5
@@ -259,19 +257,7 @@ class CanDrives:
         self._bus = bus
         if virtual:
             self._start_rack(p)
-        self.network = canopen.Network(bus)
-        if virtual:
-            # Over the link no frame of the rack comes through the queue, so the notifier's
-            # receive would wait its whole poll (canopen's 1 s) before a disconnect ends it,
-            # long enough for the rack's RPDO deadline to fire at shutdown.
-            self.network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
-        self.network.connect()
-        notifier = self.network.notifier
-        if isinstance(bus, LinkedVirtualBus | RemoteTransportBus) and notifier is not None:
-            # Linked: the rack's frames reach the master in the rack's thread, and the master's
-            # the rack in the master's (no copy, queue or thread hand-over per frame). Both:
-            # a cycle's data frames reach the master's listener at once, no message each.
-            bus.attach(notifier.listeners)
+        self.network = master_network(bus)
         params = bridge_params(p, self.robot_values())
         if not self._lockstep:
             self.master = Cia402Master(

@@ -14,7 +14,6 @@ from collections.abc import Iterator
 from typing import Any
 
 import can
-import canopen
 import pytest
 from support import wait_until
 
@@ -23,6 +22,7 @@ from lca_sim.canbus.data_frames import DataFrameListener, DataFrames
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_params import BridgeParams
+from lca_sim.canbus.master_setup import master_network
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.remote import batched_sends
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
@@ -174,16 +174,17 @@ _rack_of: dict[Cia402Master, VirtualDriveRack] = {}  # the fixture's rack, by it
 
 @pytest.fixture
 def linked(default_robot: RobotParams) -> Iterator[tuple[Cia402Master, list[Snapshot]]]:
-    """The shipped rack and the master on linked buses, initialised, cycled by hand."""
+    """The shipped rack and the master on linked buses, initialised, cycled by hand.
+
+    The master's network is opened as the bridge opens it (`master_network`): the delivery
+    counts of `test_a_cycle_on_the_link_is_one_delivery_each_way` hold only if it attaches.
+    """
     channel = _channel()
     rack_bus = LinkedVirtualBus(channel=channel)
     rack = VirtualDriveRack(rack_bus, load_rack_config(None), robot=default_robot)
     rack.start(settle=False)
     master_bus = LinkedVirtualBus(channel=channel)
-    network = canopen.Network(master_bus)
-    network.connect()
-    assert network.notifier is not None
-    master_bus.attach(network.notifier.listeners)
+    network = master_network(master_bus)  # the bridge's: attached to the linked bus
     axes = {a.name: a for a in default_robot.axes}
     params = BridgeParams(
         joints=JOINTS,
