@@ -68,6 +68,7 @@ class PdoEngine:
         axis.rpdos = [self._load(axis, n, receive=True) for n in range(1, n_rpdo + 1)]
         axis.tpdos = [self._load(axis, n, receive=False) for n in range(1, n_tpdo + 1)]
         self._rebuild_rpdo_table()
+        _sort_tpdos(axis)
 
     def write(self, axis: Drive, index: int, subindex: int, value: int) -> int:
         """Apply a write to a PDO communication or mapping object; the value to store.
@@ -84,7 +85,10 @@ class PdoEngine:
         if is_mapping:
             self._write_mapping(axis, pdo, subindex, value)
             return value
-        return self._write_communication(pdo, subindex, value)
+        value = self._write_communication(pdo, subindex, value)
+        if not pdo.receive:
+            _sort_tpdos(axis)  # its COB-ID's valid bit or its type may have changed
+        return value
 
     def mapped_object(self, axis: Drive, raw: int, receive: bool) -> ODVariable:
         """The object a mapping entry names, if it may be mapped in this direction."""
@@ -253,9 +257,7 @@ class PdoEngine:
             with batched_sends(bus):
                 for axis in axes:
                     # type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC
-                    for pdo in axis.tpdos:
-                        if not pdo.valid or pdo.transmission_type > cia402.SYNC_TRANSMISSION_MAX:
-                            continue
+                    for pdo in axis.sync_tpdos:
                         if pdo.transmission_type == 0:
                             frame = pdo.encode()
                             if frame != pdo.last_data:
@@ -274,9 +276,7 @@ class PdoEngine:
         for axis in self._axes:
             if axis.nmt != NMT_OPERATIONAL:
                 continue
-            for pdo in axis.tpdos:
-                if not pdo.valid or pdo.transmission_type not in cia402.TRANSMISSION_EVENT_TYPES:
-                    continue
+            for pdo in axis.event_tpdos:
                 since_s = now - pdo.last_sent_s
                 timer_due = pdo.event_timer_ms > 0 and since_s >= pdo.event_timer_ms * 1e-3
                 inhibited = since_s < pdo.inhibit_100us * 1e-4
@@ -295,6 +295,13 @@ class PdoEngine:
         elif self._send(pdo.cob_id, frame):
             self._counters.tpdos_sent += 1
         pdo.last_data, pdo.last_sent_s = frame, now
+
+
+def _sort_tpdos(axis: Drive) -> None:
+    """`Drive.sync_tpdos` and `event_tpdos` from its TPDOs now (lists replaced whole)."""
+    valid = [pdo for pdo in axis.tpdos if pdo.valid]
+    axis.sync_tpdos = [p for p in valid if p.transmission_type <= cia402.SYNC_TRANSMISSION_MAX]
+    axis.event_tpdos = [p for p in valid if p.transmission_type in cia402.TRANSMISSION_EVENT_TYPES]
 
 
 def _pdo_of(axis: Drive, index: int) -> tuple[Pdo, bool] | None:

@@ -190,6 +190,11 @@ class Drive:
     nmt: str = NMT_PRE_OPERATIONAL
     rpdos: list[Pdo] = field(default_factory=list)
     tpdos: list[Pdo] = field(default_factory=list)
+    # The valid TPDOs a SYNC sends (types 0-240) and the valid event-driven ones (254, 255),
+    # in number order; kept by `PdoEngine` at each change of a TPDO's COB-ID or type, so the
+    # SYNC and the monitor walk only these, not every TPDO of the drive.
+    sync_tpdos: list[Pdo] = field(default_factory=list)
+    event_tpdos: list[Pdo] = field(default_factory=list)
     heartbeat_last_rx_s: float | None = None
     sync_armed_s: float = -math.inf
     sync_loss_reported: bool = False

@@ -612,6 +612,34 @@ def test_tpdo4_goes_every_tenth_sync(rack: VirtualDriveRack, probe: Probe) -> No
     assert all(len(data) == 6 for data in probe.seen(0x482, mark))
 
 
+def test_a_tpdo_made_invalid_or_event_driven_over_sdo_goes_as_its_objects_now_say(
+    rack: VirtualDriveRack, probe: Probe, master: canopen.Network
+) -> None:
+    """CiA 301 0x1803, TPDO4's communication parameters, written while OPERATIONAL.
+
+    Its COB-ID with bit 31 set: no TPDO4 at any of 21 SYNCs (type 10 sent two before). Valid
+    again with type 1: one at each SYNC. Type 254 with a 20 ms event timer: sent by the timer,
+    with no SYNC at all.
+    """
+    node = remote_node(master, PIVOT)
+    rack_nmt(rack, probe, 0x01, PIVOT, "OPERATIONAL")
+    node.sdo[0x1803][1].raw = 0x8000_0482  # not valid
+    mark = probe.mark()
+    rack_sync(rack, probe, 21)  # the 21st SYNC's TPDO1 comes after the 20th SYNC's TPDO4
+    wait_until(lambda: len(probe.seen(0x182, mark)) == 21, "21 TPDO1s")
+    assert probe.seen(0x482, mark) == []
+    node.sdo[0x1803][2].raw = 1
+    node.sdo[0x1803][1].raw = 0x482
+    mark = probe.mark()
+    rack_sync(rack, probe, 5)
+    wait_until(lambda: len(probe.seen(0x482, mark)) == 5, "a TPDO4 at each of 5 SYNCs")
+    node.sdo[0x1803][5].raw = 20  # event timer, ms
+    node.sdo[0x1803][2].raw = 254  # event-driven (manufacturer-specific event)
+    mark = probe.mark()
+    wait_until(lambda: len(probe.seen(0x482, mark)) >= 3, "three TPDO4s by the event timer")
+    assert probe.seen(0x080, mark) == []  # no SYNC sent meanwhile
+
+
 def test_tpdo4_reports_load_friction_and_voltage(
     rack: VirtualDriveRack, probe: Probe, master: canopen.Network
 ) -> None:
