@@ -8,10 +8,11 @@ venv="${LCA_HIL_VENV:-$root/.venv}"
 
 # The interpreter: $PYTHON if set; else the first Python 3.11 that can make a venv and has the
 # interpreter in its executable, not loaded from libpython3.11.so; else the first one that can
-# make a venv. A shared-libpython build (pyenv's default, `--enable-shared`) calls the C API
-# through the PLT as position-independent code: on the project's 2-core host the CAN bridge's
-# master and rack cycle cost 0.82 of their CPU on Debian's /usr/bin/python3.11 against pyenv's
-# 3.11.7 (docs/can-transport.md, "The interpreter"). An existing venv is kept as it is.
+# make a venv. A shared-libpython build (this host's pyenv 3.11.7, configured --enable-shared)
+# runs the interpreter as position-independent code in a shared library: on the project's
+# 2-core host the CAN bridge's master and rack cycle cost 0.82 of their CPU on Debian's
+# /usr/bin/python3.11 against it (docs/can-transport.md, "The fifth round: the interpreter").
+# An existing venv is kept.
 pick_python() {
   local candidate first=""
   for candidate in python3.11 /usr/bin/python3.11 /usr/local/bin/python3.11; do
