@@ -805,8 +805,9 @@ def run_scenario(
 def _check(children: dict[str, Child], deadline: float, what: str) -> None:
     for child in children.values():
         child.check_alive()
-    if time.monotonic() > deadline:
-        raise BenchError(f"{what} before the deadline")
+    if time.monotonic() > deadline:  # with each child's last lines: the why is in them
+        tails = "".join(f"\n    {name}:\n{child.log_tail()}" for name, child in children.items())
+        raise BenchError(f"{what} before the deadline{tails}")
 
 
 def figures(
