@@ -70,11 +70,12 @@ from pathlib import Path
 from typing import Any
 
 from ros_loop import (
-    BUSY_MACHINE_SHARE,
     _raise_on_sigterm,
     cpu_seconds,
     fmt,
-    machine_busy_seconds,
+    machine_cpu_seconds,
+    other_processes_note,
+    other_processes_share,
     percentile,
     positive_float,
     reliable_qos,
@@ -492,7 +493,7 @@ class CpuSample:
     t: float
     process: dict[str, float]
     threads: dict[str, dict[int, tuple[str, float]]]
-    machine: float
+    machine: tuple[float, float]  # (busy, all) CPU seconds of the whole machine
 
     @classmethod
     def take(cls, pids: dict[str, int]) -> CpuSample:
@@ -502,7 +503,7 @@ class CpuSample:
             time.monotonic(),
             {name: s for name, s in process.items() if s is not None},
             {name: thread_cpu(pid) for name, pid in pids.items()},
-            machine_busy_seconds(),
+            machine_cpu_seconds(),
         )
 
 
@@ -534,10 +535,14 @@ def cpu_figures(a: CpuSample, b: CpuSample, pids: dict[str, int], cycles: float)
                 for used_s, tid, thread in threads[:TOP_THREADS]
             ],
         }
+    other, why = other_processes_share(
+        b.machine[0] - a.machine[0], b.machine[1] - a.machine[1], ours, wall_s
+    )
     out["other_processes"] = {
-        "cpu_share": rounded(max(0.0, b.machine - a.machine - ours) / wall_s, 4),
+        "cpu_share": rounded(other, 4) if other is not None else None,
         "us_per_cycle": None,
         "threads": [],
+        **({"why": why} if why else {}),
     }
     return out
 
@@ -920,12 +925,9 @@ def print_scenario(name: str, r: JsonDict) -> None:
             f"({d['changes_in_run']} in the run, {d['alternations_in_run']} A->B->A), shortest "
             f"{fmt(d['shortest_interval_s'], '.3f')} s; {' -> '.join(d['sequence'][:6])}"
         )
-    other = r["cpu"]["other_processes"]["cpu_share"]
-    if other is not None and other > BUSY_MACHINE_SHARE:
-        print(
-            f"  WARNING: other processes kept {pct(other):.0f} % of a core busy during the "
-            "window: the figures of this scenario are low"
-        )
+    note = other_processes_note(r["cpu"]["other_processes"], "scenario")
+    if note:
+        print(note)
     for proc, c in r["cpu"].items():
         share = c["cpu_share"]
         threads = ", ".join(
