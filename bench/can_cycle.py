@@ -55,8 +55,8 @@ import numpy as np
 
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_frames import master_network
 from lca_sim.canbus.master_params import BridgeParams
-from lca_sim.canbus.master_setup import master_network
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.bus_load import bus_load_pct

@@ -25,6 +25,31 @@ from lca_sim.errors import InvalidValueError
 log = logging.getLogger(__name__)
 
 
+# canopen's notifier waits this long for a frame per receive. Over a linked bus none of the
+# rack's frames come through its queue, so its default (1 s) would hold a disconnect that long,
+# long enough for the rack's RPDO deadline to fire at shutdown.
+NOTIFIER_POLL_S = 0.05
+
+
+def master_network(bus: can.BusABC) -> canopen.Network:
+    """A connected canopen `Network` on `bus` for a master, as the CAN bridge opens it.
+
+    On lca_hil's own buses (`LinkedVirtualBus`, lca_remote's `RemoteTransportBus`) the
+    notifier's listeners are attached to the bus: a cycle's data frames reach the master's
+    listener at once, and on the linked bus in the sender's thread (no copy, queue or thread
+    hand-over per frame; docs/can-transport.md). Any other bus (socketcan) is read by canopen's
+    notifier thread as canopen does it.
+    """
+    network = canopen.Network(bus)
+    if isinstance(bus, LinkedVirtualBus):
+        network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
+    network.connect()
+    notifier = network.notifier
+    if isinstance(bus, LinkedVirtualBus | RemoteTransportBus) and notifier is not None:
+        bus.attach(notifier.listeners)
+    return network
+
+
 class FrameReceiver(can.Listener):
     """The master's listener of every frame, in the place of canopen's `MessageListener`.
 

@@ -12,11 +12,9 @@ import struct
 from collections.abc import Callable
 from typing import Any
 
-import can
 import canopen
 from canopen.sdo.client import SdoClient
 
-from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import MODE_TARGETS, BridgeError, BridgeParams
 from lca_sim.canbus.master_pdo import (
@@ -30,36 +28,11 @@ from lca_sim.canbus.master_pdo import (
     configure_compact_pdos,
 )
 from lca_sim.canbus.master_state import Counters
-from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import codec
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.codec import CodecError, DriveUnits
 from lca_sim.cia402.controlword import TorqueScale
 from lca_sim.cia402.object_entry import DataType
-
-# canopen's notifier waits this long for a frame per receive. Over a linked bus none of the
-# rack's frames come through its queue, so its default (1 s) would hold a disconnect that long,
-# long enough for the rack's RPDO deadline to fire at shutdown.
-NOTIFIER_POLL_S = 0.05
-
-
-def master_network(bus: can.BusABC) -> canopen.Network:
-    """A connected canopen `Network` on `bus` for a master, as the CAN bridge opens it.
-
-    On lca_hil's own buses (`LinkedVirtualBus`, lca_remote's `RemoteTransportBus`) the
-    notifier's listeners are attached to the bus: a cycle's data frames reach the master's
-    listener at once, and on the linked bus in the sender's thread (no copy, queue or thread
-    hand-over per frame; docs/can-transport.md). Any other bus (socketcan) is read by canopen's
-    notifier thread as canopen does it.
-    """
-    network = canopen.Network(bus)
-    if isinstance(bus, LinkedVirtualBus):
-        network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
-    network.connect()
-    notifier = network.notifier
-    if isinstance(bus, LinkedVirtualBus | RemoteTransportBus) and notifier is not None:
-        bus.attach(notifier.listeners)
-    return network
 
 
 class DriveSetup:

@@ -21,6 +21,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from rclpy.exceptions import InvalidHandle
@@ -333,18 +334,11 @@ class BridgeCommands:
         )
 
 
+@dataclass(slots=True)
 class _Polled:
     """A polled subscription, its handler, its publishers, and whether it was drained at 0."""
 
-    __slots__ = ("drained", "handler", "publishers", "sub")
-
-    def __init__(
-        self,
-        sub: Subscription,
-        handler: Callable[[Any, float | None], None],
-        publishers: MatchedCount,
-    ) -> None:
-        self.sub = sub
-        self.handler = handler
-        self.publishers = publishers
-        self.drained = False
+    sub: Subscription
+    handler: Callable[[Any, float | None], None]
+    publishers: MatchedCount
+    drained: bool = False

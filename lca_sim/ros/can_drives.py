@@ -27,8 +27,8 @@ from lca_control import contract as pc
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.lockstep import CycleClock, LockstepLoop
 from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_frames import master_network
 from lca_sim.canbus.master_params import BridgeError, BridgeParams
-from lca_sim.canbus.master_setup import master_network
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.cia402.device import PowerState
 from lca_sim.config.can_bridge_params import CAN_BRIDGE_PARAMETERS, CanBridgeNodeParams

@@ -21,8 +21,8 @@ from lca_sim import RobotParams
 from lca_sim.canbus.data_frames import DataFrameListener, DataFrames
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master import Cia402Master
+from lca_sim.canbus.master_frames import master_network
 from lca_sim.canbus.master_params import BridgeParams
-from lca_sim.canbus.master_setup import master_network
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.remote import batched_sends
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
