@@ -174,7 +174,13 @@ def _realtime_sim(ctx: Context, executor: SingleThreadedExecutor, robot: str) ->
 
 @pytest.mark.parametrize(("robot", "holds"), [("default", True), ("reversible", False)])
 def test_command_silence_drops_to_zero_and_the_worm_holds(robot: str, holds: bool) -> None:
-    """Command silence: 0 V; the irreversible pivot holds, the reversible one sinks."""
+    """Command silence: 0 V; the irreversible pivot holds, the reversible one sinks.
+
+    The axes are judged by their drive state, not by the current: at 0 V the current crosses
+    zero on its way down while the pivot still coasts (it brakes on its back-EMF), so a batch of
+    realtime steps that happened to end at that crossing read as "stopped" and the pivot then
+    coasted on another 1.6 mrad (CI, a slow host).
+    """
     with ros_context() as (ctx, executor):
         sim = _realtime_sim(ctx, executor, robot)
         driver = Node("driver", context=ctx)
@@ -185,16 +191,23 @@ def test_command_silence_drops_to_zero_and_the_worm_holds(robot: str, holds: boo
         spin_until(executor, lambda: sim.plant.target[1] == 6.0)
         spin_until(executor, lambda: sim.plant.counters.timeouts == 1)
         assert sim.plant.target[1] == 0.0
-        spin_until(executor, lambda: abs(sim.sim.state_array[2, 1]) < 1e-3)  # current gone
-        q0 = float(sim.sim.state_array[0, 1])
+        arrays = sim.sim
+
+        def pivot_state() -> str:
+            return arrays.state_names[int(arrays.mode_array[1, 1])]
+
+        settled = "stop_hold" if holds else "load_driving"  # the worm locked / the load sinks
+        spin_until(executor, lambda: pivot_state() == settled)
+        q0 = float(arrays.state_array[0, 1])
         t0 = sim.sim_time_s
         spin_until(executor, lambda: sim.sim_time_s > t0 + 1.0)
-        moved = abs(float(sim.sim.state_array[0, 1]) - q0)
+        moved = float(arrays.state_array[0, 1]) - q0
         if holds:
             assert moved == 0.0
-            assert sim.sim.state_names[int(sim.sim.mode_array[1, 1])] == "stop_hold"
+            assert pivot_state() == "stop_hold"
+            assert abs(float(arrays.state_array[2, 1])) < 1e-3  # no current holds it: the worm
         else:
-            assert moved > math.radians(0.5)
+            assert moved < -math.radians(0.5)  # it sinks
 
 
 @pytest.mark.parametrize(
