@@ -268,7 +268,8 @@ def run_fig15(out: Path, duration_s: float) -> int:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
         # The recorder first, while the simulator's publishers still exist: it takes every
-        # state the middleware holds before it closes the bag.
+        # state the middleware holds before it closes the bag. The controller, idle meanwhile,
+        # knows the run ended (the simulator's `ended` status), so a long drain is no alarm.
         _stop([procs[n] for n in ("recorder", "controller", "simulator") if n in procs])
     if code != 0:
         return code

@@ -14,7 +14,10 @@ stamps, never the node clock, so the loop runs on simulated time exactly in lock
 Its plant peer on /diagnostics: before the first state it is waiting (OK "waiting for the
 first plant state", said once in the log at INFO when the wait exceeds `plant_timeout_s`: a
 simulator compiling its model at first start takes seconds); states that came and stop for
-`plant_timeout_s` are a loss (WARN "no plant state for X s", logged as a warning).
+`plant_timeout_s` are a loss (WARN "no plant state for X s", logged as a warning), unless the
+plant said it ended its run with that state: a lockstep simulator's status on /diagnostics says
+`ended` at the time of its last state (`lockstep_end_s`), and silence after it is the end, not a
+loss (OK "plant ended its run at T s", one INFO line).
 
     lca-controller --ros-args --params-file config/ros/controller.yaml
 """
@@ -22,6 +25,7 @@ simulator compiling its model at first start takes seconds); states that came an
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -41,6 +45,7 @@ from lca_control.controller import (
     JointController,
     validate_controller_params,
 )
+from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
@@ -50,6 +55,11 @@ from lca_sim.ros.node_util import (
     set_enabled_by_service,
     status,
 )
+
+ENDS_KEPT = 8  # plant ends remembered: more simulators than this ending at once is no setup
+# An end and a state stamp name the same instant: the stamp's nanoseconds against the status's
+# float; far below any control period.
+END_MATCH_S = 1e-6
 
 # The topic of each command interface: the plant contract's command topics (docs/contract.md).
 COMMAND_TOPICS = {
@@ -85,6 +95,8 @@ class ControllerNode(Node):
         self._last_state_wall = time.monotonic()
         self._plant_lost = False  # silent beyond plant_timeout_s (before the first state too)
         self.plant_losses = 0
+        # Simulated times at which a plant said on /diagnostics that its run ended (the last few).
+        self._ends_announced_s: deque[float] = deque(maxlen=ENDS_KEPT)
         self._restarts_logged = 0
         state_qos = QoSProfile(depth=pc.STATE_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         command_qos = QoSProfile(depth=pc.COMMAND_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -108,6 +120,7 @@ class ControllerNode(Node):
         self.create_subscription(
             Float64MultiArray, pc.VELOCITY_REFERENCE, self._on_reference, command_qos
         )
+        self.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, self._on_diagnostics, 10)
         self.create_service(SetBool, "~/enable", self._on_enable)
         # A steady clock: on sim time this timer would stop with /clock, i.e. exactly when a
         # lost simulator has to be reported.
@@ -197,6 +210,33 @@ class ControllerNode(Node):
                 throttle_duration_sec=1.0,
             )
 
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """Keep the times at which a simulator said its run ended (`ENDED_KEY`)."""
+        for found in msg.status:
+            if found.name != SIMULATOR_STATUS:
+                continue
+            values = {kv.key: kv.value for kv in found.values}
+            if values.get(ENDED_KEY) != "True":
+                continue
+            try:
+                self._ends_announced_s.append(float(values["sim_time_s"]))
+            except (KeyError, ValueError):
+                continue  # not a status of this project's simulator: no end to take from it
+
+    def _ended_with_last_state(self) -> float | None:
+        """The time of the last state taken if its plant said its run ended there, else None.
+
+        Matched by time, not by name: a simulator that ended elsewhere (another robot's, or
+        this one before a reset) does not excuse this plant's silence.
+        """
+        if self._joint is None:
+            return None
+        last_s = from_stamp(self._joint.header.stamp)
+        for end_s in self._ends_announced_s:
+            if abs(end_s - last_s) <= END_MATCH_S:
+                return last_s
+        return None
+
     # --- services, parameters, diagnostics -----------------------------------------------
 
     def _on_enable(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
@@ -229,6 +269,12 @@ class ControllerNode(Node):
             what = f"waiting for the first plant state ({silent_s:.1f} s since start)"
             if first:
                 self.get_logger().info(f"{what}: is the simulator or CAN bridge running?")
+            return DiagnosticStatus.OK, what
+        ended_s = self._ended_with_last_state() if late else None
+        if ended_s is not None:
+            what = f"plant ended its run at {ended_s:g} s"
+            if first:
+                self.get_logger().info(f"{what}: its last state is answered; none will follow")
             return DiagnosticStatus.OK, what
         if late:
             what = f"no plant state for {silent_s:.1f} s"

@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 from typing import Any
 
 import numpy as np
 import pytest
 import support
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -24,7 +26,9 @@ from std_srvs.srv import SetBool, Trigger
 from support import CONFIG, spin_until
 
 from lca_control.cascade import CONTROL_PERIOD_S
+from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.ros.controller_node import ControllerNode
+from lca_sim.ros.node_util import status
 from lca_sim.ros.simulator_node import SimulatorNode
 
 PIVOT_START_RAD = math.radians(35.0)
@@ -39,16 +43,19 @@ def _params(**values: Any) -> list[Parameter]:
 
 
 def _lockstep_pair(
-    ctx: Context, executor: SingleThreadedExecutor, robot: str = "default"
+    ctx: Context, executor: SingleThreadedExecutor, robot: str = "default", **sim_params: Any
 ) -> tuple[SimulatorNode, ControllerNode]:
     sim = SimulatorNode(
         context=ctx,
         parameter_overrides=_params(
-            robot=robot,
-            timing_mode="lockstep",
-            command_interface="current",
-            initial_position=[0.0, PIVOT_START_RAD, 0.0, 0.0],
-            lockstep_subscribers=2,  # the controller and the test's recorder
+            **{
+                "robot": robot,
+                "timing_mode": "lockstep",
+                "command_interface": "current",
+                "initial_position": [0.0, PIVOT_START_RAD, 0.0, 0.0],
+                "lockstep_subscribers": 2,  # the controller and the test's recorder
+                **sim_params,
+            }
         ),
     )
     ctl = ControllerNode(
@@ -156,6 +163,57 @@ def test_lockstep_is_deterministic() -> None:
     n = min(len(first), len(second))
     np.testing.assert_array_equal(first[:n], second[:n])
     assert np.ptp(first[:, 1]) > 0.0  # the pivot really moved
+
+
+def test_the_end_of_a_lockstep_run_is_no_plant_loss_for_the_controller() -> None:
+    """A simulator that ended its run (lockstep_end_s) leaves the controller OK, not WARN.
+
+    `lca-hil fig15` keeps the controller running while the recorder drains the last messages;
+    on a loaded host that outlasted plant_timeout_s and the controller's log said "no plant
+    state for 0.6 s" at the end of a healthy run.
+    """
+    with ros_context() as (ctx, executor):
+        sim, ctl = _lockstep_pair(ctx, executor, lockstep_subscribers=1, lockstep_end_s=0.1)
+        spin_until(executor, lambda: sim.ended and sim.pacing.after_end >= 1)  # last one answered
+        answered = ctl.commands_sent
+        assert answered == round(0.1 / CONTROL_PERIOD_S) + 1  # t = 0 and every period to 0.1 s
+        timeout_s = ctl.core.params.plant_timeout_s
+        spin_until(executor, lambda: time.monotonic() - ctl._last_state_wall > 2 * timeout_s)
+        spin_until(executor, lambda: len(ctl._ends_announced_s) > 0)
+        assert ctl._plant_health() == (DiagnosticStatus.OK, "plant ended its run at 0.1 s")
+        assert ctl.plant_losses == 0
+        assert ctl.commands_sent == answered
+
+
+@pytest.mark.parametrize(
+    ("ended_at_s", "level"), [(2.0, DiagnosticStatus.WARN), (1.0, DiagnosticStatus.OK)]
+)
+def test_only_an_end_at_the_last_state_taken_excuses_the_silence(
+    ended_at_s: float, level: bytes
+) -> None:
+    """Another simulator's end (or this one's before a reset) is no end of this plant."""
+    with ros_context() as (ctx, executor):
+        ctl = ControllerNode(context=ctx, parameter_overrides=_params(plant_timeout_s=0.1))
+        plant = Node("fake_plant", context=ctx)
+        states = plant.create_publisher(JointState, "joint_states", 10)
+        diagnostics = plant.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        executor.add_node(ctl)
+        executor.add_node(plant)
+        spin_until(executor, lambda: states.get_subscription_count() > 0)
+        spin_until(executor, lambda: diagnostics.get_subscription_count() > 0)
+        state = JointState(name=["l_arm", "pivot", "c_arc", "lift"], position=[0.0] * 4)
+        state.velocity = [0.0] * 4
+        state.header.stamp.sec = 1
+        states.publish(state)
+        spin_until(executor, lambda: ctl._joint is not None)
+        ended = status(SIMULATOR_STATUS, DiagnosticStatus.OK, "ended", {
+            ENDED_KEY: True, "sim_time_s": ended_at_s
+        })  # fmt: skip
+        diagnostics.publish(DiagnosticArray(status=[ended]))
+        spin_until(executor, lambda: len(ctl._ends_announced_s) == 1)
+        spin_until(executor, lambda: time.monotonic() - ctl._last_state_wall > 0.1)
+        assert ctl._plant_health()[0] == level
+        assert ctl.plant_losses == (1 if level == DiagnosticStatus.WARN else 0)
 
 
 def _realtime_sim(ctx: Context, executor: SingleThreadedExecutor, robot: str) -> SimulatorNode:
