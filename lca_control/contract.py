@@ -58,6 +58,12 @@ CLOCK_QOS_DEPTH = 10
 RELIABLE = "reliable"
 BEST_EFFORT = "best_effort"
 
+# How the simulator's /diagnostics says a lockstep run has reached `lockstep_end_s`: its status
+# SIMULATOR_STATUS carries ENDED_KEY = "True" (from then on, in every diagnostics period). A
+# controller whose last state is that instant's takes the silence after it for the end.
+SIMULATOR_STATUS = "lca_hil/simulator"
+ENDED_KEY = "ended"
+
 
 @dataclass(frozen=True, slots=True)
 class QosSpec:

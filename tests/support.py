@@ -222,7 +222,6 @@ INTO_END_STOP: dict[str, Any] = {
 
 # --- nodes in-process ------------------------------------------------------------------------
 
-SIMULATOR_STATUS = "lca_hil/simulator"
 CONTROLLER_STATUS = "lca_hil/controller"
 
 # A lockstep simulator paced by one controller on current commands, the pivot at 35 deg under

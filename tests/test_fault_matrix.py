@@ -45,7 +45,6 @@ from support import (
     LOCKSTEP_SIMULATOR,
     RECORDED_TOPIC,
     ROOT,
-    SIMULATOR_STATUS,
     Diagnostics,
     kill,
     spin_until,
@@ -54,7 +53,7 @@ from support import (
 )
 
 from lca_control.cascade import CONTROL_PERIOD_S
-from lca_control.contract import JOINT_STATES, STATE_QOS_DEPTH, VOLTAGE_COMMANDS
+from lca_control.contract import JOINT_STATES, SIMULATOR_STATUS, STATE_QOS_DEPTH, VOLTAGE_COMMANDS
 from lca_control.controller import CONTROLLER_PARAMETERS
 from lca_control.parameters import ParameterTable
 from lca_sim.cli.ros_guard import ROS_MODULES

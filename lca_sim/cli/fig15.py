@@ -37,12 +37,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from lca_control import contract as pc
+from lca_control.contract import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.analysis.closed_loop import ClosedLoopConfig, replay_references, tracking_window
 from lca_sim.analysis.metrics import VelocityTracking, velocity_tracking
 from lca_sim.batch.closed_loop_config import load_config
 from lca_sim.config.loader import config_dir, load_robot
 from lca_sim.config.run_scenario import load_run_scenario
-from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
 from lca_sim.model.gantry import Gantry
 from lca_sim.output import output_folder, write_json

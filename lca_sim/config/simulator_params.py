@@ -39,10 +39,6 @@ from lca_sim.model.params import AXIS_NAMES, RobotParams
 from lca_sim.model.plant import PlantConfig
 
 TIMING_MODES = ("realtime", "lockstep")
-# How the simulator's /diagnostics says a lockstep run has reached `lockstep_end_s`: its status
-# SIMULATOR_STATUS carries ENDED_KEY = "True" (from then on, in every diagnostics period).
-SIMULATOR_STATUS = "lca_hil/simulator"
-ENDED_KEY = "ended"
 COMMAND_INTERFACES = ("voltage", "current")
 JOINT_COMMAND_EFFORTS = ("current", "torque")
 

@@ -45,7 +45,6 @@ from lca_control.controller import (
     JointController,
     validate_controller_params,
 )
-from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.ros.node_util import (
     LiveParameters,
     declare_table,
@@ -211,12 +210,12 @@ class ControllerNode(Node):
             )
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        """Keep the times at which a simulator said its run ended (`ENDED_KEY`)."""
+        """Keep the times at which a simulator said its run ended (`pc.ENDED_KEY`)."""
         for found in msg.status:
-            if found.name != SIMULATOR_STATUS:
+            if found.name != pc.SIMULATOR_STATUS:
                 continue
             values = {kv.key: kv.value for kv in found.values}
-            if values.get(ENDED_KEY) != "True":
+            if values.get(pc.ENDED_KEY) != "True":
                 continue
             try:
                 self._ends_announced_s.append(float(values["sim_time_s"]))

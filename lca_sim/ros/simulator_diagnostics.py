@@ -15,7 +15,8 @@ from collections.abc import Callable
 from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 
-from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS, SimulatorNodeParams
+from lca_control.contract import ENDED_KEY, SIMULATOR_STATUS
+from lca_sim.config.simulator_params import SimulatorNodeParams
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.faults import LINK, FaultInjector, StateLink
 from lca_sim.ros.node_util import status

@@ -72,8 +72,8 @@ def test_progress_sees_the_simulators_end() -> None:
     pytest.importorskip("rclpy")
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
+    from lca_control.contract import ENDED_KEY, SIMULATOR_STATUS
     from lca_sim.cli.fig15 import _Progress
-    from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
     from lca_sim.ros.node_util import status
 
     progress = _Progress()

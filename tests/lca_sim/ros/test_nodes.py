@@ -26,7 +26,7 @@ from std_srvs.srv import SetBool, Trigger
 from support import CONFIG, spin_until
 
 from lca_control.cascade import CONTROL_PERIOD_S
-from lca_sim.config.simulator_params import ENDED_KEY, SIMULATOR_STATUS
+from lca_control.contract import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.ros.controller_node import ControllerNode
 from lca_sim.ros.node_util import status
 from lca_sim.ros.simulator_node import SimulatorNode

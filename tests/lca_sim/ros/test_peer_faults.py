@@ -11,7 +11,9 @@ import support
 from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
-from support import LOCKSTEP_SIMULATOR, SIMULATOR_STATUS, Diagnostics, start_simulator
+from support import LOCKSTEP_SIMULATOR, Diagnostics, start_simulator
+
+from lca_control.contract import SIMULATOR_STATUS
 
 ros_context = support.domain_contexts(180, 20)
 

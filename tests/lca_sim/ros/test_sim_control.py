@@ -21,6 +21,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from support import Diagnostics, spin_until, start_simulator, wait_until
 
+from lca_control.contract import SIMULATOR_STATUS
 from lca_sim.ros.simulator_node import SimulatorNode
 
 if TYPE_CHECKING:  # imported by pytest as a plugin (below), so its asserts are rewritten
@@ -102,14 +103,14 @@ def test_realtime_pause_holds_the_state_bit_for_bit() -> None:
         np.testing.assert_array_equal(sim.sim.signal_array, signals)
         assert (sim.sim_time_s, sim._published) == (t_s, published)
         diagnostics.clear()
-        paused = diagnostics.wait_for(support.SIMULATOR_STATUS, DiagnosticStatus.OK, "paused")
+        paused = diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "paused")
         assert {kv.key: kv.value for kv in paused.values}["paused"] == "True"
         assert services.call("resume").success
         spin_until(executor, lambda: sim.sim_time_s > t_s + 0.2, "simulated time again")
         assert sim.pacing.overrun_steps * sim.params.dt_s < 0.3  # the 0.6 s pause is no backlog
         diagnostics.clear()
-        diagnostics.wait_for(support.SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
-        assert float(diagnostics.value(support.SIMULATOR_STATUS, "paused_s")) >= 0.6
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
+        assert float(diagnostics.value(SIMULATOR_STATUS, "paused_s")) >= 0.6
 
 
 def test_realtime_step_advances_exactly_n_periods() -> None:
@@ -177,9 +178,9 @@ def test_realtime_factor_two_runs_simulated_time_twice_as_fast() -> None:
         rate = (sim.sim_time_s - sim0) / (time.monotonic() - wall0)
         assert 1.6 < rate < 2.2, rate
         diagnostics.clear()
-        diagnostics.wait_for(support.SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
-        assert float(diagnostics.value(support.SIMULATOR_STATUS, "realtime_factor_set")) == 2.0
-        measured = float(diagnostics.value(support.SIMULATOR_STATUS, "realtime_factor"))
+        diagnostics.wait_for(SIMULATOR_STATUS, DiagnosticStatus.OK, "running")
+        assert float(diagnostics.value(SIMULATOR_STATUS, "realtime_factor_set")) == 2.0
+        measured = float(diagnostics.value(SIMULATOR_STATUS, "realtime_factor"))
         assert 1.5 < measured < 2.3, measured
 
 
