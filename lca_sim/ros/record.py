@@ -33,7 +33,6 @@ from rclpy.executors import Executor
 from rclpy.node import Node
 from rclpy.timer import Timer
 
-from lca_control.contract import STATE_QOS_DEPTH
 from lca_sim.errors import EXIT_OK, fail
 from lca_sim.ros.bag_recover import recover_main
 from lca_sim.ros.node_util import (
@@ -45,9 +44,9 @@ from lca_sim.ros.node_util import (
 )
 from lca_sim.ros.record_bag import BagFile, RecorderError
 from lca_sim.ros.record_topics import TopicSubscriber
+from lca_sim.ros.tool_args import RECORD_DEPTH, record_parser
 from lca_sim.ros.tool_args import RECORD_FLUSH_PERIOD_S as DEFAULT_MAX_LOSS_S
 from lca_sim.ros.tool_args import RECORD_WAIT_S as DEFAULT_WAIT_S
-from lca_sim.ros.tool_args import record_parser
 from lca_sim.runtime import stop_signals
 
 PROG = "lca-record"
@@ -94,7 +93,7 @@ class BagRecorder:
         *,
         record_all: bool = False,
         wait_s: float = DEFAULT_WAIT_S,
-        depth: int = STATE_QOS_DEPTH,
+        depth: int = RECORD_DEPTH,
         graph_poll_period_s: float = GRAPH_POLL_PERIOD_S,
         max_loss_s: float = DEFAULT_MAX_LOSS_S,
         log: Callable[[str], None] | None = None,
@@ -370,7 +369,7 @@ def _drain(executor: Executor, recorder: BagRecorder, max_s: float) -> None:
     recorder starved of the CPU (a loaded host), whose one spin can outlast the quiet time, does
     not take its own stall for the end. A live publisher keeps it going, so it stops after
     `max_s` (`--drain-max-s`) in any case. The default is far longer than taking
-    `STATE_QOS_DEPTH` queued messages per topic needs on an idle host; a recorder seconds
+    a few hundred queued messages per topic needs on an idle host; a recorder seconds
     behind on a loaded one (a lockstep run that ended) needs more, and `lca-hil fig15` gives it.
     """
     start_s = last_s = time.monotonic()

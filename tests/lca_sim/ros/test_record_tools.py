@@ -451,6 +451,47 @@ def test_bag_recorder_in_process_with_sim_time_and_best_effort_clock(tmp_path: P
     assert min(stamps_ns) >= SIM_START_S * 1_000_000_000  # stamped with the sim clock
 
 
+def test_a_recorder_held_up_for_a_1khz_second_loses_nothing(tmp_path: Path) -> None:
+    """1000 states arrive while the recorder's executor does not run; all are recorded.
+
+    The fresh-clone CI lost 158 of 2000 messages at 1 kHz when the recorder subscribed with
+    the plants' depth of 100: 0.26 s behind was enough. The middleware keeps what arrives
+    (its threads run while the executor is held up), up to the subscription's depth.
+    """
+    domain_id = 72
+    n_messages = 1000
+    with ros_node(domain_id, "test_burst") as (node, executor):
+        recorder_node = Node("held_up_recorder", context=node.context)
+        recorder_executor = SingleThreadedExecutor(context=node.context)
+        recorder_executor.add_node(recorder_node)
+        publisher = node.create_publisher(JointState, JOINT_STATES, STATE_QOS_DEPTH)
+        recorder = BagRecorder(recorder_node, tmp_path / "bag", [JOINT_STATES], wait_s=30.0)
+        try:
+            recorder.start()
+            spin_until(
+                recorder_executor,
+                lambda: f"/{JOINT_STATES}" in recorder.matched,
+                "the recorder's subscription",
+            )
+            spin_until(executor, lambda: publisher.get_subscription_count() >= 1, "a match")
+            for seq in range(n_messages):  # the recorder's executor is not spun meanwhile
+                publisher.publish(joint_state(seq))
+            assert publisher.wait_for_all_acked(Duration(seconds=10)), "not all acked"
+            spin_until(
+                recorder_executor,
+                lambda: recorder.counts.get(f"/{JOINT_STATES}", 0) >= n_messages,
+                f"all {n_messages} recorded",
+            )
+            counts = recorder.close()
+        finally:
+            recorder.close()
+            recorder_executor.shutdown(timeout_sec=1.0)
+            recorder_node.destroy_node()
+    assert counts[f"/{JOINT_STATES}"] == n_messages
+    sequences = read_sequences(tmp_path / "bag", (f"/{JOINT_STATES}",))
+    assert sequences[f"/{JOINT_STATES}"] == list(range(n_messages))
+
+
 def test_subscription_qos_matches_best_effort_publishers() -> None:
     assert subscription_qos("/joint_states", []).reliability == ReliabilityPolicy.RELIABLE
     assert subscription_qos(CLOCK, []).reliability == ReliabilityPolicy.BEST_EFFORT
@@ -700,11 +741,12 @@ class _Backlog:
 def test_a_stopped_recorder_drains_a_backlog_for_as_long_as_it_is_given(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A recorder 3,500 messages behind at 0.4 ms each (a loaded host, fig15's CI run).
+    """Recorders 3,500 and 10,000 messages behind, at 0.4 ms each (a loaded host).
 
-    The default half second of draining leaves most of them unrecorded; lca-hil fig15, whose
-    publishers have ended when it stops the recorder, gives it RECORDER_DRAIN_MAX_S and every
-    one is taken. A live publisher still ends the drain at the limit.
+    3,500: fig15's CI run; 10,000: five topics at their full default depth. The default two
+    seconds of draining take the first, not the second; lca-hil fig15, whose publishers have
+    ended when it stops the recorder, gives it RECORDER_DRAIN_MAX_S and every one is taken.
+    A live publisher still ends the drain at the limit.
     """
     from lca_sim.cli import fig15
     from lca_sim.ros import record
@@ -715,7 +757,9 @@ def test_a_stopped_recorder_drains_a_backlog_for_as_long_as_it_is_given(
         record._drain(backlog, backlog, max_s)  # type: ignore[arg-type]
         return backlog
 
-    assert drained(_Backlog(3500, 4e-4), RECORD_DRAIN_MAX_S).left > 2000
+    assert drained(_Backlog(3500, 4e-4), RECORD_DRAIN_MAX_S).left == 0
+    assert drained(_Backlog(10000, 4e-4), RECORD_DRAIN_MAX_S).left > 4000
+    assert drained(_Backlog(10000, 4e-4), fig15.RECORDER_DRAIN_MAX_S).left == 0
     done = drained(_Backlog(3500, 4e-4), fig15.RECORDER_DRAIN_MAX_S)
     assert (done.left, done.total) == (0, 3500)
     live = drained(_Backlog(0, 4e-4, live=True), 2.0)
