@@ -40,6 +40,7 @@ from lca_sim.config.ros_params import (
 )
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS, LcaHilError
 from lca_sim.ros.contract_cdr import stamp_parts
+from lca_sim.ros.ros_logging import python_logging_on_ros
 from lca_sim.runtime import settle_heap
 
 
@@ -309,29 +310,31 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
         print(f"{prog}: error: cannot start ROS: {first_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     node: Node | None = None
-    try:
+    with python_logging_on_ros(prog) as ros_log:
         try:
-            node = build()
-        except USER_ERRORS as exc:
-            print(f"{prog}: error: {exc}", file=sys.stderr)
-            return EXIT_BAD_INPUT
-        unused = _params_files_for_others(node, params_files)
-        if unused:
-            print(f"{prog}: error: {unused}", file=sys.stderr)
-            return EXIT_BAD_INPUT
-        executor = make_executor()
-        executor.add_node(node)
-        settle_heap()  # start-up objects out of the collector's sight: no 100 ms stalls later
-        while not stop["requested"] and rclpy_ok():
-            executor.spin_once(timeout_sec=0.1)
-        return EXIT_OK
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return EXIT_OK
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy_ok():
-            rclpy.shutdown()
+            try:
+                node = build()
+            except USER_ERRORS as exc:
+                print(f"{prog}: error: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+            ros_log.ros_logger = node.get_logger()  # from now on on /rosout too
+            unused = _params_files_for_others(node, params_files)
+            if unused:
+                print(f"{prog}: error: {unused}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+            executor = make_executor()
+            executor.add_node(node)
+            settle_heap()  # start-up objects out of the collector's sight: no 100 ms stalls later
+            while not stop["requested"] and rclpy_ok():
+                executor.spin_once(timeout_sec=0.1)
+            return EXIT_OK
+        except (KeyboardInterrupt, ExternalShutdownException):
+            return EXIT_OK
+        finally:
+            if node is not None:
+                node.destroy_node()  # what its parts log on the way down still goes to the log
+            if rclpy_ok():
+                rclpy.shutdown()
 
 
 def _params_files_for_others(

@@ -11,6 +11,7 @@ nothing is reported over several seconds. Nothing sleeps a fixed time.
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 import struct
 import threading
@@ -25,6 +26,7 @@ import pytest
 from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
+from lca_sim.canbus.freeze import Freeze
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_state import Counters
 from lca_sim.canbus.master_watch import SafetyWatch
@@ -314,3 +316,23 @@ def test_a_silent_enabled_drive_is_latched_stale_and_recover_rearms_it() -> None
     watch.recover(now=0.2, cycle=1)
     watch.check(0.25, cycle=2, enabled=True)
     assert watch.stop_reason() == ""
+
+
+def test_a_freeze_the_drives_tolerate_is_a_note_and_a_longer_one_a_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The first stall is noted at INFO; one beyond the RPDO deadline is a WARNING, once.
+
+    Every start of the bridge stood still once for 13-19 ms (module loads): routed to the ROS
+    log, that was a WARN on every healthy first run.
+    """
+    watch, _, counters = _watch()
+    rpdo_deadline_s = watch._params.rpdo_deadline_ms * 1e-3
+    caplog.set_level(logging.INFO, logger="lca_sim.canbus.master_watch")
+    for stall_s in (0.019, 0.03, rpdo_deadline_s + 0.05, rpdo_deadline_s + 0.2):
+        watch.discount(Freeze(stall_s, stall_s), now=10.0)
+    levels = [(r.levelno, r.getMessage()) for r in caplog.records]
+    assert [level for level, _ in levels] == [logging.INFO, logging.WARNING]
+    longer = f"{(rpdo_deadline_s + 0.05) * 1e3:.0f} ms, longer than the drives' RPDO deadline"
+    assert "19 ms" in levels[0][1] and longer in levels[1][1]
+    assert counters.process_freezes == 4  # every one counted
