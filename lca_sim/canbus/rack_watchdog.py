@@ -96,15 +96,14 @@ class RackWatchdogs:
             f"count up to {self.freeze_watch.max_discount_s * 1e3:.0f} ms of such time against "
             "the master (objects 0x2020 / 0x2021 count the stalls)"
         )
-        if freeze.beyond_bound:  # the rest counts against the deadlines: EMCY 0xFF02 below
+        if freeze.beyond_bound:  # the rest counts against the deadlines; each node sends EMCY
             self._warn_once("freeze-beyond", f"{what}; this one was longer")
-        elif self._counters.process_freezes == 1:  # forgiven in full: a note, no alarm
-            logger.info("virtual drive: %s (further ones are only counted)", what)
-        if freeze.beyond_bound:
             self._counters.stalls_beyond_discount += 1
             stall_ms = struct.pack("<H", min(round(freeze.frozen_s * 1e3), 0xFFFF))
             for axis in self._axes:
                 self._emcy(axis, cia402.EMCY_PROCESS_STALL, stall_ms)
+        elif self._counters.process_freezes == 1:  # forgiven in full: a note, no alarm
+            logger.info("virtual drive: %s (further ones are only counted)", what)
         skip_s = freeze.discount_s
         for axis in self._axes:
             if axis.heartbeat_last_rx_s is not None:

@@ -37,7 +37,6 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from lca_control import contract as pc
-from lca_control.contract import ENDED_KEY, SIMULATOR_STATUS
 from lca_sim.analysis.closed_loop import ClosedLoopConfig, replay_references, tracking_window
 from lca_sim.analysis.metrics import VelocityTracking, velocity_tracking
 from lca_sim.batch.closed_loop_config import load_config
@@ -47,7 +46,7 @@ from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
 from lca_sim.model.gantry import Gantry
 from lca_sim.output import output_folder, write_json
 from lca_sim.ros.bag_read import NS_PER_S, BagData, BagReadError, JointSeries, read_bag
-from lca_sim.ros.node_util import from_stamp
+from lca_sim.ros.node_util import from_stamp, simulator_end_s
 
 SCENARIO = "fig15"  # config/runs/fig15.yaml: the run `lca-hil run fig15` computes too
 END_WAIT_S = 60.0  # wall time for start-up and shut-down, on top of ...
@@ -129,10 +128,7 @@ class _Progress:
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            if status.name != SIMULATOR_STATUS:
-                continue
-            values = {kv.key: kv.value for kv in status.values}
-            if values.get(ENDED_KEY) == "True":
+            if simulator_end_s(status) is not None:
                 self.ended, self.end_message = True, status.message
 
     def steps_per_s(self, control_period_s: float) -> float:

@@ -24,6 +24,7 @@ loss (OK "plant ended its run at T s", one INFO line).
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -52,6 +53,7 @@ from lca_sim.ros.node_util import (
     other_publishers,
     run_node,
     set_enabled_by_service,
+    simulator_end_s,
     status,
 )
 
@@ -210,17 +212,11 @@ class ControllerNode(Node):
             )
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        """Keep the times at which a simulator said its run ended (`pc.ENDED_KEY`)."""
+        """Keep the times at which a simulator said its run ended (`simulator_end_s`)."""
         for found in msg.status:
-            if found.name != pc.SIMULATOR_STATUS:
-                continue
-            values = {kv.key: kv.value for kv in found.values}
-            if values.get(pc.ENDED_KEY) != "True":
-                continue
-            try:
-                self._ends_announced_s.append(float(values["sim_time_s"]))
-            except (KeyError, ValueError):
-                continue  # not a status of this project's simulator: no end to take from it
+            end_s = simulator_end_s(found)
+            if end_s is not None and math.isfinite(end_s):
+                self._ends_announced_s.append(end_s)
 
     def _ended_with_last_state(self) -> float | None:
         """The time of the last state taken if its plant said its run ended there, else None.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
@@ -32,6 +33,7 @@ from rclpy.type_support import check_is_valid_msg_type
 from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import remove_ros_args
 
+from lca_control import contract as pc
 from lca_control.parameters import ParameterTable
 from lca_sim.config.ros_params import (
     params_file_arguments,
@@ -158,6 +160,24 @@ def to_stamp(t_s: float) -> Time:
     """Seconds (float) to builtin_interfaces/Time (`contract_cdr.stamp_parts`' split)."""
     sec, nanosec = stamp_parts(t_s)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def simulator_end_s(found: DiagnosticStatus) -> float | None:
+    """The simulated time at which the simulator's lockstep run ended, if `found` says it did.
+
+    `found` is one status of a /diagnostics array: the simulator's (`SIMULATOR_STATUS`) with
+    `ENDED_KEY` = "True" gives its `sim_time_s` (NaN when that is missing or unreadable); any
+    other status gives None.
+    """
+    if found.name != pc.SIMULATOR_STATUS:
+        return None
+    values = {kv.key: kv.value for kv in found.values}
+    if values.get(pc.ENDED_KEY) != "True":
+        return None
+    try:
+        return float(values["sim_time_s"])
+    except (KeyError, ValueError):
+        return math.nan
 
 
 def from_stamp(stamp: Time) -> float:
