@@ -1,4 +1,4 @@
-"""Process set-up for the cyclic loops: the garbage collector and the GIL out of their way.
+"""Process set-up for the cyclic loops: the collector and the GIL out of their way, freezes judged.
 
 A full (generation 2) collection walks every object the process holds. After start-up that is
 Pinocchio, numba's compiled code, rclpy and canopen: about 150 000 objects here (200 000 when
@@ -11,22 +11,27 @@ Threads of one process share the GIL. A thread that has just sent frames to anot
 the same process (the virtual drive rack to the bridge on python-can's in-process bus) and goes
 on computing keeps the reader waiting for up to the switch interval. `yield_gil` hands over at
 that point instead.
+
+A whole process can still stand still (a collection, a library load, a paused host): a
+`FreezeWatch` tells its periodic thread or timer so, and the deadlines it watches forgive it.
 """
 
 from __future__ import annotations
 
 import gc
+import math
 import signal
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from types import FrameType
 
 # A cyclic thread that wakes this much later than due was frozen with its whole process (the
-# GIL held by a collection or a library load, the host paused). The CAN bridge's cycle and the
-# virtual drive's monitor then shift their silence deadlines by the freeze instead of blaming
-# the other side for it. It must stay below the tightest deadline they watch (SYNC loss: 10
-# periods, 20 ms at 500 Hz).
+# GIL held by a collection or a library load, the host paused). The CAN bridge's cycle, the
+# virtual drive's monitor and the simulator's timers then shift their silence deadlines by the
+# freeze instead of blaming the other side for it. It must stay below the tightest deadline
+# they watch (SYNC loss: 10 periods, 20 ms at 500 Hz).
 FREEZE_THRESHOLD_S = 0.01
 # Python's default GIL switch interval (5 ms) lets one thread hold the interpreter for several
 # CAN periods; every process that runs a CAN cycle (the bridge's master, the virtual rack, the
@@ -42,6 +47,46 @@ def discounted(stamp_s: float, frozen_s: float, now_s: float) -> float:
     another freeze's length.
     """
     return min(stamp_s + frozen_s, now_s)
+
+
+@dataclass(frozen=True, slots=True)
+class Freeze:
+    """One stall of this process: how long, and how much of it the deadlines discount."""
+
+    frozen_s: float
+    discount_s: float
+
+    @property
+    def beyond_bound(self) -> bool:
+        """The stall was longer than the deadlines may discount."""
+        return self.frozen_s > self.discount_s
+
+
+class FreezeWatch:
+    """Tells a periodic thread or timer that its process stood still; counts the stalls.
+
+    A tick later than its due time by more than `FREEZE_THRESHOLD_S` means the process stood
+    still, and the silence deadlines move on by the freeze, at most by `max_discount_s`, never
+    past now (`discounted`). Users: the bridge's cycle thread, the virtual drive's monitor
+    (docs/can.md) and the simulator's timers (docs/nodes.md).
+
+    Args:
+        max_discount_s: the most of one stall the deadlines discount (the rest counts against
+            them, as it would on a device that froze); inf: all of it.
+    """
+
+    def __init__(self, max_discount_s: float = math.inf) -> None:
+        self.max_discount_s = max_discount_s
+        self.count = 0
+        self.longest_s = 0.0
+
+    def check(self, late_s: float) -> Freeze | None:
+        """The stall behind a tick `late_s` after its due time, or None if it was no freeze."""
+        if not late_s > FREEZE_THRESHOLD_S:  # NaN (no previous tick) is no freeze either
+            return None
+        self.count += 1
+        self.longest_s = max(self.longest_s, late_s)
+        return Freeze(late_s, min(late_s, self.max_discount_s))
 
 
 def settle_heap() -> int:

@@ -29,7 +29,6 @@ import can
 import canopen
 from canopen.sdo.base import SdoArray, SdoRecord
 
-from lca_sim.canbus.freeze import FreezeWatch
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_frames import FrameReceiver, FrameTransmitter
 from lca_sim.canbus.master_params import BridgeParams
@@ -40,6 +39,7 @@ from lca_sim.cia402 import cia301
 from lca_sim.cia402.controlword import Want
 from lca_sim.cia402.device import PowerState
 from lca_sim.errors import InvalidValueError, UnknownNameError
+from lca_sim.runtime import FreezeWatch
 
 log = logging.getLogger(__name__)
 

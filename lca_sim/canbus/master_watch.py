@@ -17,11 +17,10 @@ from typing import Any
 import can
 
 from lca_sim.canbus import emcy
-from lca_sim.canbus.freeze import Freeze
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_params import BridgeParams
 from lca_sim.canbus.master_state import Counters
-from lca_sim.runtime import discounted
+from lca_sim.runtime import Freeze, discounted
 
 log = logging.getLogger(__name__)
 

@@ -12,13 +12,12 @@ import math
 import struct
 from collections.abc import Callable, Sequence
 
-from lca_sim.canbus.freeze import Freeze, FreezeWatch
 from lca_sim.canbus.rack_state import NMT_OPERATIONAL, Drive, RackCounters
 from lca_sim.cia402 import device as cia402
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402 import sync_rate
 from lca_sim.cia402.device import PowerState
-from lca_sim.runtime import discounted
+from lca_sim.runtime import Freeze, FreezeWatch, discounted
 
 logger = logging.getLogger(__name__)
 

@@ -17,6 +17,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 from lca_sim.config.simulator_params import SimulatorNodeParams
 from lca_sim.model.pacing import LockstepGate, RealtimeClock
+from lca_sim.runtime import Freeze, FreezeWatch, discounted
 
 # Time skipped within one diagnostics period above which it is reported as a stall (WARN):
 # five control periods. A few ms skipped on a loaded host is counted in skipped_s only.
@@ -46,6 +47,8 @@ class SimPacing:
         self.end_reported = False
         self.gate = LockstepGate()  # lockstep's periods (unused in realtime)
         self.clock = RealtimeClock(p.dt_s, p.realtime_factor, p.publish_rate_hz, now)
+        self.freezes = FreezeWatch()  # the command deadline forgives every freeze in full
+        self._last_wake_wall = now  # the last timer callback that judged the wall clock
 
     @property
     def steps(self) -> int:
@@ -81,6 +84,30 @@ class SimPacing:
     def ended(self) -> bool:
         """A lockstep run has reached `lockstep_end_s`: no further state goes out."""
         return self.lockstep and self.gate.ended(self._params().lockstep_end_steps)
+
+    def check_freeze(self, tick_period_s: float) -> Freeze | None:
+        """A freeze of this process since its last timer callback, forgiven by the command deadline.
+
+        The node's timers (the realtime tick or the lockstep kick, and the diagnostics) call
+        this first, with the tick's period. A callback later than the last one by more than
+        that period plus `FREEZE_THRESHOLD_S` means the process stood still (a collection, a
+        library load, a paused host): the commands the controller sent meanwhile wait unread
+        in the queue, and judging its silence on waking would blame it for the simulator's
+        freeze (holding 0 V, a WARN asking whether the controller runs). So the last command's
+        time moves on by the freeze, never past now: a controller silent while the node runs
+        is still caught on time. The CAN bridge's master does the same (docs/can.md). None
+        before simulated time starts (start-up is no freeze) and when no freeze was seen.
+        """
+        now = time.monotonic()
+        late_s = now - self._last_wake_wall - tick_period_s
+        self._last_wake_wall = now
+        running = self.started if self.lockstep else self.clock.started
+        if not running:
+            return None
+        freeze = self.freezes.check(late_s)
+        if freeze is not None:
+            self.last_command_wall = discounted(self.last_command_wall, freeze.discount_s, now)
+        return freeze
 
     def command_came(self) -> None:
         """A command is in force now (the controller peer is alive)."""

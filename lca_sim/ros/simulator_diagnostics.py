@@ -103,6 +103,9 @@ class SimulatorDiagnostics:
             "steps": pacing.steps,
             "states_published": published,
             "overrun_steps": pacing.overrun_steps,
+            # Freezes of this process the command deadline forgave (`SimPacing.check_freeze`).
+            "process_freezes": pacing.freezes.count,
+            "longest_freeze_s": pacing.freezes.longest_s,
             "command_age_s": command_age_s,
             "commands_wrong_interface": wrong_interface,
             "joint_commands_accepted": joint_commands["accepted"],

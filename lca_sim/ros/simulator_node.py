@@ -80,6 +80,7 @@ class SimulatorNode(Node):
         self._reset_pose()
         self._lockstep = p.timing_mode == "lockstep"
         self.pacing = SimPacing(lambda: self.params, self._lockstep)
+        self._long_freeze_logged = False  # one warning for a freeze beyond the command deadline
         self._published = 0
         self._irreversible = robot.state_machine.irreversible_stop
         self._axes = AxisWatch(self.sim, self.plant, self.faults)
@@ -211,7 +212,32 @@ class SimulatorNode(Node):
 
     # --- stepping ------------------------------------------------------------------------
 
+    def _wake(self) -> None:
+        """Every timer callback first: a freeze of this process is not the controller's silence.
+
+        `SimPacing.check_freeze` moves the command deadline on by the freeze. The first freeze
+        is logged (INFO; WARNING when it was longer than the deadline, which would have held
+        the plant at 0 V), as is the first longer one; the rest are counted in /diagnostics.
+        """
+        p = self.params
+        tick_s = LOCKSTEP_TICK_S if self._lockstep else 1.0 / p.publish_rate_hz
+        freeze = self.pacing.check_freeze(tick_s)
+        if freeze is None:
+            return
+        deadline_s = p.lockstep_resend_s if self._lockstep else p.command_timeout_s
+        beyond = freeze.frozen_s > deadline_s
+        if self.pacing.freezes.count == 1 or (beyond and not self._long_freeze_logged):
+            self._long_freeze_logged = self._long_freeze_logged or beyond
+            logger = self.get_logger()
+            (logger.warning if beyond else logger.info)(
+                f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms"
+                + (f", longer than the command deadline ({deadline_s:g} s)" if beyond else "")
+                + "; the controller's silence does not count it (further freezes are only "
+                "counted)"
+            )
+
     def _realtime_tick(self) -> None:
+        self._wake()
         pacing = self.pacing
         pacing.tick_started()
         if pacing.paused:
@@ -237,6 +263,7 @@ class SimulatorNode(Node):
         self._publish_state()
 
     def _lockstep_kick(self) -> None:
+        self._wake()
         p = self.params
         pacing = self.pacing
         if pacing.ended:
@@ -276,6 +303,7 @@ class SimulatorNode(Node):
         self.pacing.last_publish_wall = time.monotonic()
 
     def _publish_diagnostics(self) -> None:
+        self._wake()  # may run first after a freeze: the command age it reports is discounted
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         commands = self._commands

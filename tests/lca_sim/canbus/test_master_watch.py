@@ -26,11 +26,11 @@ import pytest
 from support import RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
-from lca_sim.canbus.freeze import Freeze
 from lca_sim.canbus.master_axis import MasterAxis
 from lca_sim.canbus.master_state import Counters
 from lca_sim.canbus.master_watch import SafetyWatch
 from lca_sim.cia402 import objects as od
+from lca_sim.runtime import Freeze
 
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 NODE_IDS = (1, 2, 3, 4)
