@@ -19,6 +19,7 @@ A whole process can still stand still (a collection, a library load, a paused ho
 from __future__ import annotations
 
 import gc
+import logging
 import math
 import signal
 import time
@@ -79,6 +80,7 @@ class FreezeWatch:
         self.max_discount_s = max_discount_s
         self.count = 0
         self.longest_s = 0.0
+        self._long_said = False
 
     def check(self, late_s: float) -> Freeze | None:
         """The stall behind a tick `late_s` after its due time, or None if it was no freeze."""
@@ -87,6 +89,23 @@ class FreezeWatch:
         self.count += 1
         self.longest_s = max(self.longest_s, late_s)
         return Freeze(late_s, min(late_s, self.max_discount_s))
+
+    def note(self, freeze: Freeze, deadline_s: float, forgiven: str) -> tuple[int, str] | None:
+        """What to log of `freeze` (a logging level and the text), or None: only counted.
+
+        The first freeze is said at INFO, or at WARNING when it lasted longer than
+        `deadline_s` (the peer's silence it forgave would have tripped that deadline); so is
+        the first such longer one. `forgiven` names what does not count it.
+        """
+        beyond = freeze.frozen_s > deadline_s
+        if not (self.count == 1 or (beyond and not self._long_said)):
+            return None
+        self._long_said = self._long_said or beyond
+        longer = f", longer than the deadline ({deadline_s:g} s)" if beyond else ""
+        return logging.WARNING if beyond else logging.INFO, (
+            f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms{longer}; {forgiven} "
+            "does not count it (further freezes are only counted)"
+        )
 
 
 def settle_heap() -> int:

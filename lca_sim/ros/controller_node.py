@@ -56,7 +56,12 @@ from lca_sim.ros.node_util import (
     simulator_end_s,
     status,
 )
+from lca_sim.ros.ros_logging import log_at
+from lca_sim.runtime import FreezeWatch, discounted
 
+# A steady timer this often watches for freezes of this process (a paused host, a debugger):
+# the plant's silence during one is not the plant's fault (`_wake`).
+FREEZE_WATCH_PERIOD_S = 0.05
 ENDS_KEPT = 8  # plant ends remembered: more simulators than this ending at once is no setup
 # An end and a state stamp name the same instant: the stamp's nanoseconds against the status's
 # float; far below any control period.
@@ -96,6 +101,8 @@ class ControllerNode(Node):
         self._last_state_wall = time.monotonic()
         self._plant_lost = False  # silent beyond plant_timeout_s (before the first state too)
         self.plant_losses = 0
+        self._freezes = FreezeWatch()  # the plant deadline forgives every freeze in full
+        self._last_wake_wall = math.nan  # the first call sets it: start-up is no freeze
         # Simulated times at which a plant said on /diagnostics that its run ended (the last few).
         self._ends_announced_s: deque[float] = deque(maxlen=ENDS_KEPT)
         self._restarts_logged = 0
@@ -123,11 +130,11 @@ class ControllerNode(Node):
         )
         self.create_subscription(DiagnosticArray, pc.DIAGNOSTICS, self._on_diagnostics, 10)
         self.create_service(SetBool, "~/enable", self._on_enable)
-        # A steady clock: on sim time this timer would stop with /clock, i.e. exactly when a
+        # A steady clock: on sim time these timers would stop with /clock, i.e. exactly when a
         # lost simulator has to be reported.
-        self.create_timer(
-            1.0, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME)
-        )
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
+        self.create_timer(FREEZE_WATCH_PERIOD_S, self._wake, clock=steady)
         self.get_logger().info(
             f"{params.reference_source} reference, {params.command_interface} commands on "
             f"{topic} for {list(params.joints)}"
@@ -249,6 +256,24 @@ class ControllerNode(Node):
         if new.enabled and not old.enabled:
             self.core.reset()  # re-enabling starts the integrators from zero
 
+    def _wake(self) -> None:
+        """The freeze watch (and the diagnostics first): a freeze is not the plant's silence.
+
+        A steady timer later than its period plus `FREEZE_THRESHOLD_S` after the last call
+        means this process stood still: the states the plant sent meanwhile wait unread (or,
+        on a paused host, the plant stood still too), so the plant deadline moves on by the
+        freeze, never past now. The simulator and the CAN bridge do the same for commands.
+        """
+        now = time.monotonic()
+        freeze = self._freezes.check(now - self._last_wake_wall - FREEZE_WATCH_PERIOD_S)
+        self._last_wake_wall = now
+        if freeze is None:
+            return
+        self._last_state_wall = discounted(self._last_state_wall, freeze.discount_s, now)
+        note = self._freezes.note(freeze, self.core.params.plant_timeout_s, "the plant's silence")
+        if note is not None:
+            log_at(self.get_logger(), *note)
+
     def _plant_health(self) -> tuple[bytes, str]:
         """The plant peer for /diagnostics: WARN while states that came stop for plant_timeout_s.
 
@@ -306,6 +331,7 @@ class ControllerNode(Node):
         return f"another node publishes {found[0]}" if found else None
 
     def _publish_diagnostics(self) -> None:
+        self._wake()  # may run first after a freeze: the plant's silence it judges is discounted
         core = self.core
         level, message = self._plant_health()
         if level == DiagnosticStatus.OK and (core.rejected_references or self.bad_states):
@@ -333,6 +359,8 @@ class ControllerNode(Node):
             "references_rejected": core.rejected_references,
             "plant_state_age_s": time.monotonic() - self._last_state_wall,
             "plant_losses": self.plant_losses,
+            "process_freezes": self._freezes.count,
+            "longest_freeze_s": self._freezes.longest_s,
             "plant_restarts": core.plant_restarts,
         }
         for joint, reference in zip(core.params.joints, core.last_velocity_reference, strict=True):

@@ -32,20 +32,23 @@ class RosLogHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         """Log `record` (with its traceback, if any) on `ros_logger`; never raises."""
         try:
-            text = self.format(record)
-            logger = self.ros_logger
-            if record.levelno >= logging.CRITICAL:
-                logger.fatal(text)
-            elif record.levelno >= logging.ERROR:
-                logger.error(text)
-            elif record.levelno >= logging.WARNING:
-                logger.warning(text)
-            elif record.levelno >= logging.INFO:
-                logger.info(text)
-            else:
-                logger.debug(text)
+            log_at(self.ros_logger, record.levelno, self.format(record))
         except Exception:  # a log call must not break the thread that made it
             self.handleError(record)
+
+
+def log_at(ros_logger: Any, level: int, text: str) -> None:
+    """`text` on an rclpy logger at the severity of a Python logging `level`."""
+    if level >= logging.CRITICAL:
+        ros_logger.fatal(text)
+    elif level >= logging.ERROR:
+        ros_logger.error(text)
+    elif level >= logging.WARNING:
+        ros_logger.warning(text)
+    elif level >= logging.INFO:
+        ros_logger.info(text)
+    else:
+        ros_logger.debug(text)
 
 
 @contextmanager

@@ -37,6 +37,7 @@ from lca_sim.model.plant import build_plant
 from lca_sim.ros.fault_params import FaultParameters, is_fault_parameter
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node, set_enabled_by_service
 from lca_sim.ros.plant_contract import PlantPublisher
+from lca_sim.ros.ros_logging import log_at
 from lca_sim.ros.sim_axes import AxisWatch
 from lca_sim.ros.sim_commands import SimCommands
 from lca_sim.ros.sim_pacing import SimPacing
@@ -80,7 +81,6 @@ class SimulatorNode(Node):
         self._reset_pose()
         self._lockstep = p.timing_mode == "lockstep"
         self.pacing = SimPacing(lambda: self.params, self._lockstep)
-        self._long_freeze_logged = False  # one warning for a freeze beyond the command deadline
         self._published = 0
         self._irreversible = robot.state_machine.irreversible_stop
         self._axes = AxisWatch(self.sim, self.plant, self.faults)
@@ -215,9 +215,9 @@ class SimulatorNode(Node):
     def _wake(self) -> None:
         """Every timer callback first: a freeze of this process is not the controller's silence.
 
-        `SimPacing.check_freeze` moves the command deadline on by the freeze. The first freeze
-        is logged (INFO; WARNING when it was longer than the deadline, which would have held
-        the plant at 0 V), as is the first longer one; the rest are counted in /diagnostics.
+        `SimPacing.check_freeze` moves the command deadline on by the freeze; the first freeze
+        and the first one beyond the deadline are logged (`FreezeWatch.note`), the rest counted
+        in /diagnostics.
         """
         p = self.params
         tick_s = LOCKSTEP_TICK_S if self._lockstep else 1.0 / p.publish_rate_hz
@@ -225,16 +225,9 @@ class SimulatorNode(Node):
         if freeze is None:
             return
         deadline_s = p.lockstep_resend_s if self._lockstep else p.command_timeout_s
-        beyond = freeze.frozen_s > deadline_s
-        if self.pacing.freezes.count == 1 or (beyond and not self._long_freeze_logged):
-            self._long_freeze_logged = self._long_freeze_logged or beyond
-            logger = self.get_logger()
-            (logger.warning if beyond else logger.info)(
-                f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms"
-                + (f", longer than the command deadline ({deadline_s:g} s)" if beyond else "")
-                + "; the controller's silence does not count it (further freezes are only "
-                "counted)"
-            )
+        note = self.pacing.freezes.note(freeze, deadline_s, "the controller's silence")
+        if note is not None:
+            log_at(self.get_logger(), *note)
 
     def _realtime_tick(self) -> None:
         self._wake()

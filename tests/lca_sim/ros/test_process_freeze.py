@@ -6,6 +6,7 @@ as the controller's silence put the simulator at 0 V with a WARN asking whether 
 runs, though the controller had stood still with it. Both plants forgive a freeze of their own
 process in the command deadline (`lca_sim.runtime.FreezeWatch`), say in their log how long they
 stood still, and count it on /diagnostics; a controller that really goes silent is still caught.
+The controller forgives its own freezes in the plant deadline the same way (last test).
 
 Each backend runs as its console script with its shipped params file (`command_timeout_s` 0.1),
 on its own domain; this test is the controller (0.2 A on the pivot, at 100 Hz). The host's
@@ -28,10 +29,11 @@ from rclpy.node import Node
 from rclpy.timer import Timer
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from support import NodeProcess, ros_context_on, spin_until, start_shipped
+from support import NodeProcess, parameters, ros_context_on, spin_until, start_shipped
 
 from lca_control import contract as pc
 from lca_sim.ros.can_bridge_diagnostics import BRIDGE_STATUS
+from lca_sim.ros.controller_node import FREEZE_WATCH_PERIOD_S, ControllerNode
 
 FREEZE_S = 0.3  # three command deadlines of the shipped files
 COMMAND_PERIOD_S = 0.01
@@ -41,6 +43,8 @@ COMMAND_A = [0.0, 0.2, 0.0, 0.0]
 START_S = 60.0  # a cold start on a slow host: imports, the model's compile cache, discovery
 SILENCE = "no command for"
 # backend: (console script, params file, status name, domain id)
+CONTROLLER_DOMAIN_ID = 102
+JOINTS = ("l_arm", "pivot", "c_arc", "lift")
 PLANTS = {
     "simulator": ("lca-simulator", "simulator.yaml", pc.SIMULATOR_STATUS, 100),
     "can_bridge": ("lca-can-bridge", "can_bridge.yaml", BRIDGE_STATUS, 101),
@@ -147,3 +151,51 @@ def test_a_plant_that_stood_still_does_not_blame_its_controller(
     finally:
         plant.proc.send_signal(signal.SIGCONT)
         plant.stop()
+
+
+class _WallClock:
+    """time.monotonic, moved by hand (the node's executor is not spun meanwhile)."""
+
+    def __init__(self, now_s: float) -> None:
+        self.now_s = now_s
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_a_controller_that_stood_still_does_not_blame_its_plant(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The controller's freeze watch: a 0.8 s freeze is no plant loss, a 0.6 s silence is.
+
+    In-process and deterministic: the controller's callbacks are called in the order a frozen
+    process runs them on waking (the overdue diagnostics first), on a wall clock moved by hand.
+    """
+    wall = _WallClock(1000.0)
+    monkeypatch.setattr(time, "monotonic", wall)
+    with ros_context_on(CONTROLLER_DOMAIN_ID) as (ctx, _executor):
+        ctl = ControllerNode(
+            "controller",
+            context=ctx,
+            parameter_overrides=parameters(reference_source="hold", plant_timeout_s=0.5),
+        )
+        try:
+            state = JointState(name=list(JOINTS), position=[0.0] * 4, velocity=[0.0] * 4)
+            ctl._wake()  # the watch's first call: its baseline (start-up is no freeze)
+            ctl._on_joint_states(state)  # a state at 1000.0
+            wall.now_s += FREEZE_WATCH_PERIOD_S
+            ctl._wake()
+            wall.now_s += 0.8  # the process stood still; the plant's states wait unread
+            ctl._publish_diagnostics()
+            assert ctl._plant_health() == (DiagnosticStatus.OK, "running")
+            assert ctl.plant_losses == 0 and ctl._freezes.count == 1
+            assert ctl._freezes.longest_s == pytest.approx(0.8 - FREEZE_WATCH_PERIOD_S)
+            # the plant really goes silent while the controller runs: caught at its deadline
+            for _ in range(12):  # 0.6 s of watch ticks on time
+                wall.now_s += FREEZE_WATCH_PERIOD_S
+                ctl._wake()
+            level, message = ctl._plant_health()
+            assert (level, message[:18]) == (DiagnosticStatus.WARN, "no plant state for")
+            assert ctl.plant_losses == 1 and ctl._freezes.count == 1
+        finally:
+            ctl.destroy_node()  # type: ignore[no-untyped-call]  # rclpy leaves it unannotated
