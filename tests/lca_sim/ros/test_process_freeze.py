@@ -80,6 +80,7 @@ class Controller:
         """Start or stop the commands."""
         if on and self._timer is None:
             msg = Float64MultiArray(data=COMMAND_A)
+            self._pub.publish(msg)  # at once, not a period later
             self._timer = self.node.create_timer(COMMAND_PERIOD_S, lambda: self._pub.publish(msg))
         elif not on and self._timer is not None:
             self.node.destroy_timer(self._timer)
