@@ -90,12 +90,13 @@ class FreezeWatch:
         self.longest_s = max(self.longest_s, late_s)
         return Freeze(late_s, min(late_s, self.max_discount_s))
 
-    def note(self, freeze: Freeze, deadline_s: float, forgiven: str) -> tuple[int, str] | None:
+    def note(self, freeze: Freeze, deadline_s: float, then: str) -> tuple[int, str] | None:
         """What to log of `freeze` (a logging level and the text), or None: only counted.
 
         The first freeze is said at INFO, or at WARNING when it lasted longer than
-        `deadline_s` (the peer's silence it forgave would have tripped that deadline); so is
-        the first such longer one. `forgiven` names what does not count it.
+        `deadline_s` (a deadline a peer watches would have tripped); so is the first such
+        longer one. `then` says what follows from it ("the controller's silence does not
+        count it").
         """
         beyond = freeze.frozen_s > deadline_s
         if not (self.count == 1 or (beyond and not self._long_said)):
@@ -103,8 +104,8 @@ class FreezeWatch:
         self._long_said = self._long_said or beyond
         longer = f", longer than the deadline ({deadline_s:g} s)" if beyond else ""
         return logging.WARNING if beyond else logging.INFO, (
-            f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms{longer}; {forgiven} "
-            "does not count it (further freezes are only counted)"
+            f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms{longer}; {then} "
+            "(further freezes are only counted)"
         )
 
 

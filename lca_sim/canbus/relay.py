@@ -16,6 +16,7 @@ import logging
 import selectors
 import socket
 import threading
+import time
 from dataclasses import dataclass, field
 
 from lca_sim.canbus.remote import INTERFACE_NAME
@@ -37,8 +38,16 @@ from lca_sim.canbus.wire import (
     parse_frames,
     ws_frame,
 )
+from lca_sim.runtime import FreezeWatch
 
 logger = logging.getLogger(__name__)
+
+# The longest the relay waits in one `select`: a return later than this (plus the freeze
+# threshold) after the one before means the relay stood still, and every frame waited with it.
+POLL_S = 0.05
+# A stall of the relay longer than this is logged as a warning: the shipped drives' RPDO
+# deadline (100 ms) is the tightest a stall of the bus can trip.
+STALL_WARN_S = 0.1
 
 
 @dataclass
@@ -50,6 +59,8 @@ class RelayStats:
     frames_out: int = 0
     bad_messages: int = 0
     dropped_clients: int = 0
+    freezes: int = 0  # stalls of the relay's own process (`POLL_S`)
+    longest_freeze_s: float = 0.0
 
 
 @dataclass(eq=False)
@@ -84,6 +95,7 @@ class RelayServer:
         self._max_backlog = max_backlog_bytes
         self._stop = threading.Event()
         self.stats = RelayStats()
+        self._freezes = FreezeWatch()
         self.host = host
         self.port: int = self._listener.getsockname()[1]
 
@@ -96,11 +108,23 @@ class RelayServer:
         """Make `serve()` return (from any thread or a signal handler)."""
         self._stop.set()
 
-    def serve(self, poll_s: float = 0.2) -> None:
-        """Relay until `stop()`; then close every connection and the listener."""
+    def serve(self, poll_s: float = POLL_S) -> None:
+        """Relay until `stop()`; then close every connection and the listener.
+
+        A stall of the relay's process (the host paused it, or it was not scheduled) holds
+        every frame on the bus as long: a drive's heartbeat consumer or RPDO deadline may
+        then fire though no node was silent. Such a stall is told by two `select` returns
+        further apart than `poll_s` plus `FREEZE_THRESHOLD_S`; it is counted in `stats` and
+        logged (`FreezeWatch.note`: the first, and the first beyond `STALL_WARN_S`).
+        """
+        last_return = time.monotonic()
         try:
             while not self._stop.is_set():
-                for key, events in self._selector.select(poll_s):
+                ready = self._selector.select(poll_s)
+                now = time.monotonic()
+                self._watch_freeze(now - last_return - poll_s)
+                last_return = now
+                for key, events in ready:
                     if key.data is None:
                         self._accept()
                         continue
@@ -119,6 +143,16 @@ class RelayServer:
                 self._drop(client)
             self._selector.close()
             self._listener.close()
+
+    def _watch_freeze(self, late_s: float) -> None:
+        freeze = self._freezes.check(late_s)
+        if freeze is None:
+            return
+        self.stats.freezes = self._freezes.count
+        self.stats.longest_freeze_s = self._freezes.longest_s
+        note = self._freezes.note(freeze, STALL_WARN_S, "every frame on the bus waited as long")
+        if note is not None:
+            logger.log(note[0], "relay: %s", note[1])
 
     # -- connections --
 

@@ -270,7 +270,9 @@ class ControllerNode(Node):
         if freeze is None:
             return
         self._last_state_wall = discounted(self._last_state_wall, freeze.discount_s, now)
-        note = self._freezes.note(freeze, self.core.params.plant_timeout_s, "the plant's silence")
+        note = self._freezes.note(
+            freeze, self.core.params.plant_timeout_s, "the plant's silence does not count it"
+        )
         if note is not None:
             log_at(self.get_logger(), *note)
 

@@ -225,7 +225,9 @@ class SimulatorNode(Node):
         if freeze is None:
             return
         deadline_s = p.lockstep_resend_s if self._lockstep else p.command_timeout_s
-        note = self.pacing.freezes.note(freeze, deadline_s, "the controller's silence")
+        note = self.pacing.freezes.note(
+            freeze, deadline_s, "the controller's silence does not count it"
+        )
         if note is not None:
             log_at(self.get_logger(), *note)
 

@@ -34,7 +34,7 @@ from lca_sim.canbus import remote, wire
 from lca_sim.canbus.data_frames import DataFrames
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_state import Snapshot
-from lca_sim.canbus.relay import RelayServer
+from lca_sim.canbus.relay import POLL_S, RelayServer
 from lca_sim.cia402.device import PowerState
 from lca_sim.cli import can_server
 from lca_sim.config.loader import config_dir
@@ -539,6 +539,42 @@ def test_stock_python_can_remote_client_joins(in_process_relay: RelayServer) -> 
         ours.send(SPECIAL_FRAMES[3])
         got = stock.recv(10.0)
         assert got is not None and _same(got, SPECIAL_FRAMES[3])
+
+
+def test_a_stalled_relay_says_how_long_every_frame_waited() -> None:
+    """The relay's process stopped for 0.3 s: one warning with the stall, counted in its stats.
+
+    A stall of the relay holds every frame on the bus, so the drives' watchdogs may fire with
+    no node silent; the relay is the only process that can tell (its `select` returns further
+    apart than its poll period).
+    """
+    stall_s = 0.3
+    proc = subprocess.Popen(
+        [str(BIN / "lca-can-server"), "--port", "0"], stderr=subprocess.PIPE, text=True
+    )
+    try:
+        _read_line(proc, r"relaying on ws://127\.0\.0\.1:\d+/", 30.0)
+        proc.send_signal(signal.SIGSTOP)
+        stopped_at = time.monotonic()
+        # the stimulus: the relay gets no CPU for stall_s, as on a paused host
+        wait_until(lambda: time.monotonic() - stopped_at >= stall_s, "the stall", 30.0)
+        proc.send_signal(signal.SIGCONT)
+        warned = _read_line(proc, r"WARNING .*relay: this process stood still for (\d+) ms", 30.0)
+    finally:
+        proc.send_signal(signal.SIGCONT)
+        code = _stop_process(proc)
+    assert code == 0
+    # at least the stall, less the one poll period the relay could have been waiting anyway
+    assert int(warned.group(1)) >= (stall_s - POLL_S) * 1e3, warned.group(0)
+    assert "longer than the deadline (0.1 s); every frame on the bus waited as long" in (
+        warned.string
+    )
+    assert proc.stderr is not None
+    stats = proc.stderr.read()
+    counted = re.search(r"freezes=(\d+), longest_freeze_s=([0-9.]+)", stats)
+    assert counted is not None, stats
+    # this stall, and any scheduling hiccup of a loaded host beside it (counted, not logged)
+    assert int(counted.group(1)) >= 1 and float(counted.group(2)) >= stall_s - POLL_S, stats
 
 
 def test_no_server_is_an_init_error() -> None:
