@@ -769,10 +769,13 @@ def run_scenario(
     rig = Rig(repo, domain_id, log_dir / scenario.name)
     rig.log_dir.mkdir(parents=True, exist_ok=True)
     observer: Observer | None = None
+    relay: Child | None = None
+    result: JsonDict
     try:
         deadline = time.monotonic() + START_TIMEOUT_S
         observer = Observer(domain_id, record, drive_states)
         children = start_nodes(rig, scenario, deadline, observer.spin)
+        relay = children.get("relay")
         ramp_start_s = float(ros_yaml_value(controller_yaml(repo), "controller", "ramp_start_s"))
         joints = len(ros_yaml_value(bridge_yaml(repo), "can_bridge", "joints"))
         started_t = time.monotonic()
@@ -798,13 +801,28 @@ def run_scenario(
             observer.spin()
         b = record.bridge[-1]
         cpu_b = CpuSample.take(pids)
-        return figures(scenario, record, a, b, (cpu_a, cpu_b), pids, startup_s)
+        result = figures(scenario, record, a, b, (cpu_a, cpu_b), pids, startup_s)
     except BenchError as exc:
-        return {"ok": False, "error": str(exc)}
+        result = {"ok": False, "error": str(exc)}
     finally:
         rig.stop_all()
         if observer is not None:
             observer.close()
+    if relay is not None:  # its stop line, written as it ended
+        result["relay_stalls"] = relay_stalls(relay.log_text())
+    return result
+
+
+def relay_stalls(log: str) -> JsonDict | None:
+    """The relay's stalls over its whole run, from its stop line; None without that line.
+
+    A stall of the relay holds every frame on the bus: cycles go incomplete and the drives'
+    watchdogs may fire with no node silent (lca_sim.canbus.relay, docs/reliability.md).
+    """
+    found = re.search(r"freezes=(\d+), longest_freeze_s=([-+0-9.e]+)", log)
+    if found is None:
+        return None
+    return {"count": int(found.group(1)), "longest_ms": rounded(float(found.group(2)) * 1e3, 1)}
 
 
 def _check(children: dict[str, Child], deadline: float, what: str) -> None:
@@ -874,8 +892,17 @@ def pct(share: float | None) -> float | None:
 
 def print_scenario(name: str, r: JsonDict) -> None:
     """The figures of one scenario for humans."""
+    stalls = r.get("relay_stalls")
+    stalls_line = (
+        f"  relay stalls (its whole run) {stalls['count']}, the longest "
+        f"{fmt(stalls['longest_ms'], '.0f')} ms"
+        if stalls
+        else ""
+    )
     if not r.get("ok"):
-        print(f"  FAILED: {r.get('error')}", flush=True)
+        print(
+            f"  FAILED: {r.get('error')}" + (f"\n{stalls_line}" if stalls_line else ""), flush=True
+        )
         return
     lat = r["latency"]
     share = r["in_time_share"]
@@ -925,6 +952,8 @@ def print_scenario(name: str, r: JsonDict) -> None:
             f"({d['changes_in_run']} in the run, {d['alternations_in_run']} A->B->A), shortest "
             f"{fmt(d['shortest_interval_s'], '.3f')} s; {' -> '.join(d['sequence'][:6])}"
         )
+    if stalls_line:
+        print(stalls_line)
     note = other_processes_note(r["cpu"]["other_processes"], "scenario")
     if note:
         print(note)

@@ -4,7 +4,7 @@
 CPU. On the project's virtual machines /proc/stat counts some windows short (160 of 200 ticks a
 second) or its busy time falls below the measured processes' own; the figure then read as
 "another load kept half a core busy" where there was none. Such a window gives no figure and
-says why.
+says why. And bench/can_loop.py's reading of the relay's stalls from its stop line.
 """
 
 from __future__ import annotations
@@ -57,3 +57,22 @@ def test_the_note_says_which(ros_loop: ModuleType) -> None:
     assert ros_loop.other_processes_note({"cpu_share": 0.05}, "scenario") == ""
     why = "not measurable: /proc/stat counted 16.0 s"
     assert why in ros_loop.other_processes_note({"cpu_share": None, "why": why}, "phase")
+
+
+@pytest.fixture(scope="module")
+def can_loop() -> ModuleType:
+    sys.path.insert(0, str(BENCH))
+    try:
+        return importlib.import_module("can_loop")
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def test_the_relay_s_stalls_are_read_from_its_stop_line(can_loop: ModuleType) -> None:
+    """bench/can_loop.py reads what `lca-can-server` prints as it stops (its `RelayStats`)."""
+    from lca_sim.canbus.relay import RelayStats
+
+    stats = RelayStats(connections=3, frames_in=10, freezes=2, longest_freeze_s=0.3125)
+    log = f"relaying on ws://127.0.0.1:1/\nlca-can-server: stopped; {stats}\n"
+    assert can_loop.relay_stalls(log) == {"count": 2, "longest_ms": 312.5}
+    assert can_loop.relay_stalls("relaying on ws://127.0.0.1:1/\n") is None  # killed: no line
