@@ -275,6 +275,13 @@ class Cia402Master:
         """Why the axes are held (stopped or halted) until `recover()`, or ''."""
         return self._watch.latched_reason()
 
+    def receive_failure(self) -> str:
+        """Why the bus is not heard now (its receive fails), or '' (`FrameReceiver.on_error`)."""
+        failures = self._receiver.receive_failures
+        if not failures.failing(time.monotonic()):
+            return ""
+        return f"CAN reception failing: {failures.last} ({failures.count} failures so far)"
+
     def start(self) -> None:
         """Start the cyclic thread (after init)."""
         if self._thread is not None:

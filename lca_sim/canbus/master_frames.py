@@ -14,7 +14,7 @@ import canopen
 from canopen.network import MessageListener
 
 from lca_sim.canbus.data_frames import DataFrames, received_message
-from lca_sim.canbus.frames import send_frame
+from lca_sim.canbus.frames import RECEIVE_RETRY_S, ReceiveFailures, send_frame
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master_state import Counters
 from lca_sim.canbus.master_watch import SafetyWatch
@@ -80,6 +80,8 @@ class FrameReceiver(can.Listener):
     ) -> None:
         self._counters = counters
         self._on_error_frame = on_error_frame
+        self._network = network
+        self.receive_failures = ReceiveFailures()
         self._subscribers = network.subscribers
         self.tpdo_ids: frozenset[int] = frozenset()
         listeners = network.notifier.listeners if network.notifier is not None else []
@@ -105,6 +107,24 @@ class FrameReceiver(can.Listener):
         c.frames_received += 1
         c.bits_received += bus_load.FRAME_BITS[dlc]
         c.nominal_bits += bus_load.FRAME_BITS_NOMINAL[dlc]
+
+    def on_error(self, exc: Exception) -> None:
+        """The bus's receive raised (its interface down, the relay gone): said, counted, retried.
+
+        Without this python-can's notifier ended its thread with a traceback and canopen's
+        next sends re-raised the error: the drives went unheard (stale) with no reason given.
+        Now the first failure of a run is logged, `receive_failures` tells the diagnostics
+        while it lasts (`Cia402Master.receive_failure`), and reception goes on when the bus
+        does (`ReceiveFailures`).
+        """
+        self._counters.receive_errors += 1
+        if self.receive_failures.failed(exc, self._network.notifier):
+            log.error(
+                "CAN reception failed: %s; the drives are not heard meanwhile (tried again every "
+                "%g s)",
+                self.receive_failures.last,
+                RECEIVE_RETRY_S,
+            )
 
     def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
         """Classical data frames from a linked bus: as `on_message_received`, no message each.

@@ -58,6 +58,7 @@ class Counters:
     commands_rejected: int = 0
     commands_clamped: int = 0
     send_failures: int = 0
+    receive_errors: int = 0  # exceptions of the bus's receive (python-can's notifier thread)
     error_frames: int = 0
     emcy_received: int = 0
     bad_pdos: int = 0

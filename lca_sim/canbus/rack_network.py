@@ -13,7 +13,7 @@ import can
 import canopen
 
 from lca_sim.canbus.data_frames import DataFrames
-from lca_sim.canbus.frames import send_frame
+from lca_sim.canbus.frames import ReceiveFailures, send_frame
 from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
 from lca_sim.canbus.remote import RemoteTransportBus
@@ -95,6 +95,7 @@ class RackListener(can.Listener):
         self._sdo_servers = sdo_servers
         self._on_frame = on_frame
         self._warn_once = warn_once
+        self.receive_failures = ReceiveFailures()
 
     def on_message_received(self, msg: can.Message) -> None:
         """Filter the frame, then canopen's services, then the rack; never raises."""
@@ -157,15 +158,15 @@ class RackListener(can.Listener):
             counters.remote_frames += 1
 
     def on_error(self, exc: Exception) -> None:
-        """The bus layer raised in the receive thread (a malformed datagram): count it, go on.
+        """The bus layer raised in the receive thread: count it, go on (`ReceiveFailures`).
 
         The notifier's thread survives because this listener handles the error; the exception
         it keeps is cleared so that the next send does not re-raise it (`RackNetwork.check`).
+        A malformed datagram is one failure, retried at once; a bus that stays broken (the
+        relay gone) is tried again every `RECEIVE_RETRY_S` instead of in a tight loop.
         """
         self._counters.bus_errors += 1
-        notifier = self._network.notifier
-        if notifier is not None:
-            notifier.exception = None
+        self.receive_failures.failed(exc, self._network.notifier)
         self._warn_once(f"bus-error-{type(exc).__name__}", f"CAN receive error: {exc!r}")
 
     def stop(self) -> None:

@@ -418,8 +418,11 @@ class CanBridgeNode(LifecycleNode):
         commands.poll()  # what came while no cycle runs (unconfigured) is counted too
         counts = commands.joint_commands.counts
         failures = [self._transition_error] if self._transition_error else []
-        if self._drives.init_error and self._drives.master is not None:
+        master = self._drives.master
+        if self._drives.init_error and master is not None:
             failures.append(f"init failed: {self._drives.init_error} (~/init)")
+        if master is not None and (receiving := master.receive_failure()):
+            failures.append(receiving)
         view = BridgeView(
             lifecycle_state=self.lifecycle_state,
             active=self._active,
