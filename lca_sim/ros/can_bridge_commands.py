@@ -220,9 +220,16 @@ class BridgeCommands:
     def _commanding(self) -> Cia402Master | None:
         """The master, when the node is active; else None, the command counted and warned."""
         master = self._drives.master
-        if self._active() and master is not None:
+        active = self._active()
+        if active and master is not None:
             return master
         self.ignored_inactive += 1
+        if active:  # the master is gone under an active node: it is shutting down
+            self._log.info(
+                "ignoring commands: the node is shutting down (its drives are released)",
+                once=True,
+            )
+            return None
         self._log.warning(
             f"ignoring commands while {self._lifecycle_state()} ({self.ignored_inactive} so "
             "far): activate the node",

@@ -227,3 +227,34 @@ def test_a_topic_nobody_publishes_is_not_asked_and_is_drained_when_its_publisher
         talker.destroy_node()  # type: ignore[no-untyped-call]
         spy.destroy_node()  # type: ignore[no-untyped-call]
         bridge_executor.shutdown()
+
+
+@dataclass
+class RecordingLog:
+    """The logger calls `BridgeCommands` makes: (level, message)."""
+
+    lines: list[tuple[str, str]] = field(default_factory=list)
+
+    def info(self, message: str, **_kwargs: Any) -> None:
+        """Keep an INFO line (rclpy's `once` and throttling are not applied)."""
+        self.lines.append(("info", message))
+
+    def warning(self, message: str, **_kwargs: Any) -> None:
+        """Keep a WARN line."""
+        self.lines.append(("warning", message))
+
+
+def test_a_command_while_the_active_node_shuts_down_is_no_warning() -> None:
+    """The master gone under an active node (its shutdown): counted, said once at INFO.
+
+    It used to warn "ignoring commands while active ...: activate the node" on Ctrl-C.
+    """
+    with ros_context() as (ctx, _executor), _polled_bridge(ctx) as (_bridge, _master, commands):
+        log = RecordingLog()
+        commands._log = log
+        commands._drives.master = None  # torn down, the lifecycle still says active
+        for _ in range(3):
+            commands._on_current([0.0] * 4, None)
+        assert commands.ignored_inactive == 3
+        assert [level for level, _ in log.lines] == ["info"] * 3, log.lines  # rclpy's once=True
+        assert "shutting down" in log.lines[0][1]
