@@ -58,6 +58,7 @@ import math
 import os
 import platform
 import re
+import shutil
 import signal
 import struct
 import subprocess
@@ -810,6 +811,10 @@ def run_scenario(
             observer.close()
     if relay is not None:  # its stop line, written as it ended
         result["relay_stalls"] = relay_stalls(relay.log_text())
+    if not result.get("ok"):  # every child's whole log, kept: the first event is the why
+        kept = Path(tempfile.mkdtemp(prefix=f"can_loop_{scenario.name}_failed_"))
+        shutil.copytree(rig.log_dir, kept, dirs_exist_ok=True)
+        result["logs_kept"] = str(kept)
     return result
 
 
@@ -900,9 +905,8 @@ def print_scenario(name: str, r: JsonDict) -> None:
         else ""
     )
     if not r.get("ok"):
-        print(
-            f"  FAILED: {r.get('error')}" + (f"\n{stalls_line}" if stalls_line else ""), flush=True
-        )
+        print(f"  FAILED: {r.get('error')}" + (f"\n{stalls_line}" if stalls_line else ""))
+        print(f"  the children's whole logs: {r.get('logs_kept')}", flush=True)
         return
     lat = r["latency"]
     share = r["in_time_share"]
