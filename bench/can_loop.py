@@ -722,11 +722,23 @@ def start_nodes(
     if scenario.name == "250hz":
         bridge_args += ["-p", f"cycle_hz:={scenario.cycle_hz!r}"]
     if scenario.remote:
-        relay = rig.start("relay", "lca-can-server", "--host", "127.0.0.1", "--port", "0")
+        # INFO: their notes (the first stall of each) are in their logs, kept if it fails
+        relay = rig.start(
+            "relay", "lca-can-server", "--host", "127.0.0.1", "--port", "0", "--log-level", "info"
+        )
         children["relay"] = relay
         line = relay.wait_for_line(r"ws://127\.0\.0\.1:\d+/", deadline, spin)
         url = re.search(r"ws://127\.0\.0\.1:\d+/", line).group(0)  # type: ignore[union-attr]
-        rack = rig.start("rack", "lca-virtual-drive", "--interface", "lca_remote", "--channel", url)
+        rack = rig.start(
+            "rack",
+            "lca-virtual-drive",
+            "--interface",
+            "lca_remote",
+            "--channel",
+            url,
+            "--log-level",
+            "info",
+        )
         children["rack"] = rack
         # The bridge after the rack's "nodes" line: the first SYNCs would meet a rack still
         # compiling its plant (docs/can-transport.md).
