@@ -81,6 +81,35 @@ def wait_until(
             step()
 
 
+def hold_stopped(
+    proc: subprocess.Popen[Any], seconds: float, step: Callable[[], object] | None = None
+) -> None:
+    """SIGSTOP `proc` and keep it stopped for `seconds`, polling `step` meanwhile (not a sleep).
+
+    The stimulus of a stall: the process gets no CPU at all, as on a paused host, under a
+    debugger or a long swap-in. The caller sends SIGCONT once it has noted what it needs.
+    """
+    proc.send_signal(signal.SIGSTOP)
+    stopped_at = time.monotonic()
+    wait_until(
+        lambda: time.monotonic() - stopped_at >= seconds,
+        f"{seconds:g} s with the process stopped",
+        seconds + 30.0,
+        step=step,
+    )
+
+
+class ManualClock:
+    """A `time.monotonic` stand-in, moved by hand (`now_s`), for monkeypatching."""
+
+    def __init__(self, now_s: float) -> None:
+        self.now_s = now_s
+
+    def __call__(self) -> float:
+        """The time set by hand."""
+        return self.now_s
+
+
 def spin_until(
     executor: Executor,
     condition: Callable[[], bool],

@@ -21,13 +21,18 @@ BENCH = Path(__file__).resolve().parent.parent / "bench"
 CPUS = os.cpu_count() or 1
 
 
-@pytest.fixture(scope="module")
-def ros_loop() -> ModuleType:
+def _bench_module(name: str) -> ModuleType:
+    """A script of bench/ imported as a module (its siblings importable meanwhile)."""
     sys.path.insert(0, str(BENCH))
     try:
-        return importlib.import_module("ros_loop")
+        return importlib.import_module(name)
     finally:
         sys.path.remove(str(BENCH))
+
+
+@pytest.fixture(scope="module")
+def ros_loop() -> ModuleType:
+    return _bench_module("ros_loop")
 
 
 def test_a_consistent_window_gives_the_rest_of_the_machine(ros_loop: ModuleType) -> None:
@@ -61,11 +66,7 @@ def test_the_note_says_which(ros_loop: ModuleType) -> None:
 
 @pytest.fixture(scope="module")
 def can_loop() -> ModuleType:
-    sys.path.insert(0, str(BENCH))
-    try:
-        return importlib.import_module("can_loop")
-    finally:
-        sys.path.remove(str(BENCH))
+    return _bench_module("can_loop")
 
 
 def test_the_relay_s_stalls_are_read_from_its_stop_line(can_loop: ModuleType) -> None:

@@ -28,7 +28,7 @@ import canopen
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from support import bridge_params, wait_until
+from support import bridge_params, hold_stopped, wait_until
 
 from lca_sim.canbus import remote, wire
 from lca_sim.canbus.data_frames import DataFrames
@@ -554,10 +554,7 @@ def test_a_stalled_relay_says_how_long_every_frame_waited() -> None:
     )
     try:
         _read_line(proc, r"relaying on ws://127\.0\.0\.1:\d+/", 30.0)
-        proc.send_signal(signal.SIGSTOP)
-        stopped_at = time.monotonic()
-        # the stimulus: the relay gets no CPU for stall_s, as on a paused host
-        wait_until(lambda: time.monotonic() - stopped_at >= stall_s, "the stall", 30.0)
+        hold_stopped(proc, stall_s)  # the relay gets no CPU for stall_s, as on a paused host
         proc.send_signal(signal.SIGCONT)
         warned = _read_line(proc, r"WARNING .*relay: this process stood still for (\d+) ms", 30.0)
     finally:

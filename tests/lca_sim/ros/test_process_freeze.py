@@ -29,7 +29,15 @@ from rclpy.node import Node
 from rclpy.timer import Timer
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from support import NodeProcess, parameters, ros_context_on, spin_until, start_shipped
+from support import (
+    ManualClock,
+    NodeProcess,
+    hold_stopped,
+    parameters,
+    ros_context_on,
+    spin_until,
+    start_shipped,
+)
 
 from lca_control import contract as pc
 from lca_sim.ros.can_bridge_diagnostics import BRIDGE_STATUS
@@ -118,14 +126,7 @@ def test_a_plant_that_stood_still_does_not_blame_its_controller(
             plant.check_alive()
             # the host pauses: the plant stopped, the controller silent with it
             ctl.send(False)
-            plant.proc.send_signal(signal.SIGSTOP)
-            stopped_at = time.monotonic()
-            spin_until(
-                executor,
-                lambda: time.monotonic() - stopped_at >= FREEZE_S,
-                "the pause's duration (the plant is stopped meanwhile)",
-                FREEZE_S + 30.0,
-            )
+            hold_stopped(plant.proc, FREEZE_S, lambda: executor.spin_once(timeout_sec=0.05))
             states_before = ctl.states
             since = len(ctl.statuses)
             plant.proc.send_signal(signal.SIGCONT)
@@ -154,16 +155,6 @@ def test_a_plant_that_stood_still_does_not_blame_its_controller(
         plant.stop()
 
 
-class _WallClock:
-    """time.monotonic, moved by hand (the node's executor is not spun meanwhile)."""
-
-    def __init__(self, now_s: float) -> None:
-        self.now_s = now_s
-
-    def __call__(self) -> float:
-        return self.now_s
-
-
 def test_a_controller_that_stood_still_does_not_blame_its_plant(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -172,7 +163,7 @@ def test_a_controller_that_stood_still_does_not_blame_its_plant(
     In-process and deterministic: the controller's callbacks are called in the order a frozen
     process runs them on waking (the overdue diagnostics first), on a wall clock moved by hand.
     """
-    wall = _WallClock(1000.0)
+    wall = ManualClock(1000.0)
     monkeypatch.setattr(time, "monotonic", wall)
     with ros_context_on(CONTROLLER_DOMAIN_ID) as (ctx, _executor):
         ctl = ControllerNode(

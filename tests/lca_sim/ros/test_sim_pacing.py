@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from support import ManualClock
 
 from lca_sim.config.simulator_params import SIMULATOR_PARAMETERS, validate_simulator_params
 from lca_sim.ros.sim_pacing import SimPacing
@@ -79,18 +80,8 @@ REALTIME = validate_simulator_params({**SIMULATOR_PARAMETERS.defaults(), "timing
 TICK_S = 1.0 / REALTIME.publish_rate_hz
 
 
-class _WallClock:
-    """time.monotonic for the pacing, moved by hand."""
-
-    def __init__(self, now_s: float) -> None:
-        self.now_s = now_s
-
-    def __call__(self) -> float:
-        return self.now_s
-
-
-def _realtime(monkeypatch: pytest.MonkeyPatch) -> tuple[SimPacing, _WallClock]:
-    wall = _WallClock(100.0)
+def _realtime(monkeypatch: pytest.MonkeyPatch) -> tuple[SimPacing, ManualClock]:
+    wall = ManualClock(100.0)
     monkeypatch.setattr(time, "monotonic", wall)
     pacing = SimPacing(lambda: REALTIME, lockstep=False)
     pacing.check_freeze(TICK_S)  # the first tick: before the start, never a freeze
@@ -99,7 +90,7 @@ def _realtime(monkeypatch: pytest.MonkeyPatch) -> tuple[SimPacing, _WallClock]:
     return pacing, wall
 
 
-def _ticks(pacing: SimPacing, wall: _WallClock, until_s: float) -> list[object]:
+def _ticks(pacing: SimPacing, wall: ManualClock, until_s: float) -> list[object]:
     """Timer callbacks every tick period up to `until_s`; the freezes they saw."""
     seen: list[object] = []
     while wall.now_s + TICK_S <= until_s + 1e-9:
@@ -143,7 +134,7 @@ def test_a_command_taken_after_the_freeze_is_not_moved_past_now(
 
 def test_start_up_is_no_freeze(monkeypatch: pytest.MonkeyPatch) -> None:
     """Before simulated time starts (heap settling, the executor coming up) nothing is judged."""
-    wall = _WallClock(100.0)
+    wall = ManualClock(100.0)
     monkeypatch.setattr(time, "monotonic", wall)
     pacing = SimPacing(lambda: REALTIME, lockstep=False)
     wall.now_s = 101.0
