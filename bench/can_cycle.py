@@ -61,7 +61,8 @@ from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402.bus_load import bus_load_pct
 from lca_sim.cia402.device import PowerState
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import load_robot
+from lca_sim.config.paths import config_dir
 from lca_sim.config.rack import load_rack_config
 from lca_sim.output import strict_json
 from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, settle_heap

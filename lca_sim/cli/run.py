@@ -33,8 +33,9 @@ from lca_sim.analysis.closed_loop import (
     tracking_window,
 )
 from lca_sim.batch.closed_loop_config import load_config
-from lca_sim.config.loader import config_dir, load_fault_schedule, load_robot
+from lca_sim.config.loader import load_fault_schedule, load_robot
 from lca_sim.config.params_file import in_file, node_parameters
+from lca_sim.config.paths import config_dir
 from lca_sim.config.run_scenario import RunScenario, load_run_scenario
 from lca_sim.errors import EXIT_OK, run_guarded
 from lca_sim.model.fault_schedule import standing_faults

@@ -26,8 +26,9 @@ from lca_sim.analysis.tuning import (
     TuneReport,
     tune_axis,
 )
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import load_robot
 from lca_sim.config.params_file import read_params_document, with_parameters
+from lca_sim.config.paths import config_dir
 from lca_sim.errors import EXIT_OK, ConfigError, OutputError, UnknownNameError, run_guarded
 from lca_sim.model.simulator import Simulator
 from lca_sim.output import atomic_path

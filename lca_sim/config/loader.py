@@ -8,7 +8,6 @@ path.
 
 from __future__ import annotations
 
-import importlib
 import os
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -17,29 +16,12 @@ from typing import Any
 
 import pinocchio as pin
 
+from lca_sim.config.paths import config_dir
 from lca_sim.config.yaml_files import read_yaml
 from lca_sim.errors import FILE_NOT_FOUND, ConfigError, UnknownNameError, file_problem
 from lca_sim.model.fault_schedule import ScheduledFault, parse_fault_schedule
 from lca_sim.model.params import RobotParams, parse_robot
 from lca_sim.model.scenario import Scenario, parse_scenario
-
-_CONFIG_PACKAGE = "lca_sim.data"
-
-
-def config_dir() -> Path:
-    """The folder holding the shipped configs (robots/, scenarios/, urdf/, ...).
-
-    An installed package has them as the data package `lca_sim.data` (a namespace package, so
-    its `__path__` is searched); a source checkout reads the top-level config/ folder directly.
-    """
-    try:
-        package = importlib.import_module(_CONFIG_PACKAGE)
-    except ModuleNotFoundError:
-        package = None
-    for entry in getattr(package, "__path__", []):
-        if (Path(entry) / "robots").is_dir():
-            return Path(entry)
-    return Path(__file__).resolve().parents[2] / "config"
 
 
 def shipped_names(kind: str) -> tuple[str, ...]:

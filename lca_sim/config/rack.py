@@ -15,7 +15,7 @@ from pathlib import Path
 from lca_control.cascade import PAPER_VELOCITY_KP_A_PER_RAD_S, PAPER_VELOCITY_TI_S
 from lca_control.drive_loops import DEFAULT_POSITION_KP_PER_S, DEFAULT_VELOCITY_LIMIT
 from lca_sim.cia402 import objects as od
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 from lca_sim.config.yaml_files import read_yaml
 from lca_sim.errors import ConfigError
 from lca_sim.model.params import AXIS_NAMES

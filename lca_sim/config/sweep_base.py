@@ -12,8 +12,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from lca_sim.config.loader import config_dir, file_ref, read_robot_document, resolve
+from lca_sim.config.loader import file_ref, read_robot_document, resolve
 from lca_sim.config.params_file import node_parameters
+from lca_sim.config.paths import config_dir
 from lca_sim.config.yaml_files import read_yaml
 from lca_sim.errors import ConfigError
 from lca_sim.model.fault_schedule import schedule_entries

@@ -35,7 +35,8 @@ from lca_sim.config.can_bridge_params import (
     CanBridgeNodeParams,
     validate_can_bridge_params,
 )
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import load_robot
+from lca_sim.config.paths import config_dir
 from lca_sim.errors import FILE_NOT_FOUND, USER_ERRORS, ConfigError
 from lca_sim.model.params import RobotParams
 from lca_sim.ros.can_bridge_commands import BridgeCommands

@@ -30,7 +30,8 @@ from lca_sim.analysis.identify_types import (
 )
 from lca_sim.cli.identify import main, write_outputs
 from lca_sim.cli.results import write_csv
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import load_robot
+from lca_sim.config.paths import config_dir
 from lca_sim.model.kernel import STOP_END_STOP
 from lca_sim.model.params import RobotParams
 from lca_sim.model.scenario import ScenarioResult, parse_scenario, run_scenario

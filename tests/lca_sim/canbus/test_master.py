@@ -31,7 +31,7 @@ from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import device
 from lca_sim.cia402.device import PowerState
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 from lca_sim.config.rack import load_rack_config
 
 EDS = config_dir() / "can" / "lca_drive.eds"

@@ -26,7 +26,7 @@ from lca_sim.canbus.frames import RECEIVE_RETRY_S
 from lca_sim.canbus.master import Cia402Master
 from lca_sim.canbus.master_frames import master_network
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 from lca_sim.config.rack import load_rack_config
 from lca_sim.model.params import RobotParams
 

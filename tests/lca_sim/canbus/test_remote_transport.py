@@ -37,7 +37,7 @@ from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.relay import POLL_S, RelayServer
 from lca_sim.cia402.device import PowerState
 from lca_sim.cli import can_server
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 
 BIN = Path(sys.executable).parent  # the console scripts sit next to the interpreter
 EDS = config_dir() / "can" / "lca_drive.eds"

@@ -7,7 +7,7 @@ import math
 import pytest
 import yaml
 
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 from lca_sim.errors import ConfigError
 from lca_sim.model.fault_schedule import parse_fault_schedule, standing_faults
 

@@ -22,8 +22,9 @@ import yaml
 from lca_control.pi import PIParams
 from lca_sim.analysis.closed_loop import ClosedLoop, ClosedLoopConfig, ClosedLoopResult
 from lca_sim.batch.closed_loop_config import closed_loop_config
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import load_robot
 from lca_sim.config.params_file import node_parameters
+from lca_sim.config.paths import config_dir
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.fault_schedule import ScheduledFault
 from lca_sim.model.faults import (

@@ -64,7 +64,7 @@ from support import wait_until
 from lca_control import contract as pc
 from lca_sim import load_robot
 from lca_sim.canbus.master_state import AxisState, Snapshot
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 from lca_sim.model.state_machine import MotionState, StopState
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 from lca_sim.ros.can_drives import CycleValues

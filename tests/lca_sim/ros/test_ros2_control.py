@@ -31,7 +31,7 @@ from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 
 from lca_control import contract as pc
-from lca_sim.config.loader import config_dir
+from lca_sim.config.paths import config_dir
 from lca_sim.ros.can_bridge_node import CanBridgeNode
 from lca_sim.ros.node_util import make_executor
 from lca_sim.ros.simulator_node import SimulatorNode
