@@ -40,6 +40,7 @@ setup(
             "runs/*.yaml",
             "layouts/*",
             "ros2_control/*",
+            "dds/*.xml",
         ]
     },
     data_files=[
@@ -55,6 +56,7 @@ setup(
         ("share/" + PACKAGE + "/config/runs", _config_files("runs")),
         ("share/" + PACKAGE + "/config/layouts", _config_files("layouts")),
         ("share/" + PACKAGE + "/config/ros2_control", _config_files("ros2_control")),
+        ("share/" + PACKAGE + "/config/dds", _config_files("dds")),
     ],
     install_requires=[
         "numpy>=1.26",

@@ -1061,6 +1061,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     # This process joins each scenario's domain, under the same rules as its children.
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ["ROS_DOMAIN_ID"] = str(DOMAINS[args.scenarios[0]])
+    # The measured checkout's Fast DDS profile, for this process (its port is the one the
+    # bridge opens when the benchmark joins) and the children; none if it ships none.
+    profile = repo / "config" / "dds" / "fastdds.xml"
+    if profile.is_file():
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
     signal.signal(signal.SIGTERM, _raise_on_sigterm)
     from lca_sim.output import strict_json
 

@@ -11,6 +11,11 @@ os.environ.setdefault("ROS_DOMAIN_ID", "58")
 import pytest
 
 from lca_sim import RobotParams, load_robot
+from lca_sim.ros.dds_profile import use_shipped_profile
+
+# The shipped Fast DDS profile for this process's participants (test probes) and the nodes it
+# starts, as the nodes themselves use it: see lca_sim/ros/dds_profile.py.
+use_shipped_profile()
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -359,14 +359,20 @@ class NodeProcess:
             return self.proc.wait(20.0)
 
 
-def start_shipped(script: str, params: str, domain_id: int, out: Path) -> NodeProcess:
-    """`script --ros-args --params-file config/ros/<params>` in its own session."""
+def start_shipped(
+    script: str, params: str, domain_id: int, out: Path, *, unset: Sequence[str] = ()
+) -> NodeProcess:
+    """`script --ros-args --params-file config/ros/<params>` in its own session.
+
+    `unset`: environment variables of this process the node does not get.
+    """
     log = out / f"{script}.log"
     argv = [str(BIN / script), "--ros-args", "--params-file", str(CONFIG / "ros" / params)]
+    env = {k: v for k, v in ros_env(domain_id).items() if k not in unset}
     proc = subprocess.Popen(
         argv,
         cwd=ROOT,
-        env={**ros_env(domain_id), "PYTHONUNBUFFERED": "1"},
+        env={**env, "PYTHONUNBUFFERED": "1"},
         stdout=log.open("wb"),
         stderr=subprocess.STDOUT,
         start_new_session=True,

@@ -38,6 +38,7 @@ def test_non_editable_install_finds_shipped_configs(tmp_path: Path) -> None:
         "layouts/lca_hil.foxglove.json",
         "ros2_control/controllers.yaml",
         "ros2_control/lca_hil.ros2_control.xacro",
+        "dds/fastdds.xml",
     ):
         assert (data / shipped).is_file(), shipped
     assert (target / "bin" / "lca-sim").is_file()

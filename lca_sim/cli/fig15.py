@@ -40,12 +40,14 @@ from lca_control import contract as pc
 from lca_sim.analysis.closed_loop import ClosedLoopConfig, replay_references, tracking_window
 from lca_sim.analysis.metrics import VelocityTracking, velocity_tracking
 from lca_sim.batch.closed_loop_config import load_config
-from lca_sim.config.loader import config_dir, load_robot
+from lca_sim.config.loader import load_robot
+from lca_sim.config.paths import config_dir
 from lca_sim.config.run_scenario import load_run_scenario
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_FAILED
 from lca_sim.model.gantry import Gantry
 from lca_sim.output import output_folder, write_json
 from lca_sim.ros.bag_read import NS_PER_S, BagData, BagReadError, JointSeries, read_bag
+from lca_sim.ros.dds_profile import use_shipped_profile
 from lca_sim.ros.node_util import from_stamp, simulator_end_s
 
 SCENARIO = "fig15"  # config/runs/fig15.yaml: the run `lca-hil run fig15` computes too
@@ -243,6 +245,7 @@ def run_fig15(out: Path, duration_s: float) -> int:
     print(f"lca-hil: Fig. 15 in lockstep, {duration_s:g} s of simulated time; logs in {out}")
     # This node first: it discovers the others while they start, so it sees /clock from early
     # on (the simulator starts the loop as soon as the controller and the recorder match).
+    use_shipped_profile()
     ctx = Context()
     rclpy.init(context=ctx, domain_id=int(_env()["ROS_DOMAIN_ID"]))
     node = Node("lca_hil_progress", context=ctx)

@@ -42,6 +42,7 @@ from lca_sim.config.ros_params import (
 )
 from lca_sim.errors import EXIT_BAD_INPUT, EXIT_OK, USER_ERRORS, LcaHilError
 from lca_sim.ros.contract_cdr import stamp_parts
+from lca_sim.ros.dds_profile import PROFILE_ENV, use_shipped_profile
 from lca_sim.ros.ros_logging import python_logging_on_ros
 from lca_sim.runtime import settle_heap
 
@@ -309,6 +310,7 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
     A configuration error while building the node is one line on stderr and exit code 2.
     """
     check_loopback_environment()
+    own_profile = use_shipped_profile()  # before the first participant: Fast DDS reads it then
     stop = {"requested": False}
 
     def _on_signal(signum: int, _frame: object) -> None:
@@ -338,6 +340,7 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
                 print(f"{prog}: error: {exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT
             ros_log.ros_logger = node.get_logger()  # from now on on /rosout too
+            _say_own_profile(node, own_profile)
             unused = _params_files_for_others(node, params_files)
             if unused:
                 print(f"{prog}: error: {unused}", file=sys.stderr)
@@ -355,6 +358,15 @@ def run_node(prog: str, build: Callable[[], Node], args: Sequence[str] | None = 
                 node.destroy_node()  # what its parts log on the way down still goes to the log
             if rclpy_ok():
                 rclpy.shutdown()
+
+
+def _say_own_profile(node: Node, own_profile: str | None) -> None:
+    """Log once that the user's Fast DDS profile is in force instead of the shipped one."""
+    if own_profile:
+        node.get_logger().info(
+            f"Fast DDS profile {own_profile} ({PROFILE_ENV}); the shipped "
+            "config/dds/fastdds.xml is not used (docs/can-transport.md)"
+        )
 
 
 def _params_files_for_others(
@@ -431,6 +443,7 @@ def tool_context(all_args: Sequence[str]) -> Iterator[Context]:
     Raises:
         ToolStartError: rclpy refused the arguments or could not start.
     """
+    use_shipped_profile()
     context = Context()
     try:
         try:

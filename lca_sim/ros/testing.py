@@ -32,6 +32,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
+from lca_sim.ros.dds_profile import use_shipped_profile
 from lca_sim.ros.simulator_node import SimulatorNode
 
 # A test harness stays on this machine unless told otherwise (read when a context starts).
@@ -260,6 +261,7 @@ def lca_hil_running_loop(
     lca_hil_controller_parameters: dict[str, Any],
 ) -> Iterator[HilLoop]:
     """The loop of a test module, started once and torn down after the module."""
+    use_shipped_profile()
     context = Context()
     rclpy.init(context=context, domain_id=lca_hil_domain_id)
     loop: HilLoop | None = None
