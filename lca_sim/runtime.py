@@ -109,6 +109,45 @@ class FreezeWatch:
         )
 
 
+class SlowCalls:
+    """Counts the calls that took longer than `FREEZE_THRESHOLD_S`; says the first ones.
+
+    The CAN bridge times each publish of the plant's state: Fast DDS's write can wait for its
+    writer's lock while discovery checks a newly joined peer's shared-memory port, with the GIL
+    held, so the cycle thread and everything else in the process wait as long
+    (docs/can-transport.md, "The 331 ms stall").
+
+    Args:
+        what: the call, as the log names it ("publishing the plant's state").
+        deadline_s: a wait longer than this is said at WARNING (a peer's deadline would trip).
+        why: what such a wait means and what to do about it, appended to the log line.
+    """
+
+    def __init__(self, what: str, deadline_s: float, why: str) -> None:
+        self.what = what
+        self.deadline_s = deadline_s
+        self.why = why
+        self.count = 0
+        self.longest_s = 0.0
+        self._long_said = False
+
+    def took(self, duration_s: float) -> tuple[int, str] | None:
+        """Count a call that lasted `duration_s`; what to log of it, or None (fast, or counted)."""
+        if not duration_s > FREEZE_THRESHOLD_S:
+            return None
+        self.count += 1
+        self.longest_s = max(self.longest_s, duration_s)
+        beyond = duration_s > self.deadline_s
+        if not (self.count == 1 or (beyond and not self._long_said)):
+            return None
+        self._long_said = self._long_said or beyond
+        longer = f", longer than the deadline ({self.deadline_s:g} s)" if beyond else ""
+        return logging.WARNING if beyond else logging.INFO, (
+            f"{self.what} took {duration_s * 1e3:.0f} ms{longer}: {self.why} "
+            "(further slow ones are only counted)"
+        )
+
+
 def settle_heap() -> int:
     """Collect now, then move every live object out of the collector's sight.
 

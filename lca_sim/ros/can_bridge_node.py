@@ -17,6 +17,7 @@ services (`sdo_services`). docs/can.md ("The bridge as a managed node") has the 
 
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -47,11 +48,12 @@ from lca_sim.ros.can_drives import (
     CycleValues,
     live_bridge_params,
 )
+from lca_sim.ros.dds_profile import PROFILE_ENV, shipped_profile
 from lca_sim.ros.drive_services import DriveServices
 from lca_sim.ros.node_util import LiveParameters, declare_table, run_node
 from lca_sim.ros.plant_contract import PlantPublisher
 from lca_sim.ros.sdo_services import SdoServices
-from lca_sim.runtime import GIL_SWITCH_INTERVAL_S
+from lca_sim.runtime import GIL_SWITCH_INTERVAL_S, SlowCalls
 
 if TYPE_CHECKING:
     from lca_sim.canbus.virtual_rack import VirtualDriveRack
@@ -96,6 +98,13 @@ class CanBridgeNode(LifecycleNode):
         self._startup_error: Exception | None = None  # a user error of that start-up
         self._transition_error = ""  # why the last transition failed, until one succeeds
         self._published = 0
+        self._slow_publishes = SlowCalls(
+            "publishing the plant's state",
+            p.rpdo_deadline_ms / 1e3,
+            "Fast DDS's write waited, with the GIL, and the cycle thread with it; it does while "
+            "a newly joined peer's shared-memory port is checked: start other ROS tools with "
+            f"{PROFILE_ENV}={shipped_profile()} (docs/can-transport.md, 'The 331 ms stall')",
+        )
         self._last_plant: CycleValues | None = None  # lockstep: sent again to a silent peer
         self._create_interfaces(p, robot)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
@@ -378,7 +387,13 @@ class CanBridgeNode(LifecycleNode):
         self._published += 1
 
     def _publish(self, plant: CycleValues) -> None:
+        start_s = time.monotonic()
         self._plant.publish_values(plant.stamp_s, plant.joint, plant.motor, plant.drive_chain)
+        said = self._slow_publishes.took(time.monotonic() - start_s)
+        if said is not None:
+            level, text = said
+            log = self.get_logger()
+            (log.warning if level >= logging.WARNING else log.info)(text)
 
     def _lockstep_tick(self) -> None:
         """Lockstep: start the loop once the controller listens; keep it going when stuck.
@@ -431,6 +446,8 @@ class CanBridgeNode(LifecycleNode):
             failures=tuple(failures),
             counts={
                 "states_published": self._published,
+                "slow_publishes": self._slow_publishes.count,
+                "longest_publish_ms": round(self._slow_publishes.longest_s * 1e3),
                 "commands_wrong_interface": commands.wrong_interface,
                 "commands_undecodable": commands.undecodable,
                 "commands_ignored_inactive": commands.ignored_inactive,

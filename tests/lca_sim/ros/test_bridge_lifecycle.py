@@ -10,6 +10,8 @@ and the motion of an axis. Every wait has a deadline; none sleeps.
 
 from __future__ import annotations
 
+import logging
+import time
 from typing import Any
 
 import can
@@ -31,6 +33,7 @@ from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
 from lca_sim.cia402.device import MODE_CST, PowerState
 from lca_sim.ros.can_bridge_node import CanBridgeNode
+from lca_sim.runtime import SlowCalls
 
 BRIDGE = "lca_hil/can_bridge"
 JOINTS = ("l_arm", "pivot", "c_arc", "lift")
@@ -278,3 +281,55 @@ def test_a_failed_configure_shows_on_diagnostics_and_leaves_no_bus_open() -> Non
             bridge.destroy_node()
             manager.node.destroy_node()  # type: ignore[no-untyped-call]
             probe.node.destroy_node()  # type: ignore[no-untyped-call]
+
+
+def test_a_publish_that_waits_in_dds_is_counted_and_said_with_its_length() -> None:
+    """A state publish that takes 150 ms shows on /diagnostics with its length.
+
+    Fast DDS's write waits so while a newly joined peer's shared-memory port is checked
+    (docs/can-transport.md, "The 331 ms stall"). The stand-in for the waiting write holds the
+    cycle thread once for 150 ms, as the real one did (with the GIL): beyond the 100 ms RPDO
+    deadline of the shipped parameters.
+    """
+    with ros_context() as (ctx, executor):
+        bridge = _bridge(ctx, executor, autostart=True, rpdo_deadline_ms=100)
+        diagnostics = Diagnostics(ctx, executor)
+        publish = bridge._plant.publish_values
+        held = {"calls": 0}
+
+        def waiting_publish(*args: Any) -> None:
+            held["calls"] += 1
+            if held["calls"] == 50:  # the cycle thread waits in the write, as in Fast DDS
+                until_s = time.monotonic() + 0.15
+                while time.monotonic() < until_s:
+                    pass
+            publish(*args)
+
+        bridge._plant.publish_values = waiting_publish  # type: ignore[method-assign,assignment]
+        try:
+            spin_until(executor, lambda: held["calls"] > 50, "the held publish", 30.0)
+            diagnostics.clear()
+            spin_until(executor, lambda: BRIDGE in diagnostics.latest, "a report after it", 30.0)
+            slow = int(diagnostics.value(BRIDGE, "slow_publishes"))
+            longest_ms = int(diagnostics.value(BRIDGE, "longest_publish_ms"))
+        finally:
+            bridge.destroy_node()
+            diagnostics.node.destroy_node()  # type: ignore[no-untyped-call]
+    assert slow >= 1
+    assert 150 <= longest_ms < 1000, longest_ms
+
+
+def test_slow_calls_say_the_first_and_the_first_beyond_the_deadline() -> None:
+    """The log policy of slow publishes: fast ones nothing, then INFO, WARNING, then counted."""
+    slow = SlowCalls("publishing", 0.1, "why")
+    assert slow.took(0.002) is None  # under FREEZE_THRESHOLD_S: not slow
+    assert slow.took(0.03) == (
+        logging.INFO,
+        "publishing took 30 ms: why (further slow ones are only counted)",
+    )
+    assert slow.took(0.05) is None  # counted only
+    said = slow.took(0.33)
+    assert said is not None and said[0] == logging.WARNING
+    assert "330 ms, longer than the deadline (0.1 s)" in said[1]
+    assert slow.took(0.4) is None
+    assert (slow.count, slow.longest_s) == (4, 0.4)
