@@ -63,6 +63,30 @@ class Freeze:
         return self.frozen_s > self.discount_s
 
 
+class _FirstSaid:
+    """Which stalls are logged: the first one, and the first longer than its deadline."""
+
+    def __init__(self) -> None:
+        self._long_said = False
+
+    def say(
+        self, count: int, length_s: float, deadline_s: float, text: str
+    ) -> tuple[int, str] | None:
+        """The log line of stall number `count` (from 1), `length_s` long, or None: counted.
+
+        INFO for the first, WARNING for the first one longer than `deadline_s` (a deadline a
+        peer watches would have tripped), whether or not it is the first. In `text`, `{ms}`
+        becomes the length and `{longer}` ", longer than the deadline (...)" when it was.
+        """
+        beyond = length_s > deadline_s
+        if not (count == 1 or (beyond and not self._long_said)):
+            return None
+        self._long_said = self._long_said or beyond
+        longer = f", longer than the deadline ({deadline_s:g} s)" if beyond else ""
+        line = text.replace("{ms}", f"{length_s * 1e3:.0f}").replace("{longer}", longer)
+        return (logging.WARNING if beyond else logging.INFO), line
+
+
 class FreezeWatch:
     """Tells a periodic thread or timer that its process stood still; counts the stalls.
 
@@ -80,7 +104,7 @@ class FreezeWatch:
         self.max_discount_s = max_discount_s
         self.count = 0
         self.longest_s = 0.0
-        self._long_said = False
+        self._said = _FirstSaid()
 
     def check(self, late_s: float) -> Freeze | None:
         """The stall behind a tick `late_s` after its due time, or None if it was no freeze."""
@@ -98,14 +122,12 @@ class FreezeWatch:
         longer one. `then` says what follows from it ("the controller's silence does not
         count it").
         """
-        beyond = freeze.frozen_s > deadline_s
-        if not (self.count == 1 or (beyond and not self._long_said)):
-            return None
-        self._long_said = self._long_said or beyond
-        longer = f", longer than the deadline ({deadline_s:g} s)" if beyond else ""
-        return logging.WARNING if beyond else logging.INFO, (
-            f"this process stood still for {freeze.frozen_s * 1e3:.0f} ms{longer}; {then} "
-            "(further freezes are only counted)"
+        return self._said.say(
+            self.count,
+            freeze.frozen_s,
+            deadline_s,
+            f"this process stood still for {{ms}} ms{{longer}}; {then} "
+            "(further freezes are only counted)",
         )
 
 
@@ -127,24 +149,29 @@ class SlowCalls:
         self.what = what
         self.deadline_s = deadline_s
         self.why = why
-        self.count = 0
-        self.longest_s = 0.0
-        self._long_said = False
+        self._watch = FreezeWatch()  # counts the slow ones as it counts freezes
+        self._said = _FirstSaid()
+
+    @property
+    def count(self) -> int:
+        """How many calls were slow."""
+        return self._watch.count
+
+    @property
+    def longest_s(self) -> float:
+        """The slowest call's duration, s (0 before the first slow one)."""
+        return self._watch.longest_s
 
     def took(self, duration_s: float) -> tuple[int, str] | None:
         """Count a call that lasted `duration_s`; what to log of it, or None (fast, or counted)."""
-        if not duration_s > FREEZE_THRESHOLD_S:
+        if self._watch.check(duration_s) is None:
             return None
-        self.count += 1
-        self.longest_s = max(self.longest_s, duration_s)
-        beyond = duration_s > self.deadline_s
-        if not (self.count == 1 or (beyond and not self._long_said)):
-            return None
-        self._long_said = self._long_said or beyond
-        longer = f", longer than the deadline ({self.deadline_s:g} s)" if beyond else ""
-        return logging.WARNING if beyond else logging.INFO, (
-            f"{self.what} took {duration_s * 1e3:.0f} ms{longer}: {self.why} "
-            "(further slow ones are only counted)"
+        return self._said.say(
+            self.count,
+            duration_s,
+            self.deadline_s,
+            f"{self.what} took {{ms}} ms{{longer}}: {self.why} "
+            "(further slow ones are only counted)",
         )
 
 
