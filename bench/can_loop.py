@@ -1063,11 +1063,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ["ROS_DOMAIN_ID"] = str(DOMAINS[args.scenarios[0]])
     # The measured checkout's Fast DDS profile, for this process (its port is the one the
     # bridge opens when the benchmark joins) and the children; none if it ships none.
+    from lca_sim.output import strict_json
+    from lca_sim.ros.dds_profile import PROFILE_ENV
+
     profile = repo / "config" / "dds" / "fastdds.xml"
     if profile.is_file():
-        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
+        os.environ.setdefault(PROFILE_ENV, str(profile))
     signal.signal(signal.SIGTERM, _raise_on_sigterm)
-    from lca_sim.output import strict_json
 
     load_before = os.getloadavg()
     results: dict[str, JsonDict] = {}

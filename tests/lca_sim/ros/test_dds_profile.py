@@ -92,7 +92,7 @@ def test_the_shipped_bridge_creates_ports_that_answer_a_health_check_within_50_m
     assert "Fast DDS profile" not in log  # the shipped one: nothing to say
 
 
-def test_a_profile_of_the_users_is_kept_and_said(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_profile_of_the_users_is_kept(monkeypatch: pytest.MonkeyPatch) -> None:
     """FASTRTPS_DEFAULT_PROFILES_FILE set by the user wins; unset, the shipped file is used."""
     monkeypatch.setenv(PROFILE_ENV, "/etc/my_fastdds.xml")
     assert use_shipped_profile() == "/etc/my_fastdds.xml"
