@@ -31,6 +31,13 @@ enabled, commands flowing, the ramp begun) and closes at the first one `--durati
   and its position at the start, the largest and at the end (the ramp takes it from 35 deg to
   about 60 deg; motor -> load driving at 55 deg).
 
+A second window of the same length follows with the measuring node on /diagnostics only
+(`unobserved`): the README's processes alone, as the issue measured its 77 % baseline. A reader
+of joint_states costs the bridge a delivery with its acknowledgements, and one of
+drive_chain_states makes it build and publish that optional topic; in one session they took
+the bridge from 28-30 % to 38 % of a core. Both windows' CPU is reported; the CPU targets are
+judged on the second, the in-time targets on the first, and a watchdog in either counts.
+
 Targets (issue 22): shipped rate >= 99.5 % in time and no watchdog, 250 Hz >= 99.9 %, remote
 >= 99 %, the bridge process (rack inside) <= 25 % of a core at 500 Hz, the rack alone <= 15 %.
 They are reported, not enforced: the exit status is 0 when every scenario was measured. The last
@@ -441,19 +448,38 @@ class Observer:
             DiagnosticArray, pc.DIAGNOSTICS, record.on_diagnostics, pc.DIAGNOSTICS_QOS_DEPTH
         )
         state_qos = reliable_qos(pc.STATE_QOS_DEPTH)
-        self.node.create_subscription(
-            JointState, pc.JOINT_STATES, record.on_joint_states, state_qos, raw=True
-        )
-        # A deep queue here: this reader must not be the one that drops a command.
-        self.node.create_subscription(
-            Float64MultiArray, pc.CURRENT_COMMANDS, record.on_commands, state_qos, raw=True
-        )
-        if drive_states:
+        self._watching = [
             self.node.create_subscription(
-                DiagnosticArray, pc.DRIVE_CHAIN_STATES, record.on_drive_states, state_qos, raw=True
+                JointState, pc.JOINT_STATES, record.on_joint_states, state_qos, raw=True
+            ),
+            # A deep queue here: this reader must not be the one that drops a command.
+            self.node.create_subscription(
+                Float64MultiArray, pc.CURRENT_COMMANDS, record.on_commands, state_qos, raw=True
+            ),
+        ]
+        if drive_states:
+            self._watching.append(
+                self.node.create_subscription(
+                    DiagnosticArray,
+                    pc.DRIVE_CHAIN_STATES,
+                    record.on_drive_states,
+                    state_qos,
+                    raw=True,
+                )
             )
         self._executor = make_executor(self._context, "events")
         self._executor.add_node(self.node)
+
+    def unwatch_states(self) -> None:
+        """Leave the loop's 500 Hz topics; keep /diagnostics (1 Hz).
+
+        What the README's swap runs is the bridge and the controller alone: each reader of
+        joint_states costs the bridge a delivery, acknowledgements and heartbeats, and one of
+        drive_chain_states makes it build and publish that optional topic at all.
+        """
+        for sub in self._watching:
+            self.node.destroy_subscription(sub)
+        self._watching.clear()
 
     def spin(self) -> None:
         """Take what has arrived, waiting SPIN_S at most."""
@@ -798,23 +824,17 @@ def run_scenario(
             observer.spin()
         startup_s = time.monotonic() - started_t
         pids = {name: c.proc.pid for name, c in children.items()} | {"bench": os.getpid()}
-        # Window: from the first bridge status after the loop runs to the first `duration_s`
-        # later (half a diagnostics period of slack, as bench/ros_loop.py).
-        seen = len(record.bridge)
-        a_deadline = time.monotonic() + 30.0
-        while len(record.bridge) == seen:
-            _check(children, a_deadline, "no bridge diagnostics")
-            observer.spin()
-        a = record.bridge[seen]
-        cpu_a = CpuSample.take(pids)
         period_s = float(ros_yaml_value(bridge_yaml(repo), "can_bridge", "diagnostics_period_s"))
-        b_deadline = time.monotonic() + duration_s + 30.0
-        while record.bridge[-1].stamp_s < a.stamp_s + duration_s - 0.5 * period_s:
-            _check(children, b_deadline, "no bridge diagnostics at the window's end")
-            observer.spin()
-        b = record.bridge[-1]
-        cpu_b = CpuSample.take(pids)
-        result = figures(scenario, record, a, b, (cpu_a, cpu_b), pids, startup_s)
+        window = Window(record, observer, children, period_s)
+        a, b, cpu = window.measure(duration_s, pids)
+        result = figures(scenario, record, a, b, cpu, pids, startup_s)
+        # Then the README's processes alone: the same loop with this node on /diagnostics only
+        # (the CPU targets are theirs; the issue's 77 % was measured so). Two statuses first:
+        # the bridge has seen the readers leave before the window opens.
+        observer.unwatch_states()
+        window.wait_statuses(2)
+        a, b, cpu = window.measure(duration_s, pids)
+        result["unobserved"] = unobserved_figures(record, a, b, cpu, pids)
     except BenchError as exc:
         result = {"ok": False, "error": str(exc)}
     finally:
@@ -828,6 +848,58 @@ def run_scenario(
         shutil.copytree(rig.log_dir, kept, dirs_exist_ok=True)
         result["logs_kept"] = str(kept)
     return result
+
+
+@dataclass
+class Window:
+    """Measuring windows on the bridge's statuses, spinning the observer meanwhile."""
+
+    record: Record
+    observer: Observer
+    children: dict[str, Child]
+    period_s: float  # the bridge's diagnostics period
+
+    def wait_statuses(self, count: int) -> Diag:
+        """Spin until `count` more bridge statuses came; the last of them."""
+        seen = len(self.record.bridge)
+        deadline = time.monotonic() + 30.0 + count * self.period_s
+        while len(self.record.bridge) < seen + count:
+            _check(self.children, deadline, "no bridge diagnostics")
+            self.observer.spin()
+        return self.record.bridge[seen + count - 1]
+
+    def measure(
+        self, duration_s: float, pids: dict[str, int]
+    ) -> tuple[Diag, Diag, tuple[CpuSample, CpuSample]]:
+        """From the next bridge status to the first `duration_s` later, with CPU samples.
+
+        Half a diagnostics period of slack at the end, as bench/ros_loop.py.
+        """
+        a = self.wait_statuses(1)
+        cpu_a = CpuSample.take(pids)
+        deadline = time.monotonic() + duration_s + 30.0
+        while self.record.bridge[-1].stamp_s < a.stamp_s + duration_s - 0.5 * self.period_s:
+            _check(self.children, deadline, "no bridge diagnostics at the window's end")
+            self.observer.spin()
+        return a, self.record.bridge[-1], (cpu_a, CpuSample.take(pids))
+
+
+def unobserved_figures(
+    record: Record, a: Diag, b: Diag, cpu: tuple[CpuSample, CpuSample], pids: dict[str, int]
+) -> JsonDict:
+    """The window with this node on /diagnostics only: the bridge's counters and the CPU."""
+    in_time = b.number("commands_in_time") - a.number("commands_in_time")
+    late = b.number("commands_late") - a.number("commands_late")
+    cycles = b.number("cycles") - a.number("cycles")
+    window_s = b.stamp_s - a.stamp_s
+    return {
+        "window_s": rounded(window_s, 3),
+        "achieved_hz": rounded(cycles / window_s, 2) if window_s > 0 else None,
+        "cycles": int(cycles),
+        "in_time_share": rounded(in_time / (in_time + late), 5) if in_time + late else None,
+        "watchdogs": watchdog_figures(record, a, b),
+        "cpu": cpu_figures(cpu[0], cpu[1], pids, cycles),
+    }
 
 
 def relay_stalls(log: str) -> JsonDict | None:
@@ -970,10 +1042,24 @@ def print_scenario(name: str, r: JsonDict) -> None:
         )
     if stalls_line:
         print(stalls_line)
-    note = other_processes_note(r["cpu"]["other_processes"], "scenario")
+    print("  observed (this node on the loop's topics):")
+    print_cpu(r["cpu"])
+    u = r["unobserved"]
+    print(
+        f"  unobserved ({u['window_s']:.1f} s after, this node on /diagnostics only: the "
+        f"README's processes, on which the CPU targets are judged): in time "
+        f"{fmt(pct(u['in_time_share']), '.2f')} %, watchdogs "
+        f"{'FIRED' if u['watchdogs']['fired'] else 'none'}"
+    )
+    print_cpu(u["cpu"])
+
+
+def print_cpu(cpu: JsonDict) -> None:
+    """Each process's CPU of one window, with its busiest threads."""
+    note = other_processes_note(cpu["other_processes"], "scenario")
     if note:
         print(note)
-    for proc, c in r["cpu"].items():
+    for proc, c in cpu.items():
         share = c["cpu_share"]
         threads = ", ".join(
             f"{t['thread']} {fmt(pct(t['cpu_share']))} %" for t in c["threads"] if t["cpu_share"]
@@ -1001,27 +1087,32 @@ def targets(results: dict[str, JsonDict]) -> JsonDict:
     def at_most(x: Any, most: float) -> bool | None:
         return None if x is None else bool(x <= most)
 
-    bridge_500 = value("shipped", "cpu", "bridge", "cpu_share")
-    if value("shipped", "cycle_hz") != 500.0:
-        bridge_500 = None
-    fired = [value(n, "watchdogs", "fired") for n in results]
+    def fired(name: str) -> bool | None:  # in either window
+        both = (value(name, "watchdogs", "fired"), value(name, "unobserved", "watchdogs", "fired"))
+        return None if None in both else any(both)
+
+    # The CPU targets are judged on the README's processes alone (the unobserved window).
+    at_500 = value("shipped", "cycle_hz") == 500.0
+    bridge_500 = value("shipped", "unobserved", "cpu", "bridge", "cpu_share") if at_500 else None
+    rack = value("remote", "unobserved", "cpu", "rack", "cpu_share")
+    each_fired = [fired(n) for n in results]
     return {
         "in_time_shipped": value("shipped", "in_time_share"),
         "in_time_250": value("250hz", "in_time_share"),
         "in_time_remote": value("remote", "in_time_share"),
         "bridge_cpu_500": bridge_500,
-        "rack_cpu_remote": value("remote", "cpu", "rack", "cpu_share"),
+        "rack_cpu_remote": rack,
+        "bridge_cpu_500_observed": value("shipped", "cpu", "bridge", "cpu_share")
+        if at_500
+        else None,
+        "rack_cpu_remote_observed": value("remote", "cpu", "rack", "cpu_share"),
         "meets_in_time_shipped": at_least(value("shipped", "in_time_share"), 0.995),
         "meets_in_time_250": at_least(value("250hz", "in_time_share"), 0.999),
         "meets_in_time_remote": at_least(value("remote", "in_time_share"), 0.99),
         "meets_bridge_cpu_500": at_most(bridge_500, MOST_BRIDGE_CPU_500),
-        "meets_rack_cpu_remote": at_most(
-            value("remote", "cpu", "rack", "cpu_share"), MOST_RACK_CPU
-        ),
-        "meets_no_watchdog_shipped": None
-        if value("shipped", "watchdogs", "fired") is None
-        else not value("shipped", "watchdogs", "fired"),
-        "meets_no_watchdog": None if None in fired or not fired else not any(fired),
+        "meets_rack_cpu_remote": at_most(rack, MOST_RACK_CPU),
+        "meets_no_watchdog_shipped": None if fired("shipped") is None else not fired("shipped"),
+        "meets_no_watchdog": None if None in each_fired or not each_fired else not any(each_fired),
     }
 
 
