@@ -84,6 +84,8 @@ class Cia402Master:
             loop: the same simulated time).
         before_cycle: called by the cycle thread (`start`) before each cycle is judged: the ROS
             shell takes the commands since the last SYNC there (`BridgeCommands.poll`).
+        drives_in_process: the drives are in this process (the virtual rack on a `virtual`
+            bus): a stall of the cycle thread is then only noted (`SafetyWatch`).
     """
 
     def __init__(
@@ -95,6 +97,7 @@ class Cia402Master:
         clock: Callable[[], float] = time.monotonic,
         stamp_clock: Callable[[], float] = time.time,
         before_cycle: Callable[[], None] | None = None,
+        drives_in_process: bool = False,
     ) -> None:
         self.network = network
         self._before_cycle = before_cycle
@@ -119,7 +122,9 @@ class Cia402Master:
         if network.notifier is None:
             raise InvalidValueError("the network must be connected (its notifier running)")
         self._want = Want.DISABLED
-        self._watch = SafetyWatch(params, self._axes, self.counters, self._lock, clock)
+        self._watch = SafetyWatch(
+            params, self._axes, self.counters, self._lock, clock, drives_in_process
+        )
         self._receiver = FrameReceiver(network, self.counters, self._watch.error_frame)
         self._transmitter = FrameTransmitter(network, self._watch, self.counters)
         self._setup = DriveSetup(network, params, self.counters, clock, self._mark_fresh)

@@ -266,6 +266,7 @@ class CanDrives:
                 self._eds,
                 on_state=self._on_state,
                 before_cycle=self._before_cycle,
+                drives_in_process=virtual,
             )
             return
         clock = CycleClock(1.0 / p.cycle_hz)
@@ -276,6 +277,7 @@ class CanDrives:
             on_state=self._on_state,
             clock=clock.now,
             stamp_clock=clock.now,
+            drives_in_process=virtual,
         )
         self.master = master
         self.loop = LockstepLoop(clock, master.cycle, p.lockstep_resend_s)

@@ -280,12 +280,15 @@ def test_a_heartbeat_with_an_undefined_state_does_not_stop_init(rig: Rig) -> Non
     rig.enable()
 
 
-def _watch(**overrides: float) -> tuple[SafetyWatch, list[MasterAxis], Counters]:
+def _watch(
+    drives_in_process: bool = False, **overrides: float
+) -> tuple[SafetyWatch, list[MasterAxis], Counters]:
     """A SafetyWatch over four drives without a bus, its clock at 0."""
     params = bridge_params(None, **overrides)
     axes = [MasterAxis(j, cast("canopen.RemoteNode", None), 1.0, 1.0) for j in params.joints]
     counters = Counters()
-    return SafetyWatch(params, axes, counters, threading.Lock(), lambda: 0.0), axes, counters
+    watch = SafetyWatch(params, axes, counters, threading.Lock(), lambda: 0.0, drives_in_process)
+    return watch, axes, counters
 
 
 def test_send_failures_in_a_row_halt_until_recover() -> None:
@@ -336,3 +339,23 @@ def test_a_freeze_the_drives_tolerate_is_a_note_and_a_longer_one_a_warning(
     longer = f"{(rpdo_deadline_s + 0.05) * 1e3:.0f} ms, longer than the drives' RPDO deadline"
     assert "19 ms" in levels[0][1] and longer in levels[1][1]
     assert counters.process_freezes == 4  # every one counted
+
+
+def test_a_long_freeze_with_the_drives_in_this_process_is_a_note(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Drives in the bridge's process (the virtual rack) stand still with it: no WARN.
+
+    Their watchdogs discount their own freeze, so a stall beyond the RPDO deadline trips none;
+    it is said at INFO with that reason, and counted like any other.
+    """
+    watch, _, counters = _watch(drives_in_process=True)
+    rpdo_deadline_s = watch._params.rpdo_deadline_ms * 1e-3
+    caplog.set_level(logging.INFO, logger="lca_sim.canbus.master_watch")
+    for stall_s in (0.019, rpdo_deadline_s + 0.05):
+        watch.discount(Freeze(stall_s, stall_s), now=10.0)
+    levels = [(r.levelno, r.getMessage()) for r in caplog.records]
+    assert [level for level, _ in levels] == [logging.INFO, logging.INFO]
+    assert "longer than the drives' RPDO deadline" in levels[1][1]
+    assert "the drives run in this process and stood still with it" in levels[1][1]
+    assert counters.process_freezes == 2
