@@ -11,6 +11,7 @@ and the motion of an axis. Every wait has a deadline; none sleeps.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any
 
@@ -318,6 +319,7 @@ def test_a_publish_that_waits_in_dds_is_counted_and_said_with_its_length(
             spin_until(executor, lambda: BRIDGE in diagnostics.latest, "a report after it", 30.0)
             slow = int(diagnostics.value(BRIDGE, "slow_publishes"))
             longest_ms = int(diagnostics.value(BRIDGE, "longest_publish_ms"))
+            publish_deadline_s = bridge._slow_publishes.deadline_s  # INFO at any length
         finally:
             bridge.destroy_node()
             diagnostics.node.destroy_node()  # type: ignore[no-untyped-call]
@@ -326,6 +328,7 @@ def test_a_publish_that_waits_in_dds_is_counted_and_said_with_its_length(
     said = [(r.levelno, r.getMessage()) for r in caplog.records if "stood still" in r.getMessage()]
     assert any("the drives run in this process and stood still with it" in m for _, m in said)
     assert {level for level, _ in said} == {logging.INFO}, said
+    assert publish_deadline_s == math.inf
 
 
 def test_slow_calls_say_the_first_and_the_first_beyond_the_deadline() -> None:
