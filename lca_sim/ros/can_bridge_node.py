@@ -64,6 +64,21 @@ if TYPE_CHECKING:
 LOCKSTEP_TICK_S = 0.05
 
 
+def _publish_timing(p: CanBridgeNodeParams) -> SlowCalls:
+    """The timing of the state publishes: slow ones counted, the first ones said.
+
+    Drives in this process (`virtual`) stand still with a publish that waits: no deadline of
+    theirs to trip, so every such wait is a note (`SafetyWatch` says the same of the freeze).
+    """
+    return SlowCalls(
+        "publishing the plant's state",
+        math.inf if p.interface == "virtual" else p.rpdo_deadline_ms / 1e3,
+        "Fast DDS's write waited, with the GIL, and the cycle thread with it; it does while "
+        "a newly joined peer's shared-memory port is checked: start other ROS tools with "
+        f"{PROFILE_ENV}={shipped_profile()} (docs/can-transport.md, 'The 331 ms stall')",
+    )
+
+
 class CanBridgeNode(LifecycleNode):
     """Publishes the drives' states and sends them the controller's current commands.
 
@@ -99,15 +114,7 @@ class CanBridgeNode(LifecycleNode):
         self._startup_error: Exception | None = None  # a user error of that start-up
         self._transition_error = ""  # why the last transition failed, until one succeeds
         self._published = 0
-        self._slow_publishes = SlowCalls(
-            "publishing the plant's state",
-            # Drives in this process (`virtual`) stand still with the publish: no deadline of
-            # theirs to trip, so every such wait is a note (SafetyWatch says the same).
-            math.inf if p.interface == "virtual" else p.rpdo_deadline_ms / 1e3,
-            "Fast DDS's write waited, with the GIL, and the cycle thread with it; it does while "
-            "a newly joined peer's shared-memory port is checked: start other ROS tools with "
-            f"{PROFILE_ENV}={shipped_profile()} (docs/can-transport.md, 'The 331 ms stall')",
-        )
+        self._slow_publishes = _publish_timing(p)
         self._last_plant: CycleValues | None = None  # lockstep: sent again to a silent peer
         self._create_interfaces(p, robot)
         drives = dict(zip(p.joints, p.node_ids, strict=True))
