@@ -21,7 +21,7 @@ from numba import njit
 from lca_control.drive_loops import DriveLoopParams, DriveMode
 from lca_control.pi import PIParams, pi_law, pi_rebase
 from lca_sim.errors import InvalidValueError
-from lca_sim.model import kernel
+from lca_sim.model import kernel, rigid_body
 from lca_sim.model.drive_modes import VOLTAGE_MODE, JointDriveLoops, check_drive_modes
 from lca_sim.model.faults import FaultInjector
 from lca_sim.model.simulator import Simulator
@@ -73,6 +73,62 @@ def _current_loops_steps(n_steps, volts, loops, gains, mass, nle, work, model, d
         if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
             return k
     return n_steps
+
+
+@njit(cache=True)
+def _current_loops_held(  # type: ignore[no-untyped-def]
+    n_steps,
+    age,
+    hold,
+    lead_s,
+    hold_position,
+    held_mass,
+    held_nle,
+    mass,
+    nle,
+    tree,
+    body,
+    volts,
+    loops,
+    gains,
+    work,
+    model,
+    dt_s,
+    code_version,
+    out,
+):
+    """`_current_loops_steps` on eq. (2)'s held terms, the holds included: one compiled call.
+
+    The fused form of `StepPath.advance_with` for this stepper (`StepPath.advance_fused`): at
+    each new hold (`age` 0) the terms are evaluated at the hold's mean position with
+    `StepPath._rigid_body_terms`'s arithmetic, so the same bits; the numpy calls and two
+    dispatches per hold around the compiled code cost more than the steps themselves. Writes
+    (steps done, age after) into `out`; returns 1 when all `n_steps` were taken, 0 when a step
+    refused its voltages, -1 when this code was compiled against another `rigid_body` than the
+    running one (numba's cache keys on this file only; the caller recompiles).
+    """
+    if code_version != rigid_body.CODE_VERSION:  # a global: frozen into the compiled code
+        return -1
+    taken = 0
+    while taken < n_steps:
+        if age == 0:
+            for i in range(hold_position.shape[0]):
+                hold_position[i] = work[kernel.X_VELOCITY, i] * lead_s
+                hold_position[i] += work[kernel.X_POSITION, i]
+            rigid_body.terms(hold_position, work[kernel.X_VELOCITY], tree, body, mass, nle)
+            held_mass[:, :] = mass
+            held_nle[:] = nle
+        chunk = min(hold - age, n_steps - taken)
+        done = _current_loops_steps(
+            chunk, volts, loops, gains, held_mass, held_nle, work, model, dt_s
+        )
+        taken += done
+        age = (age + done) % hold
+        if done < chunk:
+            break
+    out[0] = taken
+    out[1] = age
+    return 1 if taken == n_steps else 0
 
 
 @njit(cache=True)
@@ -168,7 +224,11 @@ class CommandedPlant:
         """
         sim = self.sim
         snapshot = sim.state
-        sim.advance_with(1, _current_loops_steps, self._volts, self._loops.copy(), self._gains)
+        loops = self._loops.copy()
+        sim.advance_with(1, _current_loops_steps, self._volts, loops, self._gains)
+        sim.advance_with(
+            1, _current_loops_steps, self._volts, loops, self._gains, fused=_current_loops_held
+        )
         sim.advance(1, np.zeros(sim.n_axes))
         sim.set_state(snapshot)  # kernel.step itself: set_state evaluates the state with it
         self._volts[:] = 0.0
@@ -368,7 +428,14 @@ class CommandedPlant:
             self._advance_faulted(n_steps, self.faults)
             return
         self._loops[_L_TARGET_A] = self._target
-        self.sim.advance_with(n_steps, _current_loops_steps, self._volts, self._loops, self._gains)
+        self.sim.advance_with(
+            n_steps,
+            _current_loops_steps,
+            self._volts,
+            self._loops,
+            self._gains,
+            fused=_current_loops_held,
+        )
 
     def _advance_faulted(self, n_steps: int, faults: FaultInjector) -> None:
         """`advance` of the current interface with injected faults in force.

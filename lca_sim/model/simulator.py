@@ -318,7 +318,12 @@ class Simulator:
         self.advance_with(n_steps, kernel.steps, command)  # refuses NaN before its first step
 
     def advance_with(
-        self, n_steps: int, stepper: Callable[..., int], volts: FloatArray, *args: FloatArray
+        self,
+        n_steps: int,
+        stepper: Callable[..., int],
+        volts: FloatArray,
+        *args: FloatArray,
+        fused: Any = None,
     ) -> None:
         """Advance `n_steps` of `dt_s` under voltages a compiled drive computes at every step.
 
@@ -329,14 +334,19 @@ class Simulator:
         unless a step refused its voltages. The in-drive current loops
         (`lca_sim.model.commanded_plant`) run this way: one compiled call per hold of the
         rigid-body terms, the same arithmetic as
-        `step` with the voltages computed outside.
+        `step` with the voltages computed outside. With held terms, `fused` (the stepper's
+        fused form, which evaluates the holds itself: `StepPath.advance_fused`) takes all
+        `n_steps` in one compiled call instead, the same bits.
 
         Raises:
             InputError: the voltages were not finite; the steps before stand, the state is as
                 after them.
 
         """
-        done, complete = self._path.advance_with(n_steps, stepper, volts, *args)
+        if fused is not None and self._path.hold_steps > 1:
+            done, complete = self._path.advance_fused(n_steps, fused, volts, *args)
+        else:
+            done, complete = self._path.advance_with(n_steps, stepper, volts, *args)
         for _ in range(done):  # added step by step: the same time as `step` gives
             self._time_s += self.dt_s
         if not complete:

@@ -9,11 +9,12 @@ position. Why the frame: docs/model.md, "The exact step's call path".
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from lca_sim.model import kernel
+from lca_sim.model import kernel, rigid_body
 from lca_sim.model.gantry import Gantry
 
 FloatArray = npt.NDArray[np.float64]
@@ -49,6 +50,8 @@ class StepPath:
         self._held_nle = np.zeros(n)
         self._terms: tuple[FloatArray, FloatArray] = (self._held_mass, self._held_nle)
         self._age = 0  # steps taken on the held terms; 0: evaluate before the next step
+        self._term_buffers = gantry.term_buffers()  # mass, nle, tree, body: fixed for life
+        self._fused_out = np.zeros(2, dtype=np.int64)  # a fused advance's (steps, age)
         self.step: Callable[[FloatArray], int] = self._bind()
         """One step under a float64 voltage array of the right shape; `kernel.OK` or why not."""
 
@@ -81,6 +84,47 @@ class StepPath:
             if done < chunk:
                 return total, False
         return total, True
+
+    def advance_fused(
+        self, n_steps: int, fused: Any, volts: FloatArray, *args: FloatArray
+    ) -> tuple[int, bool]:
+        """`advance_with` in one compiled call that evaluates the held terms itself.
+
+        Held terms only (`hold_steps` > 1). `fused(n_steps, age, hold, lead_s, hold_position,
+        held_mass, held_nle, mass, nle, tree, body, volts, *args, work, model, dt_s,
+        code_version, out)` is a numba function (`commanded_plant._current_loops_held`) that
+        does what `advance_with` does with its stepper, the same bits, and returns 1 (all
+        steps), 0 (a step refused its voltages) or -1 (compiled against another rigid_body:
+        compiled again here, from the running code).
+        """
+        mass, nle, tree, body = self._term_buffers
+        out = self._fused_out
+        for _ in range(2):
+            verdict: int = fused(
+                n_steps,
+                self._age,
+                self.hold_steps,
+                self._hold_lead_s,
+                self._hold_position,
+                self._held_mass,
+                self._held_nle,
+                mass,
+                nle,
+                tree,
+                body,
+                volts,
+                *args,
+                self._work,
+                self._model,
+                self._dt_s,
+                rigid_body.CODE_VERSION,
+                out,
+            )
+            if verdict >= 0:
+                self._age = int(out[1])
+                return int(out[0]), verdict == 1
+            fused.recompile()
+        raise RuntimeError(f"{fused} does not run the loaded rigid_body")
 
     def _rigid_body_terms(self) -> tuple[FloatArray, FloatArray]:
         """A(q) and C(q, qdot) qdot + Q(q) for the next step: evaluated, or still held."""

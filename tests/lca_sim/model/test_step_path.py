@@ -15,8 +15,15 @@ import pickle
 import numpy as np
 import pytest
 
+from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
-from lca_sim.model import kernel
+from lca_sim.model import kernel, rigid_body
+from lca_sim.model.commanded_plant import (
+    _L_TARGET_A,
+    CommandedPlant,
+    _current_loops_held,
+    _current_loops_steps,
+)
 from lca_sim.model.faults import FaultInjector
 from lca_sim.model.simulator import Simulator
 
@@ -113,3 +120,54 @@ def test_a_step_compiled_against_another_rigid_body_is_recompiled(
     np.testing.assert_array_equal(sim._work, reference)
     monkeypatch.undo()
     Simulator(load_robot("default"), 1e-4)  # back on the real version: compiled again
+
+
+def _current_plant(hold_steps: int) -> CommandedPlant:
+    """The default robot's plant under its in-drive current loops, terms held `hold_steps`."""
+    sim = Simulator(load_robot("default"), 1e-4, rigid_body_update_steps=hold_steps)
+    return CommandedPlant(sim, sim.axis_names, "current", PIParams(31.62, 0.001, -1, 1), 50.0)
+
+
+def test_the_fused_held_advance_equals_the_stepper_over_its_holds() -> None:
+    """`_current_loops_held` (one compiled call) against `advance_with`'s Python holds.
+
+    The virtual rack and the simulator node advance their plant so (1 ms holds of 0.1 ms
+    steps); the fused call must take the same steps on the same terms: every row of `work`,
+    the loops, the hold's age and the clock identical after each advance, whole holds and
+    parts of holds, under changing current targets through the gear's state changes.
+    """
+    fused, reference = _current_plant(10), _current_plant(10)
+    rng = np.random.default_rng(11)
+    drive_states: set[tuple[int, ...]] = set()
+    for n_steps in (20, 7, 13, 37, 1, 20, 9, 40, 3, 20) * 6:
+        targets = rng.uniform(-3.0, 3.0, 4)
+        for plant in (fused, reference):
+            assert plant.command(targets.tolist()) is None
+        fused.advance(n_steps)  # the shipped path: fused
+        ref_sim = reference.sim
+        reference._loops[_L_TARGET_A] = reference._target
+        ref_sim.advance_with(
+            n_steps, _current_loops_steps, reference._volts, reference._loops, reference._gains
+        )
+        assert np.array_equal(fused.sim._work, ref_sim._work, equal_nan=True)
+        assert np.array_equal(fused._loops, reference._loops)
+        assert fused.sim._path._age == ref_sim._path._age
+        assert fused.sim.time_s == ref_sim.time_s
+        drive_states.add(tuple(fused.sim.state.drive))
+    assert len(drive_states) > 3, drive_states  # the comparison ran through state changes
+
+
+def test_a_fused_advance_compiled_against_another_rigid_body_refuses_to_run() -> None:
+    """A stale cache (another `rigid_body.CODE_VERSION`) runs no step: -1, state untouched."""
+    plant = _current_plant(10)
+    path = plant.sim._path
+    before = path._work.copy()
+    mass, nle, tree, body = path._term_buffers
+    out = np.zeros(2, dtype=np.int64)
+    verdict = _current_loops_held(
+        20, 0, 10, path._hold_lead_s, path._hold_position, path._held_mass, path._held_nle,
+        mass, nle, tree, body, plant._volts, plant._loops, plant._gains, path._work,
+        path._model, path._dt_s, rigid_body.CODE_VERSION ^ 1, out,
+    )  # fmt: skip
+    assert verdict == -1
+    assert np.array_equal(path._work, before, equal_nan=True)
