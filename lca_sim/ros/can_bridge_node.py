@@ -47,6 +47,7 @@ from lca_sim.ros.can_drives import (
     TORQUE_FREE_TIMEOUT_S,
     CanDrives,
     CycleValues,
+    drives_in_process,
     live_bridge_params,
 )
 from lca_sim.ros.dds_profile import PROFILE_ENV, shipped_profile
@@ -67,12 +68,13 @@ LOCKSTEP_TICK_S = 0.05
 def _publish_timing(p: CanBridgeNodeParams) -> SlowCalls:
     """The timing of the state publishes: slow ones counted, the first ones said.
 
-    Drives in this process (`virtual`) stand still with a publish that waits: no deadline of
-    theirs to trip, so every such wait is a note (`SafetyWatch` says the same of the freeze).
+    Drives in this process (`drives_in_process`) stand still with a publish that waits: no
+    deadline of theirs to trip, so every such wait is a note (`SafetyWatch` says the same of
+    the freeze).
     """
     return SlowCalls(
         "publishing the plant's state",
-        math.inf if p.interface == "virtual" else p.rpdo_deadline_ms / 1e3,
+        math.inf if drives_in_process(p) else p.rpdo_deadline_ms / 1e3,
         "Fast DDS's write waited, with the GIL, and the cycle thread with it; it does while "
         "a newly joined peer's shared-memory port is checked: start other ROS tools with "
         f"{PROFILE_ENV}={shipped_profile()} (docs/can-transport.md, 'The 331 ms stall')",

@@ -191,6 +191,14 @@ class CycleValues:
         return DriveChainRows(motion, drive, numbers, self._state_names)
 
 
+def drives_in_process(p: CanBridgeNodeParams) -> bool:
+    """`interface: virtual`: the bridge opens a linked bus and runs the rack on it, here.
+
+    A stall of this process then stalls the drives too, so it trips no deadline of theirs.
+    """
+    return p.interface == "virtual"
+
+
 class CanDrives:
     """The bus, network, master and rack of one configured bridge; None/empty while closed.
 
@@ -247,7 +255,7 @@ class CanDrives:
 
     def open(self, p: CanBridgeNodeParams) -> None:
         """Open the bus (and start the rack on `virtual`), then the network and the master."""
-        virtual = p.interface == "virtual"
+        virtual = drives_in_process(p)
         self._lockstep = p.timing_mode == "lockstep"
         bus = (
             LinkedVirtualBus(channel=p.channel)
