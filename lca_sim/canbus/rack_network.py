@@ -204,10 +204,15 @@ class RackNetwork(canopen.Network):
         # Lockstep: periodic sends are `CycleTask`s sent by `send_due`, not threads.
         self.lockstep = False
         self.cycle_tasks: list[CycleTask] = []
-        # lca_remote and the bridge's linked bus take a classical data frame as it is
-        self._send_data_frame = (
-            bus.send_data_frame if isinstance(bus, RemoteTransportBus | LinkedVirtualBus) else None
-        )
+        # lca_remote and the bridge's linked bus take classical data frames as they are, and
+        # several in one call (one write, one delivery)
+        self._send_data_frame: Callable[[int, bytes], None] | None = None
+        self.send_data_frames: Callable[[list[tuple[int, bytes]]], None] | None = None
+        self._bus_send_frames: Callable[[list[tuple[int, bytes]]], None] = send_frames_of_none
+        if isinstance(bus, RemoteTransportBus | LinkedVirtualBus):
+            self._send_data_frame = bus.send_data_frame
+            self._bus_send_frames = bus.send_data_frames
+            self.send_data_frames = self._send_frames
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """Send as canopen does, except the frames of a node that fault injection silenced."""
@@ -229,6 +234,29 @@ class RackNetwork(canopen.Network):
             if then is not None:
                 then()
 
+    def _send_frames(self, frames: list[tuple[int, bytes]]) -> None:
+        """`send_message` of classical 11-bit data frames, in order, in one call of the bus.
+
+        `send_data_frames` on lca_remote and the linked bus (else None): a drive's TPDOs after
+        a SYNC leave in one write, with no chain of calls per frame.
+        """
+        muted = self.muted
+        if muted:
+            for can_id, _ in frames:
+                if can_id in muted and self.on_dropped is not None:
+                    self.on_dropped(can_id)
+            frames = [frame for frame in frames if frame[0] not in muted]
+        if self.bus is None:
+            raise RuntimeError("Not connected to CAN bus")
+        with self.send_lock:
+            self._bus_send_frames(frames)
+        self.check()
+        if self.after_send:
+            for can_id, _ in frames:
+                then = self.after_send.pop(can_id, None)
+                if then is not None:
+                    then()
+
     def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> Any:
         """Send periodically (the heartbeat) as canopen does, except a heartbeat injected off."""
         if can_id in self.muted_periodic:
@@ -246,3 +274,8 @@ class RackNetwork(canopen.Network):
                 base = now_s if task.next_s is None else task.next_s
                 task.next_s = base + task.period_s
                 self.send_message(task.can_id, task.data)
+
+
+def send_frames_of_none(frames: list[tuple[int, bytes]]) -> None:
+    """What a bus without `send_data_frames` would do with several frames: refuse them."""
+    raise RuntimeError("this bus sends frame by frame")

@@ -8,7 +8,7 @@ which SDO abort: docs/can.md, "Default PDO mapping".
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import can
 from canopen import SdoAbortedError
@@ -33,6 +33,9 @@ class PdoEngine:
         axes: the rack's drives (each holds its PDOs).
         counters: the rack's counters.
         send: sends one frame (COB-ID, data); False when the send failed (counted there).
+        send_frames: sends several frames in one call of the bus, in order, as one write
+            (lca_remote) or one delivery (a linked bus); False when it failed (counted there).
+            None on a bus that sends frame by frame (socketcan, virtual): `send` each.
         write: applies a received value: (drive, index, subindex, value, now); raises
             SdoAbortedError to refuse it.
         emcy: sends an EMCY from a drive: (drive, code).
@@ -48,10 +51,12 @@ class PdoEngine:
         write: Callable[[Drive, int, int, int, float], None],
         emcy: Callable[[Drive, int], None],
         warn_once: Callable[[str, str], None],
+        send_frames: Callable[[list[tuple[int, bytes]]], bool] | None = None,
     ) -> None:
         self._axes = axes
         self._counters = counters
         self._send = send
+        self._send_frames = send_frames
         self._write = write
         self._emcy = emcy
         self._warn_once = warn_once
@@ -252,24 +257,47 @@ class PdoEngine:
     # --- transmission --------------------------------------------------------------------
 
     def send_sync_tpdos(self, axes: Sequence[Drive], now: float, bus: can.BusABC | None) -> None:
-        """At a SYNC: the synchronous TPDOs of `axes`; over lca_remote, in one write."""
+        """At a SYNC: the synchronous TPDOs of `axes`; over lca_remote, in one write.
+
+        With `send_frames`, the cycle's frames go to the bus in one call instead of one chain
+        of calls each (rack, network, bus, batch): a drive's SYNC answer is most of the rack's
+        Python per cycle (docs/can-transport.md, tenth round).
+        """
+        send_frames = self._send_frames
+        if send_frames is not None:
+            frames = [
+                (pdo.cob_id, frame)
+                for axis, pdo, frame in self._due_sync_tpdos(axes)
+                if self._goes_out(axis, pdo, frame, now)
+            ]
+            if frames and send_frames(frames):
+                self._counters.tpdos_sent += len(frames)
+            return
         try:
             with batched_sends(bus):
-                for axis in axes:
-                    # type 0 TPDOs whose data changed, types 1-240 at every n-th SYNC
-                    for pdo in axis.sync_tpdos:
-                        if pdo.transmission_type == 0:
-                            frame = pdo.encode()
-                            if frame != pdo.last_data:
-                                self._send_tpdo(axis, pdo, frame, now)
-                            continue
-                        pdo.sync_count += 1
-                        if pdo.sync_count >= pdo.transmission_type:
-                            pdo.sync_count = 0
-                            self._send_tpdo(axis, pdo, pdo.encode(), now)
+                for axis, pdo, frame in self._due_sync_tpdos(axes):
+                    self._send_tpdo(axis, pdo, frame, now)
         except (can.CanError, OSError) as exc:  # the batch's one write failed
             self._counters.send_errors += 1
             self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
+
+    @staticmethod
+    def _due_sync_tpdos(axes: Sequence[Drive]) -> Iterator[tuple[Drive, Pdo, bytes]]:
+        """Each synchronous TPDO due at this SYNC, with its frame (CiA 301 0x1800 sub 2).
+
+        Type 0 (acyclic synchronous) when its data changed, types 1-240 at every n-th SYNC.
+        """
+        for axis in axes:
+            for pdo in axis.sync_tpdos:
+                if pdo.transmission_type == 0:
+                    frame = pdo.encode()
+                    if frame != pdo.last_data:
+                        yield axis, pdo, frame
+                    continue
+                pdo.sync_count += 1
+                if pdo.sync_count >= pdo.transmission_type:
+                    pdo.sync_count = 0
+                    yield axis, pdo, pdo.encode()
 
     def service_event_tpdos(self, now: float) -> None:
         """Send the event-driven TPDOs whose data changed or whose event timer expired."""
@@ -287,14 +315,24 @@ class PdoEngine:
                     self._send_tpdo(axis, pdo, frame, now)
 
     def _send_tpdo(self, axis: Drive, pdo: Pdo, frame: bytes, now: float) -> None:
+        if self._goes_out(axis, pdo, frame, now) and self._send(pdo.cob_id, frame):
+            self._counters.tpdos_sent += 1
+
+    def _goes_out(self, axis: Drive, pdo: Pdo, frame: bytes, now: float) -> bool:
+        """Whether a TPDO due now reaches the bus (not in bus-off, not lost by injection).
+
+        It counts as sent either way: its data and time are the ones the next change and the
+        inhibit and event timers compare with.
+        """
+        pdo.last_data, pdo.last_sent_s = frame, now
         faults = axis.faults
         if faults.bus_off:
             self._counters.frames_dropped_bus_off += 1
-        elif faults.lost_tpdos >> (pdo.number - 1) & 1:
+            return False
+        if faults.lost_tpdos >> (pdo.number - 1) & 1:
             self._counters.tpdos_lost += 1  # injected: lost as if sent (0x2030 sub 1)
-        elif self._send(pdo.cob_id, frame):
-            self._counters.tpdos_sent += 1
-        pdo.last_data, pdo.last_sent_s = frame, now
+            return False
+        return True
 
 
 def _sort_tpdos(axis: Drive) -> None:

@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -45,8 +45,8 @@ from lca_sim.canbus.wire import (
     channel_url,
     decode_data_frame,
     decode_message,
-    encode_data_frame,
     encode_message,
+    masked_data_frames,
     parse_frames,
     ws_frame,
 )
@@ -181,7 +181,11 @@ class RemoteTransportBus(can.BusABC):
 
     def send_data_frame(self, arbitration_id: int, data: bytes) -> None:
         """`send` of a classical 11-bit data frame, without building its `can.Message`."""
-        self._write(ws_frame(OP_BINARY, encode_data_frame(arbitration_id, data), mask=True))
+        self._write(masked_data_frames(((arbitration_id, data),)))
+
+    def send_data_frames(self, frames: Sequence[tuple[int, bytes]]) -> None:
+        """`send_data_frame` of each frame, in order, in one write (a drive's TPDOs)."""
+        self._write(masked_data_frames(frames))
 
     def _write(self, data: bytes) -> None:
         """Write one websocket frame, or hold it in the open batch."""

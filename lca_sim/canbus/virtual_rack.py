@@ -130,6 +130,7 @@ class VirtualDriveRack:
             write=lambda *write: self._objects.write(*write),  # noqa: PLW0108 (built below)
             emcy=self._emcy,
             warn_once=self._warn_once,
+            send_frames=None if self._network.send_data_frames is None else self._send_frames,
         )
         self._nmt = RackNmt(
             self._axes,
@@ -434,6 +435,19 @@ class VirtualDriveRack:
             return False
         return True
 
+    def _send_frames(self, frames: list[tuple[int, bytes]]) -> bool:
+        """`_send` of several frames in one call of the bus (`RackNetwork.send_data_frames`)."""
+        send_data_frames = self._network.send_data_frames
+        try:
+            if send_data_frames is None:
+                raise RuntimeError("this bus sends frame by frame")
+            send_data_frames(frames)
+        except (can.CanError, OSError, RuntimeError) as exc:
+            self._counters.send_errors += 1
+            self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
+            return False
+        return True
+
     def _emcy(self, axis: Drive, code: int, data: bytes = b"") -> None:
         """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes."""
         if axis.nmt == NMT_STOPPED:
@@ -462,7 +476,9 @@ class VirtualDriveRack:
                     late_s = now - due
                     due = now + MONITOR_PERIOD_S
                     self._watchdogs.tick(late_s, now)
-                    self._pdos.service_event_tpdos(now)
+                    if now - self._watchdogs.last_sync_done_s >= MONITOR_PERIOD_S:
+                        # else a SYNC's handling served the event TPDOs since the last tick
+                        self._pdos.service_event_tpdos(now)
             except Exception:
                 self._counters.handler_errors += 1
                 logger.exception("virtual drive: error in the monitor")

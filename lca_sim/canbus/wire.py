@@ -14,6 +14,7 @@ import base64
 import hashlib
 import random
 import struct
+from collections.abc import Sequence
 from urllib.parse import urlsplit
 
 import can
@@ -130,6 +131,29 @@ def ws_frame(opcode: int, payload: bytes, mask: bool = False) -> bytes:
         return head + payload
     key = random.getrandbits(32).to_bytes(4, "little")
     return head + key + _xor_mask(payload, key)
+
+
+def masked_data_frames(frames: Sequence[tuple[int, bytes]]) -> bytes:
+    """Classical 11-bit data frames as a client sends them: one masked binary message each.
+
+    The bytes of `ws_frame(OP_BINARY, encode_data_frame(id, data), mask=True)` for each frame,
+    keys drawn alike (RFC 6455 5.3: a fresh key per frame), with one call per frame instead
+    of five: a drive's TPDOs after every SYNC go this way.
+    """
+    keys = random.getrandbits(32 * len(frames)).to_bytes(4 * len(frames), "little")
+    out = bytearray()
+    pack, head = HEADER.pack, 0x80 | OP_BINARY
+    for k, (arbitration_id, data) in enumerate(frames):
+        payload = pack(MESSAGE_TYPE, 0.0, arbitration_id, len(data), 0) + bytes(data)
+        n = len(payload)  # at most HEADER.size + 8 < 126: the short length form
+        key = keys[4 * k : 4 * k + 4]
+        out += bytes((head, 0x80 | n))
+        out += key
+        pad = (key * (n // 4 + 1))[:n]
+        out += (int.from_bytes(payload, "little") ^ int.from_bytes(pad, "little")).to_bytes(
+            n, "little"
+        )
+    return bytes(out)
 
 
 def parse_frames(buf: bytearray, limit: int = 65536) -> list[tuple[int, bytes]]:

@@ -29,6 +29,7 @@ import yaml
 from support import CONFIG, RackAndMaster, bridge_params, wait_until
 
 from lca_sim import RobotParams
+from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.master_state import Snapshot
 from lca_sim.canbus.virtual_rack import VirtualDriveRack
 from lca_sim.cia402 import objects as od
@@ -329,17 +330,23 @@ class ScriptedRun:
         return max(k for k, mark in enumerate(self.sync_marks) if mark <= position)
 
 
-def _scripted_run(config: RackConfig, syncs: int = 160) -> ScriptedRun:
+def _scripted_run(config: RackConfig, syncs: int = 160, linked: bool = False) -> ScriptedRun:
     """The rack without heartbeats, 0x1006 = 2 ms, driven by RPDOs and SYNCs paced by 0x1006.
 
     Configured over SDO, started, enabled by RPDO1 and given torques that change sign after
     100 SYNCs. Each SYNC waits for the previous one's synchronous TPDOs, so the rack's frames
-    and the SYNC each follows are the same on every run.
+    and the SYNC each follows are the same on every run. `linked`: the rack on the bridge's
+    linked bus (its TPDOs after a SYNC in one call, as over lca_remote), else on a plain
+    virtual one (frame by frame, as on socketcan).
     """
     config = replace(config, heartbeat_producer_ms=0, sync_loss_periods=1e6)
     channel = f"test_rack_faults_scripted_{os.getpid()}_{next(_channels)}"
     recorder = Recorder(channel)
-    rack_bus = can.Bus(interface="virtual", channel=channel)
+    rack_bus = (
+        LinkedVirtualBus(channel=channel)
+        if linked
+        else can.Bus(interface="virtual", channel=channel)
+    )
     rack = VirtualDriveRack(rack_bus, config)
     marks: list[int] = []
 
@@ -403,18 +410,21 @@ FRAMES_BEFORE_FAULT_INJECTION = (
 )
 
 
-def test_without_faults_the_rack_sends_the_frames_it_sent_before() -> None:
+@pytest.mark.parametrize("linked", [False, True], ids=["frame_by_frame", "one_call_per_sync"])
+def test_without_faults_the_rack_sends_the_frames_it_sent_before(linked: bool) -> None:
     """No fault configured: every frame of a scripted run is the one of the rack before 0x2030.
 
     With eq. (2)'s terms evaluated at every step, as the rack did then (it holds them for
-    `rigid_body_period_s`, 1 ms, since; that moves the plant by microradians).
+    `rigid_body_period_s`, 1 ms, since; that moves the plant by microradians). On either send
+    path of the TPDOs: frame by frame, or a SYNC's in one call of the bus.
     """
-    run = _scripted_run(replace(load_rack_config(None), rigid_body_period_s=1e-4))
+    run = _scripted_run(replace(load_rack_config(None), rigid_body_period_s=1e-4), linked=linked)
     assert _digest(run.frames) == FRAMES_BEFORE_FAULT_INJECTION
     assert run.rack.fault_log == ()
 
 
-def test_a_scheduled_fault_goes_on_and_off_at_its_times(tmp_path: Path) -> None:
+@pytest.mark.parametrize("linked", [False, True], ids=["frame_by_frame", "one_call_per_sync"])
+def test_a_scheduled_fault_goes_on_and_off_at_its_times(tmp_path: Path, linked: bool) -> None:
     """rack.yaml `faults:`: pivot's TPDO1 lost from 0.1 s to 0.15 s, c_arc's EMCY at 0.2 s.
 
     The rack's time is the plant's: at 2 ms per SYNC, SYNC k runs at k x 2 ms, so the TPDO1s
@@ -428,7 +438,7 @@ def test_a_scheduled_fault_goes_on_and_off_at_its_times(tmp_path: Path) -> None:
     ]
     path = tmp_path / "rack.yaml"
     path.write_text(yaml.safe_dump(shipped), encoding="utf-8")
-    run = _scripted_run(load_rack_config(path), syncs=110)
+    run = _scripted_run(load_rack_config(path), syncs=110, linked=linked)
     missing = set(range(110)) - {
         run.sync_of(i) for i, (cob_id, _) in enumerate(run.frames) if cob_id == 0x182
     }
@@ -444,6 +454,8 @@ def test_a_scheduled_fault_goes_on_and_off_at_its_times(tmp_path: Path) -> None:
     emcy = [i for i, (cob_id, data) in enumerate(run.frames) if cob_id == 0x83]
     assert [run.frames[i][1][:3] for i in emcy] == [b"\x30\x55\x01"]  # code, 0x1001 generic
     assert run.sync_of(emcy[0]) == 100
+    assert run.rack.counters.tpdos_lost == 25  # lost as if sent: counted, not sent
+    assert run.rack.counters.send_errors == 0
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,7 @@ deadline, and every process started is stopped in the fixture's finally.
 from __future__ import annotations
 
 import os
+import random
 import re
 import select
 import signal
@@ -349,6 +350,40 @@ def test_only_classical_data_frames_decode_as_data_frames(msg: can.Message) -> N
     assert (frame is not None) == classical, (msg, frame)
     if frame is not None:
         assert frame == (msg.arbitration_id, bytes(msg.data))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8)), min_size=1, max_size=12),
+    st.integers(0, 2**32 - 1),
+)
+def test_masked_data_frames_are_the_client_frames_of_each(
+    frames: list[tuple[int, bytes]], seed: int
+) -> None:
+    """One call gives the bytes of `ws_frame(..., mask=True)` of each frame, keys drawn alike.
+
+    And a server reads them back as those frames (unmasked, each an 11-bit data frame).
+    """
+    random.seed(seed)
+    batch = wire.masked_data_frames(frames)
+    random.seed(seed)
+    keys = random.getrandbits(32 * len(frames)).to_bytes(4 * len(frames), "little")
+    unmasked = [wire.ws_frame(wire.OP_BINARY, wire.encode_data_frame(i, d)) for i, d in frames]
+    one_by_one = b"".join(_masked(f, keys[4 * k : 4 * k + 4]) for k, f in enumerate(unmasked))
+    assert batch == one_by_one
+    parsed = wire.parse_frames(bytearray(batch))
+    assert [wire.decode_data_frame(payload) for _, payload in parsed] == frames
+
+
+def _masked(unmasked_frame: bytes, key: bytes) -> bytes:
+    """A short unmasked websocket frame masked with `key` by RFC 6455 5.3's definition."""
+    n = unmasked_frame[1]
+    payload = unmasked_frame[2:]
+    return (
+        bytes((unmasked_frame[0], 0x80 | n))
+        + key
+        + bytes(b ^ key[j % 4] for j, b in enumerate(payload))
+    )
 
 
 class _Runs:
