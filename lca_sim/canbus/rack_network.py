@@ -25,6 +25,7 @@ logger = logging.getLogger(__name__)
 # canopen's NodeScanner notes the node id of frames of these services (`Network.notify`).
 _SCANNED_SERVICES = frozenset(canopen.network.NodeScanner.SERVICES)
 _SERVICE_MASK = 0x780
+_NODE_ID_MASK = 0x7F  # CiA 301 pre-defined connection set: function code, node id
 
 
 class NullTask:
@@ -130,9 +131,11 @@ class RackListener(can.Listener):
         # Only frames canopen takes (SDO, NMT) or its node scanner notes: not the cycle's RPDOs
         # and SYNC, which would only cost the lookups.
         network = self._network
-        if (cob in network.subscribers or cob & _SERVICE_MASK in _SCANNED_SERVICES) and (
-            cob != cia301.NMT_COB_ID or len(data) == 2
-        ):
+        # The SYNC (0x080, node id 0) is neither: the scanner notes node ids 1-127 only.
+        if (
+            cob in network.subscribers
+            or (cob & _SERVICE_MASK in _SCANNED_SERVICES and cob & _NODE_ID_MASK)
+        ) and (cob != cia301.NMT_COB_ID or len(data) == 2):
             try:
                 # canopen types the data bytearray; its SDO server and NMT slave only read it
                 network.notify(cob, data, timestamp)  # type: ignore[arg-type]

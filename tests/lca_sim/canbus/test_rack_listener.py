@@ -1,0 +1,50 @@
+"""The rack's listener: which received frames reach canopen's services, and all reach the rack."""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Iterator
+
+import can
+import pytest
+
+from lca_sim.canbus.rack_network import RackListener, RackNetwork
+from lca_sim.canbus.rack_state import RackCounters
+
+_channels = itertools.count()
+
+
+@pytest.fixture
+def network() -> Iterator[RackNetwork]:
+    """A rack's network on a virtual bus of its own (nothing is sent in these tests)."""
+    bus = can.Bus(
+        interface="virtual", channel=f"test_rack_listener_{os.getpid()}_{next(_channels)}"
+    )
+    yield RackNetwork(bus)
+    bus.shutdown()
+
+
+def test_only_frames_canopen_acts_on_reach_it_and_every_frame_reaches_the_rack(
+    network: RackNetwork,
+) -> None:
+    """SYNC and RPDOs skip canopen (nothing there takes them); a TPDO of node 5 is scanned.
+
+    canopen's NodeScanner notes the node id of service frames (CiA 301 pre-defined connection
+    set), node ids 1-127: the SYNC, 0x080, is function code 0x080 with node id 0, and the
+    rack handles it alone, 500 times a second.
+    """
+    notified: list[int] = []
+    network.notify = lambda cob, data, timestamp: notified.append(cob)  # type: ignore[method-assign]
+    seen: list[int] = []
+    listener = RackListener(
+        network,
+        RackCounters(),
+        sdo_servers={},
+        on_frame=lambda cob, data, timestamp: seen.append(cob),
+        warn_once=lambda key, message: None,
+    )
+    frames = [(0x201, b"\x00\x01"), (0x080, b""), (0x185, b"\x01" * 8), (0x085, b"\x00" * 8)]
+    listener.on_data_frames(frames, 1.0)
+    assert seen == [0x201, 0x080, 0x185, 0x085]
+    assert notified == [0x185, 0x085]  # the TPDO and the EMCY of node 5: scanned
