@@ -26,7 +26,7 @@ def network() -> Iterator[RackNetwork]:
 
 
 def test_only_frames_canopen_acts_on_reach_it_and_every_frame_reaches_the_rack(
-    network: RackNetwork,
+    network: RackNetwork, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """SYNC and RPDOs skip canopen (nothing there takes them); a TPDO of node 5 is scanned.
 
@@ -35,7 +35,7 @@ def test_only_frames_canopen_acts_on_reach_it_and_every_frame_reaches_the_rack(
     rack handles it alone, 500 times a second.
     """
     notified: list[int] = []
-    network.notify = lambda cob, data, timestamp: notified.append(cob)  # type: ignore[method-assign]
+    monkeypatch.setattr(network, "notify", lambda cob, data, timestamp: notified.append(cob))
     seen: list[int] = []
     listener = RackListener(
         network,
