@@ -26,6 +26,8 @@ logger = logging.getLogger(__name__)
 _SCANNED_SERVICES = frozenset(canopen.network.NodeScanner.SERVICES)
 _SERVICE_MASK = 0x780
 _NODE_ID_MASK = 0x7F  # CiA 301 pre-defined connection set: function code, node id
+# What `RackListener` does with a frame
+_DROP, _SERVICE, _RACK = object(), object(), object()
 
 
 class NullTask:
@@ -78,8 +80,9 @@ class RackListener(can.Listener):
         network: the rack's network (canopen's services are fed through it).
         counters: the rack's counters.
         sdo_servers: SDO request COB-ID (0x600 + id) -> its drive.
-        on_frame: the rack's handling of a data frame that passed (after canopen's): its
-            COB-ID, data and reception time.
+        on_frames: the rack's handling of data frames that passed (each after canopen's), in
+            order: (COB-ID, data) each, and their reception time. A run of frames read at
+            once comes in one call.
         warn_once: logs a warning the first time its key comes: (key, message).
     """
 
@@ -88,13 +91,13 @@ class RackListener(can.Listener):
         network: RackNetwork,
         counters: RackCounters,
         sdo_servers: Mapping[int, Drive],
-        on_frame: Callable[[int, bytes, float], None],
+        on_frames: Callable[[list[tuple[int, bytes]], float], None],
         warn_once: Callable[[str, str], None],
     ) -> None:
         self._network = network
         self._counters = counters
         self._sdo_servers = sdo_servers
-        self._on_frame = on_frame
+        self._on_frames = on_frames
         self._warn_once = warn_once
         self.receive_failures = ReceiveFailures()
 
@@ -103,46 +106,66 @@ class RackListener(can.Listener):
         if msg.is_error_frame or msg.is_fd or msg.is_extended_id or msg.is_remote_frame:
             self._count_not_classical(msg)
             return
-        self._data_frame(msg.arbitration_id, msg.data, msg.timestamp)
+        self.on_data_frames(((msg.arbitration_id, bytes(msg.data)),), msg.timestamp)
 
     def on_data_frames(self, frames: DataFrames, timestamp: float) -> None:
-        """Data frames from a linked bus (the bridge's master), as `on_message_received`."""
-        data_frame = self._data_frame
-        for cob, data in frames:
-            data_frame(cob, data, timestamp)
+        """Data frames from a linked bus or lca_remote, as `on_message_received` each.
 
-    def _data_frame(self, cob: int, data: bytes | bytearray, timestamp: float) -> None:
+        The rack takes a run of them in one call, in order. A frame for canopen's services
+        (an SDO request, NMT, one its node scanner notes) reaches them after the rack has
+        handled the frames before it, and before the rack handles it; the cycle's RPDOs and
+        SYNC reach the rack only.
+        """
+        run: list[tuple[int, bytes]] = []
+        for cob, data in frames:
+            verdict = self._verdict(cob, data)
+            if verdict is _DROP:
+                continue
+            if verdict is _SERVICE:
+                if run:
+                    self._on_frames(run, timestamp)
+                    run = []
+                self._notify(cob, data, timestamp)
+            run.append((cob, bytes(data)))
+        if run:
+            self._on_frames(run, timestamp)
+
+    def _verdict(self, cob: int, data: bytes | bytearray) -> object:
+        """`_DROP` (counted), `_SERVICE` (canopen's, then the rack's) or `_RACK` (the rack's)."""
         counters = self._counters
         if len(data) > 8:
             counters.bad_frames += 1
-            return
+            return _DROP
         sdo_server = self._sdo_servers.get(cob)
         if sdo_server is not None:
             if len(data) != 8:
                 counters.bad_frames += 1  # CiA 301: an SDO request is 8 bytes; ignored otherwise
-                return
+                return _DROP
             if sdo_server.nmt == NMT_STOPPED:
                 # CiA 301 7.3.2.2 (NMT state machine, table of services per state): in STOPPED
                 # only NMT and node guarding / heartbeat are active, so SDO is not answered.
                 counters.sdo_ignored_stopped += 1
-                return
+                return _DROP
         # An NMT frame of the wrong length goes to the rack (which counts it) only: canopen's
         # NMT slave would act on the first two bytes of a longer one.
         # Only frames canopen takes (SDO, NMT) or its node scanner notes: not the cycle's RPDOs
-        # and SYNC, which would only cost the lookups.
-        network = self._network
-        # The SYNC (0x080, node id 0) is neither: the scanner notes node ids 1-127 only.
+        # and SYNC, which would only cost the lookups. The SYNC (0x080, node id 0) is neither:
+        # the scanner notes node ids 1-127 only.
         if (
-            cob in network.subscribers
+            cob in self._network.subscribers
             or (cob & _SERVICE_MASK in _SCANNED_SERVICES and cob & _NODE_ID_MASK)
         ) and (cob != cia301.NMT_COB_ID or len(data) == 2):
-            try:
-                # canopen types the data bytearray; its SDO server and NMT slave only read it
-                network.notify(cob, data, timestamp)  # type: ignore[arg-type]
-            except Exception:
-                counters.handler_errors += 1
-                logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
-        self._on_frame(cob, bytes(data), timestamp)
+            return _SERVICE
+        return _RACK
+
+    def _notify(self, cob: int, data: bytes | bytearray, timestamp: float) -> None:
+        """Canopen's services (SDO server, NMT slave, node scanner) on one frame."""
+        try:
+            # canopen types the data bytearray; its SDO server and NMT slave only read it
+            self._network.notify(cob, data, timestamp)  # type: ignore[arg-type]
+        except Exception:
+            self._counters.handler_errors += 1
+            logger.exception("virtual drive: canopen failed on frame 0x%03X", cob)
 
     # python-can's Notifier calls its listeners: straight into the filter, not through
     # `can.Listener.__call__`, one call less per frame.

@@ -71,6 +71,9 @@ NOTIFIER_TIMEOUT_S = 0.05  # the receive thread's poll: bounds how long stop() w
 _CYCLE_PERIOD = (od.CYCLE_PERIOD, 0)  # read from every drive at every SYNC (`Drive.values`)
 
 
+_LAST_HEARTBEAT_COB_ID = cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX  # node 127's
+
+
 class VirtualDriveRack:
     """Virtual CiA 402 drives, one CANopen node per configured axis, over one plant.
 
@@ -110,7 +113,7 @@ class VirtualDriveRack:
         # canopen types its listener list narrowly; any can.Listener works there.
         cast("list[can.Listener]", self._network.listeners)[:] = [
             RackListener(
-                self._network, self._counters, sdo_servers, self._on_frame, self._warn_once
+                self._network, self._counters, sdo_servers, self._on_frames, self._warn_once
             )
         ]
         # The parts call each other; the lambdas reach parts built further down, which exist
@@ -337,31 +340,41 @@ class VirtualDriveRack:
 
     # --- frames ----------------------------------------------------------------------------
 
-    def _on_frame(self, cob: int, data: bytes, timestamp: float) -> None:
-        """Dispatch one received (filtered) data frame; never raises."""
-        try:
+    def _on_frames(self, frames: list[tuple[int, bytes]], timestamp: float) -> None:
+        """Dispatch received (filtered) data frames, in order, under the lock; never raises.
+
+        A run (a cycle's RPDOs and SYNC, read at once) takes the lock once. A frame that
+        fails is counted and logged, and the ones after it are still handled.
+        """
+        with self._lock:
             now = self._clock()
-            if cob == cia301.SYNC_COB_ID:
-                # The bus's reception stamp, not `now`: SYNCs queued while this process stood
-                # still keep their spacing for the SYNC rate check (`RackWatchdogs.sync_in_time`).
-                stamp_s = timestamp if timestamp > 0.0 else time.time()
-                with self._lock:
-                    self._on_sync(data, now, stamp_s)
-            elif cob == cia301.NMT_COB_ID:
-                with self._lock:
-                    self._nmt.on_nmt(data, now)
-            elif cia301.HEARTBEAT_COB_BASE < cob <= cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX:
-                with self._lock:
-                    self._watchdogs.heard(cob - cia301.HEARTBEAT_COB_BASE, data, now)
-            else:
-                targets = self._pdos.rpdo_table.get(cob)
-                if targets:
-                    with self._lock:
-                        for axis, pdo in targets:
-                            self._pdos.receive(axis, pdo, data, now)
-        except Exception:
-            self._counters.handler_errors += 1
-            logger.exception("virtual drive: error handling frame 0x%03X %s", cob, data.hex())
+            for cob, data in frames:
+                try:
+                    if cob == cia301.SYNC_COB_ID:
+                        # The bus's reception stamp, not `now`: SYNCs queued while this
+                        # process stood still keep their spacing for the SYNC rate check
+                        # (`RackWatchdogs.sync_in_time`).
+                        stamp_s = timestamp if timestamp > 0.0 else time.time()
+                        self._on_sync(data, now, stamp_s)
+                        now = self._clock()  # the frames after it: after its handling
+                    elif cob == cia301.NMT_COB_ID:
+                        self._nmt.on_nmt(data, now)
+                    elif (
+                        cia301.HEARTBEAT_COB_BASE
+                        < cob
+                        <= cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX
+                    ):
+                        self._watchdogs.heard(cob - cia301.HEARTBEAT_COB_BASE, data, now)
+                    else:
+                        targets = self._pdos.rpdo_table.get(cob)
+                        if targets:
+                            for axis, pdo in targets:
+                                self._pdos.receive(axis, pdo, data, now)
+                except Exception:
+                    self._counters.handler_errors += 1
+                    logger.exception(
+                        "virtual drive: error handling frame 0x%03X %s", cob, data.hex()
+                    )
 
     def _on_sync(self, data: bytes, now: float, stamp_s: float) -> None:
         """Apply the latched RPDOs, send the synchronous TPDOs, advance the plant one cycle."""

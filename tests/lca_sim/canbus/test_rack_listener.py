@@ -36,15 +36,17 @@ def test_only_frames_canopen_acts_on_reach_it_and_every_frame_reaches_the_rack(
     """
     notified: list[int] = []
     monkeypatch.setattr(network, "notify", lambda cob, data, timestamp: notified.append(cob))
-    seen: list[int] = []
+    runs: list[list[int]] = []
+
+    def on_frames(frames: list[tuple[int, bytes]], timestamp: float) -> None:
+        runs.append([cob for cob, _ in frames])
+        notified.append(-1)  # where the rack's run came among canopen's frames
+
     listener = RackListener(
-        network,
-        RackCounters(),
-        sdo_servers={},
-        on_frame=lambda cob, data, timestamp: seen.append(cob),
-        warn_once=lambda key, message: None,
+        network, RackCounters(), {}, on_frames, warn_once=lambda key, message: None
     )
     frames = [(0x201, b"\x00\x01"), (0x080, b""), (0x185, b"\x01" * 8), (0x085, b"\x00" * 8)]
     listener.on_data_frames(frames, 1.0)
-    assert seen == [0x201, 0x080, 0x185, 0x085]
-    assert notified == [0x185, 0x085]  # the TPDO and the EMCY of node 5: scanned
+    assert runs == [[0x201, 0x080], [0x185], [0x085]]
+    # the TPDO and the EMCY of node 5 are scanned, each after the rack's frames before it
+    assert notified == [-1, 0x185, -1, 0x085, -1]
