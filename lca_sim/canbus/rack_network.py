@@ -19,6 +19,7 @@ from lca_sim.canbus.rack_state import NMT_STOPPED, Drive, RackCounters
 from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.canbus.wire import MAX_BASE_ID
 from lca_sim.cia402 import cia301
+from lca_sim.cia402.objects import ERROR_REGISTER
 
 logger = logging.getLogger(__name__)
 
@@ -305,3 +306,67 @@ class RackNetwork(canopen.Network):
 def send_frames_of_none(frames: list[tuple[int, bytes]]) -> None:
     """What a bus without `send_data_frames` would do with several frames: refuse them."""
     raise RuntimeError("this bus sends frame by frame")
+
+
+class RackSender:
+    """The rack's frames and EMCYs out through its network; a failed send counted, not raised.
+
+    Args:
+        network: the rack's network.
+        counters: the rack's counters (`send_errors`, `emcy_sent`, `frames_dropped_bus_off`).
+        warn_once: logs a warning the first time its key comes: (key, message).
+    """
+
+    def __init__(
+        self,
+        network: RackNetwork,
+        counters: RackCounters,
+        warn_once: Callable[[str, str], None],
+    ) -> None:
+        self._network = network
+        self._counters = counters
+        self._warn_once = warn_once
+
+    @property
+    def takes_frames(self) -> bool:
+        """Whether the bus takes several frames in one call (`send_frames`)."""
+        return self._network.send_data_frames is not None
+
+    def send(self, cob_id: int, data: bytes) -> bool:
+        """One frame; False when the send failed (counted, said once per kind of error)."""
+        try:
+            self._network.send_message(cob_id, data)
+        except (can.CanError, OSError, RuntimeError) as exc:
+            self._counters.send_errors += 1
+            self._warn_once(f"send-{type(exc).__name__}", f"send of 0x{cob_id:03X} failed: {exc}")
+            return False
+        return True
+
+    def send_frames(self, frames: list[tuple[int, bytes]]) -> bool:
+        """`send` of several frames in one call of the bus (`RackNetwork.send_data_frames`)."""
+        send_data_frames = self._network.send_data_frames
+        try:
+            if send_data_frames is None:
+                raise RuntimeError("this bus sends frame by frame")
+            send_data_frames(frames)
+        except (can.CanError, OSError, RuntimeError) as exc:
+            self._counters.send_errors += 1
+            self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
+            return False
+        return True
+
+    def emcy(self, axis: Drive, code: int, data: bytes = b"") -> None:
+        """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes (CiA 301 7.2.7)."""
+        if axis.nmt == NMT_STOPPED:
+            return  # no EMCY in STOPPED (CiA 301)
+        if axis.faults.bus_off:
+            self._counters.frames_dropped_bus_off += 1
+            return
+        register = axis.value(ERROR_REGISTER)
+        try:
+            axis.node.emcy.send(code, register, data)
+        except (can.CanError, OSError, RuntimeError) as exc:
+            self._counters.send_errors += 1
+            self._warn_once("emcy", f"EMCY send failed: {exc}")
+            return
+        self._counters.emcy_sent += 1

@@ -35,11 +35,11 @@ from lca_sim.canbus.linked_bus import LinkedVirtualBus
 from lca_sim.canbus.rack_cia402 import DriveControl
 from lca_sim.canbus.rack_faults import RackFaults
 from lca_sim.canbus.rack_modes import AxisModes
-from lca_sim.canbus.rack_network import RackListener, RackNetwork
+from lca_sim.canbus.rack_network import RackListener, RackNetwork, RackSender
 from lca_sim.canbus.rack_nmt import RackNmt
 from lca_sim.canbus.rack_objects import ObjectStore, drive_units
 from lca_sim.canbus.rack_pdo import PdoEngine
-from lca_sim.canbus.rack_state import NMT_OPERATIONAL, NMT_STOPPED, Drive, FaultEvent, RackCounters
+from lca_sim.canbus.rack_state import NMT_OPERATIONAL, Drive, FaultEvent, RackCounters
 from lca_sim.canbus.rack_watchdog import RackWatchdogs
 from lca_sim.canbus.remote import RemoteTransportBus
 from lca_sim.cia402 import cia301, codec
@@ -107,6 +107,7 @@ class VirtualDriveRack:
             (lambda: self._lockstep_time_s) if self._lockstep else time.monotonic
         )
         self._warned: set[str] = set()
+        self._sender = RackSender(self._network, self._counters, self._warn_once)
         self._axes: list[Drive] = []
         self._by_name: dict[str, Drive] = {}
         sdo_servers: dict[int, Drive] = {}  # SDO request COB-ID (0x600 + id) -> its node
@@ -121,7 +122,7 @@ class VirtualDriveRack:
         self._control = DriveControl(
             self._sim.state_array,
             self._sim.mode_array,
-            emcy=self._emcy,
+            emcy=self._sender.emcy,
             reset_raised_emcy=lambda axis, now: self._faults.set(
                 axis, "emcy", 0, "fault reset", now
             ),
@@ -129,11 +130,11 @@ class VirtualDriveRack:
         self._pdos = PdoEngine(
             self._axes,
             self._counters,
-            self._send,
+            self._sender.send,
             write=lambda *write: self._objects.write(*write),  # noqa: PLW0108 (built below)
-            emcy=self._emcy,
+            emcy=self._sender.emcy,
             warn_once=self._warn_once,
-            send_frames=None if self._network.send_data_frames is None else self._send_frames,
+            send_frames=self._sender.send_frames if self._sender.takes_frames else None,
         )
         self._nmt = RackNmt(
             self._axes,
@@ -149,7 +150,7 @@ class VirtualDriveRack:
             config.sync_loss_periods,
             config.max_stall_discount_s,
             on_expired=self._nmt.communication_error,
-            emcy=self._emcy,
+            emcy=self._sender.emcy,
             warn_once=self._warn_once,
         )
         self._step_budget_s = 0.0
@@ -165,7 +166,7 @@ class VirtualDriveRack:
             started=lambda: self._started,
             lock=self._lock,
             clock=self._clock,
-            emcy=self._emcy,
+            emcy=self._sender.emcy,
             communication_error=self._nmt.communication_error,
             set_drive=self._control.set_drive,
         )
@@ -438,44 +439,6 @@ class VirtualDriveRack:
         if steps:
             self._plant.advance(steps)
             self._steps_done += steps
-
-    def _send(self, cob_id: int, data: bytes) -> bool:
-        try:
-            self._network.send_message(cob_id, data)
-        except (can.CanError, OSError, RuntimeError) as exc:
-            self._counters.send_errors += 1
-            self._warn_once(f"send-{type(exc).__name__}", f"send of 0x{cob_id:03X} failed: {exc}")
-            return False
-        return True
-
-    def _send_frames(self, frames: list[tuple[int, bytes]]) -> bool:
-        """`_send` of several frames in one call of the bus (`RackNetwork.send_data_frames`)."""
-        send_data_frames = self._network.send_data_frames
-        try:
-            if send_data_frames is None:
-                raise RuntimeError("this bus sends frame by frame")
-            send_data_frames(frames)
-        except (can.CanError, OSError, RuntimeError) as exc:
-            self._counters.send_errors += 1
-            self._warn_once(f"send-{type(exc).__name__}", f"send of the TPDOs failed: {exc}")
-            return False
-        return True
-
-    def _emcy(self, axis: Drive, code: int, data: bytes = b"") -> None:
-        """Send an EMCY: code, 0x1001, and up to 5 manufacturer-specific bytes."""
-        if axis.nmt == NMT_STOPPED:
-            return  # no EMCY in STOPPED (CiA 301)
-        if axis.faults.bus_off:
-            self._counters.frames_dropped_bus_off += 1
-            return
-        register = axis.value(od.ERROR_REGISTER)
-        try:
-            axis.node.emcy.send(code, register, data)
-        except (can.CanError, OSError, RuntimeError) as exc:
-            self._counters.send_errors += 1
-            self._warn_once("emcy", f"EMCY send failed: {exc}")
-            return
-        self._counters.emcy_sent += 1
 
     def _monitor(self) -> None:
         due = time.monotonic() + MONITOR_PERIOD_S
