@@ -96,6 +96,8 @@ class ControllerNode(Node):
         self._plant_t_s = 0.0
         self.commands_sent = 0
         self.states_skipped = 0
+        self.states_held = 0  # states not answered while no reader of the commands matched
+        self._held_for_reader = False
         self.bad_states = 0
         # Peer watch on the wall clock: /clock (use_sim_time) stops with a lost simulator.
         self._last_state_wall = time.monotonic()
@@ -177,6 +179,20 @@ class ControllerNode(Node):
             self.bad_states += 1
             self.get_logger().warning("malformed joint or motor state", throttle_duration_sec=5.0)
             return
+        if not self._command_pub.get_subscription_count():
+            # Nobody reads the commands (the plant's reader not matched yet, or gone): an
+            # answer now is lost, and a stamp is answered once only, so a lockstep plant that
+            # re-publishes it (lockstep_resend_s) would wait for ever. The state is kept and
+            # answered when a reader matches (`_wake`, 20 Hz) or the next state comes.
+            self._held_for_reader = True
+            self.states_held += 1
+            self.get_logger().info(
+                f"no reader of {self._command_pub.topic_name} yet: the plant's state is answered "
+                "once one matches",
+                once=True,
+            )
+            return
+        self._held_for_reader = False
         commands = self.core.update(t_s, positions, velocities, currents)
         if self.core.plant_restarts != self._restarts_logged:
             self._restarts_logged = self.core.plant_restarts
@@ -264,6 +280,8 @@ class ControllerNode(Node):
         on a paused host, the plant stood still too), so the plant deadline moves on by the
         freeze, never past now. The simulator and the CAN bridge do the same for commands.
         """
+        if self._held_for_reader:
+            self._try_step()  # the state held while no reader of the commands matched
         now = time.monotonic()
         freeze = self._freezes.check(now - self._last_wake_wall - FREEZE_WATCH_PERIOD_S)
         self._last_wake_wall = now
@@ -356,6 +374,7 @@ class ControllerNode(Node):
             "elapsed_s": core.elapsed_s,
             "commands_sent": self.commands_sent,
             "states_skipped": self.states_skipped,
+            "states_held_for_a_reader": self.states_held,
             "bad_states": self.bad_states,
             "states_not_finite": core.bad_states,
             "references_rejected": core.rejected_references,

@@ -216,6 +216,39 @@ def test_only_an_end_at_the_last_state_taken_excuses_the_silence(
         assert ctl.plant_losses == (1 if level == DiagnosticStatus.WARN else 0)
 
 
+def test_a_state_is_answered_once_a_reader_of_the_commands_matches() -> None:
+    """No reader of current_commands yet: the state is held, not answered into the void.
+
+    A stamp is answered once only, so an answer nobody received would leave a lockstep plant
+    re-publishing the same state for ever (a fresh-clone CI run waited 60 s for the first
+    command this way: the controller's writer had not yet matched the simulator's reader).
+    """
+    with ros_context() as (ctx, executor):
+        ctl = ControllerNode(
+            context=ctx,
+            parameter_overrides=_params(reference_source="ramp", command_interface="current"),
+        )
+        plant = Node("fake_plant", context=ctx)
+        states = plant.create_publisher(JointState, "joint_states", 10)
+        executor.add_node(ctl)
+        executor.add_node(plant)
+        spin_until(executor, lambda: states.get_subscription_count() > 0)
+        state = JointState(name=["l_arm", "pivot", "c_arc", "lift"], position=[0.0] * 4)
+        state.velocity = [0.0] * 4
+        states.publish(state)
+        spin_until(executor, lambda: ctl._joint is not None)
+        received: list[Float64MultiArray] = []
+        reader = plant.create_subscription(
+            Float64MultiArray, "current_commands", received.append, 10
+        )
+        spin_until(executor, lambda: reader.get_publisher_count() > 0)
+        states.publish(state)  # re-published, as a lockstep plant does after its resend time
+        spin_until(executor, lambda: len(received) == 1)  # the held state, answered
+        assert ctl.states_held >= 1
+        assert ctl.commands_sent == 1  # once: the re-published stamp is not answered again
+        assert len(received[0].data) == 4
+
+
 def _realtime_sim(ctx: Context, executor: SingleThreadedExecutor, robot: str) -> SimulatorNode:
     sim = SimulatorNode(
         context=ctx,
