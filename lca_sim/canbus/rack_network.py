@@ -118,7 +118,12 @@ class RackListener(can.Listener):
         SYNC reach the rack only.
         """
         run: list[tuple[int, bytes]] = []
+        sdo_servers = self._sdo_servers
         for cob, data in frames:
+            if run and cob in sdo_servers:
+                # its verdict reads the node's NMT state, which the frames before it may change
+                self._on_frames(run, timestamp)
+                run = []
             verdict = self._verdict(cob, data)
             if verdict is _DROP:
                 continue
@@ -273,6 +278,8 @@ class RackNetwork(canopen.Network):
                 if can_id in muted and self.on_dropped is not None:
                     self.on_dropped(can_id)
             frames = [frame for frame in frames if frame[0] not in muted]
+            if not frames:
+                return
         if self.bus is None:
             raise RuntimeError("Not connected to CAN bus")
         with self.send_lock:

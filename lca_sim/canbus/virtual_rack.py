@@ -356,15 +356,13 @@ class VirtualDriveRack:
                         # process stood still keep their spacing for the SYNC rate check
                         # (`RackWatchdogs.sync_in_time`).
                         stamp_s = timestamp if timestamp > 0.0 else time.time()
-                        self._on_sync(data, now, stamp_s)
-                        now = self._clock()  # the frames after it: after its handling
+                        try:
+                            self._on_sync(data, now, stamp_s)
+                        finally:
+                            now = self._clock()  # the frames after it: after its handling
                     elif cob == cia301.NMT_COB_ID:
                         self._nmt.on_nmt(data, now)
-                    elif (
-                        cia301.HEARTBEAT_COB_BASE
-                        < cob
-                        <= cia301.HEARTBEAT_COB_BASE + cia301.NODE_ID_MAX
-                    ):
+                    elif cia301.HEARTBEAT_COB_BASE < cob <= _LAST_HEARTBEAT_COB_ID:
                         self._watchdogs.heard(cob - cia301.HEARTBEAT_COB_BASE, data, now)
                     else:
                         targets = self._pdos.rpdo_table.get(cob)

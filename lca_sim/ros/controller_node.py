@@ -98,6 +98,7 @@ class ControllerNode(Node):
         self.states_skipped = 0
         self.states_held = 0  # states not answered while no reader of the commands matched
         self._held_for_reader = False
+        self._held_state: JointState | None = None
         self.bad_states = 0
         # Peer watch on the wall clock: /clock (use_sim_time) stops with a lost simulator.
         self._last_state_wall = time.monotonic()
@@ -183,9 +184,11 @@ class ControllerNode(Node):
             # Nobody reads the commands (the plant's reader not matched yet, or gone): an
             # answer now is lost, and a stamp is answered once only, so a lockstep plant that
             # re-publishes it (lockstep_resend_s) would wait for ever. The state is kept and
-            # answered when a reader matches (`_wake`, 20 Hz) or the next state comes.
-            self._held_for_reader = True
-            self.states_held += 1
+            # answered when a reader matches (`_wake`, 20 Hz) or the next state comes. Any
+            # reader counts (a recorder too): which one is the plant, DDS does not say.
+            if not self._held_for_reader or self._joint is not self._held_state:
+                self.states_held += 1  # each state once, not each retry
+            self._held_for_reader, self._held_state = True, self._joint
             self.get_logger().info(
                 f"no reader of {self._command_pub.topic_name} yet: the plant's state is answered "
                 "once one matches",

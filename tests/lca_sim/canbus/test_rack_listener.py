@@ -5,12 +5,14 @@ from __future__ import annotations
 import itertools
 import os
 from collections.abc import Iterator
+from types import SimpleNamespace
+from typing import cast
 
 import can
 import pytest
 
 from lca_sim.canbus.rack_network import RackListener, RackNetwork
-from lca_sim.canbus.rack_state import RackCounters
+from lca_sim.canbus.rack_state import NMT_OPERATIONAL, NMT_STOPPED, Drive, RackCounters
 
 _channels = itertools.count()
 
@@ -50,3 +52,31 @@ def test_only_frames_canopen_acts_on_reach_it_and_every_frame_reaches_the_rack(
     assert runs == [[0x201, 0x080], [0x185], [0x085]]
     # the TPDO and the EMCY of node 5 are scanned, each after the rack's frames before it
     assert notified == [-1, 0x185, -1, 0x085, -1]
+
+
+def test_an_sdo_request_is_judged_after_the_frames_before_it(
+    network: RackNetwork, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """NMT Stop, then an SDO request to that node, in one read: the SDO is not answered.
+
+    CiA 301 7.3.2.2: a STOPPED node serves no SDO. The node's state is the rack's, changed
+    when it handles the NMT frame, so the request is judged after the frames before it.
+    """
+    drive = SimpleNamespace(nmt=NMT_OPERATIONAL)
+    notified: list[int] = []
+    monkeypatch.setattr(network, "notify", lambda cob, data, timestamp: notified.append(cob))
+
+    def on_frames(frames: list[tuple[int, bytes]], timestamp: float) -> None:
+        for cob, data in frames:
+            if cob == 0x000 and data[0] == 0x02:  # NMT stop (CiA 301 command specifier 2)
+                drive.nmt = NMT_STOPPED
+
+    counters = RackCounters()
+    listener = RackListener(
+        network, counters, {0x601: cast(Drive, drive)}, on_frames, lambda key, message: None
+    )
+    stop, sdo = (0x000, bytes([0x02, 0x01])), (0x601, bytes([0x40, 0x00, 0x10, 0, 0, 0, 0, 0]))
+    listener.on_data_frames([stop, sdo], 1.0)
+    assert drive.nmt == NMT_STOPPED
+    assert 0x601 not in notified
+    assert counters.sdo_ignored_stopped == 1
