@@ -6,7 +6,7 @@ docs/can.md, "Fault injection" and "Lockstep".
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import can
@@ -238,33 +238,24 @@ class RackNetwork(canopen.Network):
         self.cycle_tasks: list[CycleTask] = []
         # lca_remote and the bridge's linked bus take classical data frames as they are, and
         # several in one call (one write, one delivery)
-        self._send_data_frame: Callable[[int, bytes], None] | None = None
+        self._bus_send_frames: Callable[[list[tuple[int, bytes]]], None] | None = None
         self.send_data_frames: Callable[[list[tuple[int, bytes]]], None] | None = None
-        self._bus_send_frames: Callable[[list[tuple[int, bytes]]], None] = send_frames_of_none
         if isinstance(bus, RemoteTransportBus | LinkedVirtualBus):
-            self._send_data_frame = bus.send_data_frame
             self._bus_send_frames = bus.send_data_frames
             self.send_data_frames = self._send_frames
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """Send as canopen does, except the frames of a node that fault injection silenced."""
+        # canopen's send_message, one call shorter: every TPDO goes this way.
+        if self.send_data_frames is not None and can_id <= MAX_BASE_ID and not remote:
+            self.send_data_frames([(can_id, data)])  # the same frame, with no can.Message built
+            return
         if can_id in self.muted:
             if self.on_dropped is not None:
                 self.on_dropped(can_id)
             return
-        # canopen's send_message, one call shorter: every TPDO goes this way.
-        if self._send_data_frame is not None and can_id <= MAX_BASE_ID and not remote:
-            if self.bus is None:
-                raise RuntimeError("Not connected to CAN bus")
-            with self.send_lock:  # the same frame, with no can.Message built
-                self._send_data_frame(can_id, data)
-        else:
-            send_frame(self, can_id, data, remote)
-        self.check()
-        if self.after_send:
-            then = self.after_send.pop(can_id, None)
-            if then is not None:
-                then()
+        send_frame(self, can_id, data, remote)
+        self._sent((can_id,))
 
     def _send_frames(self, frames: list[tuple[int, bytes]]) -> None:
         """`send_message` of classical 11-bit data frames, in order, in one call of the bus.
@@ -280,13 +271,18 @@ class RackNetwork(canopen.Network):
             frames = [frame for frame in frames if frame[0] not in muted]
             if not frames:
                 return
-        if self.bus is None:
+        send = self._bus_send_frames
+        if self.bus is None or send is None:
             raise RuntimeError("Not connected to CAN bus")
         with self.send_lock:
-            self._bus_send_frames(frames)
+            send(frames)
+        self._sent([can_id for can_id, _ in frames])
+
+    def _sent(self, can_ids: Sequence[int]) -> None:
+        """After frames went out: canopen's check, then what waited for one of them."""
         self.check()
         if self.after_send:
-            for can_id, _ in frames:
+            for can_id in can_ids:
                 then = self.after_send.pop(can_id, None)
                 if then is not None:
                     then()
@@ -308,11 +304,6 @@ class RackNetwork(canopen.Network):
                 base = now_s if task.next_s is None else task.next_s
                 task.next_s = base + task.period_s
                 self.send_message(task.can_id, task.data)
-
-
-def send_frames_of_none(frames: list[tuple[int, bytes]]) -> None:
-    """What a bus without `send_data_frames` would do with several frames: refuse them."""
-    raise RuntimeError("this bus sends frame by frame")
 
 
 class RackSender:
@@ -352,9 +343,9 @@ class RackSender:
     def send_frames(self, frames: list[tuple[int, bytes]]) -> bool:
         """`send` of several frames in one call of the bus (`RackNetwork.send_data_frames`)."""
         send_data_frames = self._network.send_data_frames
+        if send_data_frames is None:  # a bus that sends frame by frame
+            return all([self.send(cob_id, data) for cob_id, data in frames])
         try:
-            if send_data_frames is None:
-                raise RuntimeError("this bus sends frame by frame")
             send_data_frames(frames)
         except (can.CanError, OSError, RuntimeError) as exc:
             self._counters.send_errors += 1

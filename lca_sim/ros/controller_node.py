@@ -97,8 +97,7 @@ class ControllerNode(Node):
         self.commands_sent = 0
         self.states_skipped = 0
         self.states_held = 0  # states not answered while no reader of the commands matched
-        self._held_for_reader = False
-        self._held_state: JointState | None = None
+        self._held_state: JointState | None = None  # answered once a reader of commands matches
         self.bad_states = 0
         # Peer watch on the wall clock: /clock (use_sim_time) stops with a lost simulator.
         self._last_state_wall = time.monotonic()
@@ -186,16 +185,16 @@ class ControllerNode(Node):
             # re-publishes it (lockstep_resend_s) would wait for ever. The state is kept and
             # answered when a reader matches (`_wake`, 20 Hz) or the next state comes. Any
             # reader counts (a recorder too): which one is the plant, DDS does not say.
-            if not self._held_for_reader or self._joint is not self._held_state:
+            if self._joint is not self._held_state:
                 self.states_held += 1  # each state once, not each retry
-            self._held_for_reader, self._held_state = True, self._joint
+                self._held_state = self._joint
             self.get_logger().info(
                 f"no reader of {self._command_pub.topic_name} yet: the plant's state is answered "
                 "once one matches",
                 once=True,
             )
             return
-        self._held_for_reader = False
+        self._held_state = None
         commands = self.core.update(t_s, positions, velocities, currents)
         if self.core.plant_restarts != self._restarts_logged:
             self._restarts_logged = self.core.plant_restarts
@@ -283,7 +282,7 @@ class ControllerNode(Node):
         on a paused host, the plant stood still too), so the plant deadline moves on by the
         freeze, never past now. The simulator and the CAN bridge do the same for commands.
         """
-        if self._held_for_reader:
+        if self._held_state is not None:
             self._try_step()  # the state held while no reader of the commands matched
         now = time.monotonic()
         freeze = self._freezes.check(now - self._last_wake_wall - FREEZE_WATCH_PERIOD_S)
