@@ -10,6 +10,7 @@ callers say how many steps to take.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,15 +19,18 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from lca_control import pi as lca_pi
 from lca_control.drive_loops import DriveLoopParams, DriveMode
 from lca_control.pi import PIParams, pi_law, pi_rebase
 from lca_sim.errors import InvalidValueError
-from lca_sim.model import kernel, rigid_body
+from lca_sim.model import code_version, kernel, rigid_body
 from lca_sim.model.drive_modes import VOLTAGE_MODE, JointDriveLoops, check_drive_modes
 from lca_sim.model.faults import FaultInjector
 from lca_sim.model.simulator import Simulator
+from lca_sim.model.step_path import StaleCodeError
 
 FloatArray = npt.NDArray[np.float64]
+logger = logging.getLogger(__name__)
 
 VOLTAGE = "voltage"
 CURRENT = "current"
@@ -42,6 +46,14 @@ _N_LOOP_ROWS = 6
 
 # lca_control's PI law itself, compiled: the drive's loops are the controller's PI, not a copy.
 _pi_law_compiled = njit(cache=True)(pi_law)
+
+# What this module's cached functions compile in from other files: kernel's step (and
+# rigid_body's terms) and lca_control's PI law. numba keys their cache on this file only, so
+# after an edit of one of those they would run the old code, silently: they compare this value
+# with the one they were compiled with and refuse (-1); `ensure_current_code` recompiles them.
+CODE_VERSION = code_version.combined(
+    kernel.CODE_VERSION, code_version.fingerprint(vars(lca_pi), lca_pi.__name__)
+)
 
 
 @njit(cache=True)
@@ -66,8 +78,14 @@ def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyp
 
 
 @njit(cache=True)
-def _current_loops_steps(n_steps, volts, loops, gains, mass, nle, work, model, dt_s):  # type: ignore[no-untyped-def]
-    """Model steps, each under the current loops' voltages (`Simulator.advance_with`)."""
+def _current_loops_steps(n_steps, volts, loops, gains, version, mass, nle, work, model, dt_s):  # type: ignore[no-untyped-def]
+    """Model steps, each under the current loops' voltages (`Simulator.advance_with`).
+
+    -1 and nothing touched when compiled against other code than the running (`version`, the
+    module's `CODE_VERSION`: `ensure_current_code`).
+    """
+    if version != CODE_VERSION:  # a global: frozen into the compiled code
+        return -1
     for k in range(n_steps):
         _run_current_loops(loops, work[kernel.X_CURRENT], gains, volts)
         if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
@@ -91,10 +109,10 @@ def _current_loops_held(  # type: ignore[no-untyped-def]
     volts,
     loops,
     gains,
+    version,
     work,
     model,
     dt_s,
-    code_version,
     out,
 ):
     """`_current_loops_steps` on eq. (2)'s held terms, the holds included: one compiled call.
@@ -104,10 +122,10 @@ def _current_loops_held(  # type: ignore[no-untyped-def]
     `StepPath._rigid_body_terms`'s arithmetic, so the same bits; the numpy calls and two
     dispatches per hold around the compiled code cost more than the steps themselves. Writes
     (steps done, age after) into `out`; returns 1 when all `n_steps` were taken, 0 when a step
-    refused its voltages, -1 when this code was compiled against another `rigid_body` than the
-    running one (numba's cache keys on this file only; the caller recompiles).
+    refused its voltages, -1 (nothing touched) when this code was compiled against other code
+    than the running (`version`: `ensure_current_code`).
     """
-    if code_version != rigid_body.CODE_VERSION:  # a global: frozen into the compiled code
+    if version != CODE_VERSION:  # a global: frozen into the compiled code
         return -1
     taken = 0
     while taken < n_steps:
@@ -120,7 +138,7 @@ def _current_loops_held(  # type: ignore[no-untyped-def]
             held_nle[:] = nle
         chunk = min(hold - age, n_steps - taken)
         done = _current_loops_steps(
-            chunk, volts, loops, gains, held_mass, held_nle, work, model, dt_s
+            chunk, volts, loops, gains, version, held_mass, held_nle, work, model, dt_s
         )
         taken += done
         age = (age + done) % hold
@@ -133,13 +151,15 @@ def _current_loops_held(  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def _sensed_current_loops_steps(  # type: ignore[no-untyped-def]
-    n_steps, volts, loops, gains, sense, noise, mass, nle, work, model, dt_s
+    n_steps, volts, loops, gains, version, sense, noise, mass, nle, work, model, dt_s
 ):
     """`_current_loops_steps` with a faulty current sensor (lca_sim.model.faults).
 
     The loops regulate the measured current gain * i + offset + noise[k] (sense rows 0 and 1,
     noise one row per step) instead of the true one.
     """
+    if version != CODE_VERSION:  # a global: frozen into the compiled code
+        return -1
     measured = np.empty(volts.shape[0])
     for k in range(n_steps):
         for a in range(volts.shape[0]):
@@ -148,6 +168,24 @@ def _sensed_current_loops_steps(  # type: ignore[no-untyped-def]
         if kernel.step(mass, nle, volts, work, model, dt_s) != kernel.OK:
             return k
     return n_steps
+
+
+def recompile_current_loops() -> None:
+    """Compile this module's cached functions again from the running code.
+
+    Callees first: numba links a caller with its callees' code as loaded, so a caller compiled
+    again over a stale callee would keep the callee's old code. One not compiled in this
+    process yet gets its cache emptied (`recompile` flushes it) and is compiled afresh when
+    first called.
+    """
+    for function in (
+        _pi_law_compiled,
+        _run_current_loops,
+        _current_loops_steps,
+        _current_loops_held,
+        _sensed_current_loops_steps,
+    ):
+        function.recompile()
 
 
 @dataclass
@@ -216,22 +254,37 @@ class CommandedPlant:
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """Run one step of the whole path now, and rewind.
+        """Run one step of each path now (the faulted one too), and rewind.
 
         Nothing is then compiled (or loaded from numba's cache) in the first step of a running
-        loop: on a fresh machine that took 0.2 s, which a CAN drive's watchdogs see as a lost
-        master.
+        loop, or when a fault is first injected: on a fresh machine that took 0.2 s, which a
+        CAN drive's watchdogs see as a lost master. Code from numba's cache of older files
+        refuses to run (`CODE_VERSION`): it is compiled again here, before any real step.
         """
         sim = self.sim
         snapshot = sim.state
-        loops = self._loops.copy()
-        sim.advance_with(1, _current_loops_steps, self._volts, loops, self._gains)
-        sim.advance_with(
-            1, _current_loops_steps, self._volts, loops, self._gains, fused=_current_loops_held
-        )
-        sim.advance(1, np.zeros(sim.n_axes))
+        try:
+            self._run_each_path()
+        except StaleCodeError:
+            logger.info("recompiling the current loops: numba's cache holds older code")
+            recompile_current_loops()
+            self._run_each_path()
         sim.set_state(snapshot)  # kernel.step itself: set_state evaluates the state with it
         self._volts[:] = 0.0
+
+    def _run_each_path(self) -> None:
+        sim, volts, gains = self.sim, self._volts, self._gains
+        loops = self._loops.copy()
+        sim.advance_with(1, _current_loops_steps, volts, loops, gains, CODE_VERSION)
+        sim.advance_with(
+            1, _current_loops_steps, volts, loops, gains, CODE_VERSION, fused=_current_loops_held
+        )
+        sense = np.vstack((np.ones(sim.n_axes), np.zeros(sim.n_axes)))  # a true sensor
+        noise = np.zeros((1, sim.n_axes))
+        sim.advance_with(
+            1, _sensed_current_loops_steps, volts, loops, gains, CODE_VERSION, sense, noise
+        )
+        sim.advance(1, np.zeros(sim.n_axes))
 
     @property
     def target(self) -> FloatArray:
@@ -434,6 +487,7 @@ class CommandedPlant:
             self._volts,
             self._loops,
             self._gains,
+            CODE_VERSION,
             fused=_current_loops_held,
         )
 
@@ -456,6 +510,13 @@ class CommandedPlant:
         sense = np.vstack((faults.sensors.gain, faults.sensors.offset))
         noise = faults.sensors.current_noise(n_steps)
         sim.advance_with(
-            n_steps, _sensed_current_loops_steps, self._volts, loops, self._gains, sense, noise
+            n_steps,
+            _sensed_current_loops_steps,
+            self._volts,
+            loops,
+            self._gains,
+            CODE_VERSION,
+            sense,
+            noise,
         )
         loops[_L_LIMIT_V] = self._voltage_limits

@@ -27,7 +27,7 @@ from numba.extending import intrinsic
 from numba.np.numpy_support import carray, farray
 
 from lca_sim.errors import InvalidValueError
-from lca_sim.model import rigid_body
+from lca_sim.model import code_version, rigid_body
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -614,3 +614,10 @@ def step_in_frame_entry() -> Callable[[FloatArray, int, float], int]:
         return step_in_frame
     entry: Callable[[FloatArray, int, float], int] = next(iter(overloads.values())).entry_point
     return entry
+
+
+# What a cached function of another file runs when it calls `step` (its cache is keyed on its
+# own file): this module's compiled code and constants, and rigid_body's (`code_version`).
+CODE_VERSION = code_version.combined(
+    rigid_body.CODE_VERSION, code_version.fingerprint(globals(), __name__)
+)

@@ -10,14 +10,13 @@ to 1e-12 by tests/lca_sim/model/test_rigid_body.py; why and how: docs/model.md, 
 
 from __future__ import annotations
 
-import hashlib
 import math
-from types import CodeType, FunctionType
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
+
+from lca_sim.model import code_version
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -286,36 +285,9 @@ def terms(
     _crba(tree, body, mass_matrix)
 
 
-def _hash_code(digest: Any, code: CodeType) -> None:
-    """Feed a code object's bytecode, names and constants (nested code too) into `digest`."""
-    digest.update(code.co_code)
-    digest.update(repr(code.co_names).encode())
-    for const in code.co_consts:
-        if isinstance(const, CodeType):
-            _hash_code(digest, const)
-        else:
-            digest.update(repr(const).encode())
-
-
-def _code_version() -> int:
-    """A fingerprint of this module's compiled functions and layout constants (63 bits).
-
-    numba's on-disk cache of a function is keyed on its own file only, so the cached
-    `kernel.step_in_frame` would keep running an older `terms` after this file changed, on the
-    old `TREE_COLS` / `BODY_COLS`: `kernel.make_frame` writes this value into the frame, the
-    compiled step compares it with the one it was compiled with and refuses to run on a
-    mismatch (`kernel.STALE_CODE`), and the simulator recompiles it. From the bytecode, not
-    the file: no I/O, and an edit of a comment changes nothing.
-    """
-    digest = hashlib.sha256()
-    for name, value in sorted(globals().items()):
-        if name.isupper() and isinstance(value, int):
-            digest.update(f"{name}={value};".encode())
-        function = getattr(value, "py_func", value)
-        if name.startswith(("_", "terms")) and isinstance(function, FunctionType):
-            digest.update(name.encode())
-            _hash_code(digest, function.__code__)
-    return int.from_bytes(digest.digest()[:8], "little") >> 1
-
-
-CODE_VERSION = _code_version()
+# numba's on-disk cache of a function is keyed on its own file only, so the cached
+# `kernel.step_in_frame` would keep running an older `terms` after this file changed, on the old
+# `TREE_COLS` / `BODY_COLS`: `kernel.make_frame` writes this value into the frame, the compiled
+# step compares it with the one it was compiled with and refuses to run on a mismatch
+# (`kernel.STALE_CODE`), and the simulator recompiles it (`code_version`).
+CODE_VERSION = code_version.fingerprint(globals(), __name__)

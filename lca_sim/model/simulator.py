@@ -322,7 +322,7 @@ class Simulator:
         n_steps: int,
         stepper: Callable[..., int],
         volts: FloatArray,
-        *args: FloatArray,
+        *args: FloatArray | int,
         fused: Any = None,
     ) -> None:
         """Advance `n_steps` of `dt_s` under voltages a compiled drive computes at every step.
@@ -331,7 +331,8 @@ class Simulator:
         function that takes up to `n` steps on the given rigid-body terms: at each, it writes
         the voltage commands into `volts` from the state in `work` (rows `kernel.X_*`, read
         only) and calls `kernel.step` with them. It returns the number of steps taken, `n`
-        unless a step refused its voltages. The in-drive current loops
+        unless a step refused its voltages, or -1 before any step when it was compiled against
+        other code than the running (`StaleCodeError`). The in-drive current loops
         (`lca_sim.model.commanded_plant`) run this way: one compiled call per hold of the
         rigid-body terms, the same arithmetic as
         `step` with the voltages computed outside. With held terms, `fused` (the stepper's
@@ -341,14 +342,17 @@ class Simulator:
         Raises:
             InputError: the voltages were not finite; the steps before stand, the state is as
                 after them.
+            StaleCodeError: the stepper (or `fused`) is stale code; nothing changed.
 
         """
         if fused is not None and self._path.hold_steps > 1:
             done, complete = self._path.advance_fused(n_steps, fused, volts, *args)
         else:
             done, complete = self._path.advance_with(n_steps, stepper, volts, *args)
+        time_s, dt_s = self._time_s, self.dt_s
         for _ in range(done):  # added step by step: the same time as `step` gives
-            self._time_s += self.dt_s
+            time_s += dt_s
+        self._time_s = time_s
         if not complete:
             # The last command stays the last good one (set_state re-evaluates with it).
             raise InputError(f"voltage commands must be finite, got {volts.tolist()}")

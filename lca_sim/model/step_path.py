@@ -14,10 +14,18 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from lca_sim.model import kernel, rigid_body
+from lca_sim.errors import LcaHilError
+from lca_sim.model import kernel
 from lca_sim.model.gantry import Gantry
 
 FloatArray = npt.NDArray[np.float64]
+
+
+class StaleCodeError(LcaHilError):
+    """A compiled drive came from numba's cache of other code than the running (`code_version`).
+
+    It took no step. Its owner recompiles it from the running code and calls again.
+    """
 
 
 class StepPath:
@@ -65,11 +73,19 @@ class StepPath:
         kernel.step(mass, nle, command, self._work, self._model, 0.0)
 
     def advance_with(
-        self, n_steps: int, stepper: Callable[..., int], volts: FloatArray, *args: FloatArray
+        self,
+        n_steps: int,
+        stepper: Callable[..., int],
+        volts: FloatArray,
+        *args: FloatArray | int,
     ) -> tuple[int, bool]:
         """Up to `n_steps` of a compiled drive, one call per hold; (steps done, all done).
 
         See `Simulator.advance_with` for `stepper`'s signature.
+
+        Raises:
+            StaleCodeError: the stepper returned -1 (compiled against other code than the
+                running, nothing touched); its owner recompiles it and calls again.
         """
         work, model, dt_s = self._work, self._model, self._dt_s
         hold = self.hold_steps
@@ -78,6 +94,8 @@ class StepPath:
             mass, nle = self._rigid_body_terms()
             chunk = min(hold - self._age, left)
             done = stepper(chunk, volts, *args, mass, nle, work, model, dt_s)
+            if done < 0:  # nothing touched; the held terms are evaluated again alike
+                raise StaleCodeError(f"{stepper} was compiled against other code")
             total += done
             self._age = (self._age + done) % hold
             left -= done
@@ -86,45 +104,44 @@ class StepPath:
         return total, True
 
     def advance_fused(
-        self, n_steps: int, fused: Any, volts: FloatArray, *args: FloatArray
+        self, n_steps: int, fused: Any, volts: FloatArray, *args: FloatArray | int
     ) -> tuple[int, bool]:
         """`advance_with` in one compiled call that evaluates the held terms itself.
 
         Held terms only (`hold_steps` > 1). `fused(n_steps, age, hold, lead_s, hold_position,
-        held_mass, held_nle, mass, nle, tree, body, volts, *args, work, model, dt_s,
-        code_version, out)` is a numba function (`commanded_plant._current_loops_held`) that
-        does what `advance_with` does with its stepper, the same bits, and returns 1 (all
-        steps), 0 (a step refused its voltages) or -1 (compiled against another rigid_body:
-        compiled again here, from the running code).
+        held_mass, held_nle, mass, nle, tree, body, volts, *args, work, model, dt_s, out)` is a
+        numba function (`commanded_plant._current_loops_held`) that does what `advance_with`
+        does with its stepper, the same bits, and returns 1 (all steps), 0 (a step refused its
+        voltages) or -1 (compiled against other code than the running: nothing touched).
+
+        Raises:
+            StaleCodeError: `fused` returned -1; its owner recompiles it and calls again.
         """
         mass, nle, tree, body = self._term_buffers
         out = self._fused_out
-        for _ in range(2):
-            verdict: int = fused(
-                n_steps,
-                self._age,
-                self.hold_steps,
-                self._hold_lead_s,
-                self._hold_position,
-                self._held_mass,
-                self._held_nle,
-                mass,
-                nle,
-                tree,
-                body,
-                volts,
-                *args,
-                self._work,
-                self._model,
-                self._dt_s,
-                rigid_body.CODE_VERSION,
-                out,
-            )
-            if verdict >= 0:
-                self._age = int(out[1])
-                return int(out[0]), verdict == 1
-            fused.recompile()
-        raise RuntimeError(f"{fused} does not run the loaded rigid_body")
+        verdict: int = fused(
+            n_steps,
+            self._age,
+            self.hold_steps,
+            self._hold_lead_s,
+            self._hold_position,
+            self._held_mass,
+            self._held_nle,
+            mass,
+            nle,
+            tree,
+            body,
+            volts,
+            *args,
+            self._work,
+            self._model,
+            self._dt_s,
+            out,
+        )
+        if verdict < 0:
+            raise StaleCodeError(f"{fused} was compiled against other code")
+        self._age = int(out[1])
+        return int(out[0]), verdict == 1
 
     def _rigid_body_terms(self) -> tuple[FloatArray, FloatArray]:
         """A(q) and C(q, qdot) qdot + Q(q) for the next step: evaluated, or still held."""

@@ -17,9 +17,10 @@ import pytest
 
 from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
-from lca_sim.model import kernel, rigid_body
+from lca_sim.model import kernel
 from lca_sim.model.commanded_plant import (
     _L_TARGET_A,
+    CODE_VERSION,
     CommandedPlant,
     _current_loops_held,
     _current_loops_steps,
@@ -147,7 +148,12 @@ def test_the_fused_held_advance_equals_the_stepper_over_its_holds() -> None:
         ref_sim = reference.sim
         reference._loops[_L_TARGET_A] = reference._target
         ref_sim.advance_with(
-            n_steps, _current_loops_steps, reference._volts, reference._loops, reference._gains
+            n_steps,
+            _current_loops_steps,
+            reference._volts,
+            reference._loops,
+            reference._gains,
+            CODE_VERSION,
         )
         assert np.array_equal(fused.sim._work, ref_sim._work, equal_nan=True)
         assert np.array_equal(fused._loops, reference._loops)
@@ -157,8 +163,8 @@ def test_the_fused_held_advance_equals_the_stepper_over_its_holds() -> None:
     assert len(drive_states) > 3, drive_states  # the comparison ran through state changes
 
 
-def test_a_fused_advance_compiled_against_another_rigid_body_refuses_to_run() -> None:
-    """A stale cache (another `rigid_body.CODE_VERSION`) runs no step: -1, state untouched."""
+def test_a_fused_advance_compiled_against_other_code_refuses_to_run() -> None:
+    """A stale cache (another `commanded_plant.CODE_VERSION`) runs no step: -1, untouched."""
     plant = _current_plant(10)
     path = plant.sim._path
     before = path._work.copy()
@@ -166,8 +172,8 @@ def test_a_fused_advance_compiled_against_another_rigid_body_refuses_to_run() ->
     out = np.zeros(2, dtype=np.int64)
     verdict = _current_loops_held(
         20, 0, 10, path._hold_lead_s, path._hold_position, path._held_mass, path._held_nle,
-        mass, nle, tree, body, plant._volts, plant._loops, plant._gains, path._work,
-        path._model, path._dt_s, rigid_body.CODE_VERSION ^ 1, out,
+        mass, nle, tree, body, plant._volts, plant._loops, plant._gains, CODE_VERSION ^ 1,
+        path._work, path._model, path._dt_s, out,
     )  # fmt: skip
     assert verdict == -1
     assert np.array_equal(path._work, before, equal_nan=True)
