@@ -19,21 +19,30 @@ from collections.abc import Mapping
 from types import CodeType, FunctionType
 from typing import Any
 
+import numpy as np
+
 
 def fingerprint(namespace: Mapping[str, Any], module: str) -> int:
-    """A module's compiled functions and layout constants as one 63-bit number.
+    """A module's compiled functions and the values they may freeze, as one 63-bit number.
 
-    Every function defined in `module` (numba's dispatchers by their Python function) and every
-    upper-case integer or float of `namespace` (a module's `vars`), in name order.
+    Every function defined in `module` (numba's dispatchers by their Python function, with
+    their compile options and defaults) and every number, string, tuple or array of
+    `namespace` (a module's `vars`; dunder names aside), in name order: numba freezes the
+    globals a compiled function reads into its code.
     """
     digest = hashlib.sha256()
     for name, value in sorted(namespace.items()):
-        if name.isupper() and isinstance(value, (int, float)):
-            digest.update(f"{name}={value!r};".encode())
+        if name.startswith("__"):
             continue
+        if isinstance(value, (int, float, complex, str, tuple, np.generic)):
+            digest.update(f"{name}={value!r};".encode())
+        elif isinstance(value, np.ndarray):
+            digest.update(f"{name}={value.dtype.str}{value.shape};".encode())
+            digest.update(np.ascontiguousarray(value).tobytes())
         function = getattr(value, "py_func", value)
         if isinstance(function, FunctionType) and function.__module__ == module:
-            digest.update(name.encode())
+            options = getattr(value, "targetoptions", None)
+            digest.update(f"{name}{options!r}{function.__defaults__!r}".encode())
             _hash_code(digest, function.__code__)
     return _fold(digest)
 

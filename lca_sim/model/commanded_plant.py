@@ -50,17 +50,20 @@ _pi_law_compiled = njit(cache=True)(pi_law)
 # What this module's cached functions compile in from other files: kernel's step (and
 # rigid_body's terms) and lca_control's PI law. numba keys their cache on this file only, so
 # after an edit of one of those they would run the old code, silently: they compare this value
-# with the one they were compiled with and refuse (-1); `ensure_current_code` recompiles them.
+# with the one they were compiled with and refuse (-1); `recompile_current_loops` compiles them
+# again.
 CODE_VERSION = code_version.combined(
     kernel.CODE_VERSION, code_version.fingerprint(vars(lca_pi), lca_pi.__name__)
 )
 
 
-@njit(cache=True)
+@njit  # not cached: compiled into each caller as it is compiled, from the running pi.py
 def _run_current_loops(loops, current_a, gains, volts):  # type: ignore[no-untyped-def]
     """One sample of every active axis's current PI: volts from targets and measured currents.
 
-    gains is [kp_v_per_a, ti_s, dt_s]; the limits are per axis (row _L_LIMIT_V).
+    gains is [kp_v_per_a, ti_s, dt_s]; the limits are per axis (row _L_LIMIT_V). A cached
+    copy of its own would be linked, as loaded, into a caller compiled afresh (a new argument
+    layout), whose `CODE_VERSION` guard then passes: an edit of pi.py would go unseen.
     """
     for a in range(volts.shape[0]):
         if loops[_L_ACTIVE, a] == 0.0:
@@ -82,7 +85,7 @@ def _current_loops_steps(n_steps, volts, loops, gains, version, mass, nle, work,
     """Model steps, each under the current loops' voltages (`Simulator.advance_with`).
 
     -1 and nothing touched when compiled against other code than the running (`version`, the
-    module's `CODE_VERSION`: `ensure_current_code`).
+    module's `CODE_VERSION`: `recompile_current_loops`).
     """
     if version != CODE_VERSION:  # a global: frozen into the compiled code
         return -1
@@ -123,7 +126,7 @@ def _current_loops_held(  # type: ignore[no-untyped-def]
     dispatches per hold around the compiled code cost more than the steps themselves. Writes
     (steps done, age after) into `out`; returns 1 when all `n_steps` were taken, 0 when a step
     refused its voltages, -1 (nothing touched) when this code was compiled against other code
-    than the running (`version`: `ensure_current_code`).
+    than the running, here or in `_current_loops_steps` (`version`: `recompile_current_loops`).
     """
     if version != CODE_VERSION:  # a global: frozen into the compiled code
         return -1
@@ -140,6 +143,8 @@ def _current_loops_held(  # type: ignore[no-untyped-def]
         done = _current_loops_steps(
             chunk, volts, loops, gains, version, held_mass, held_nle, work, model, dt_s
         )
+        if done < 0:  # its cached copy for these types is stale: nothing touched
+            return -1
         taken += done
         age = (age + done) % hold
         if done < chunk:
@@ -176,16 +181,16 @@ def recompile_current_loops() -> None:
     Callees first: numba links a caller with its callees' code as loaded, so a caller compiled
     again over a stale callee would keep the callee's old code. One not compiled in this
     process yet gets its cache emptied (`recompile` flushes it) and is compiled afresh when
-    first called.
+    first called. `_run_current_loops` is not cached, and `_pi_law_compiled`'s cache is keyed
+    on pi.py itself: both are fresh.
     """
-    for function in (
-        _pi_law_compiled,
-        _run_current_loops,
-        _current_loops_steps,
-        _current_loops_held,
-        _sensed_current_loops_steps,
-    ):
+    for function in (_current_loops_steps, _current_loops_held, _sensed_current_loops_steps):
         function.recompile()
+
+
+def _recompile_stale() -> None:
+    logger.info("compiling the current loops again: numba's cache holds code of older files")
+    recompile_current_loops()
 
 
 @dataclass
@@ -266,8 +271,7 @@ class CommandedPlant:
         try:
             self._run_each_path()
         except StaleCodeError:
-            logger.info("recompiling the current loops: numba's cache holds older code")
-            recompile_current_loops()
+            _recompile_stale()
             self._run_each_path()
         sim.set_state(snapshot)  # kernel.step itself: set_state evaluates the state with it
         self._volts[:] = 0.0
@@ -481,15 +485,12 @@ class CommandedPlant:
             self._advance_faulted(n_steps, self.faults)
             return
         self._loops[_L_TARGET_A] = self._target
-        self.sim.advance_with(
-            n_steps,
-            _current_loops_steps,
-            self._volts,
-            self._loops,
-            self._gains,
-            CODE_VERSION,
-            fused=_current_loops_held,
-        )
+        args = (self._volts, self._loops, self._gains, CODE_VERSION)
+        try:
+            self.sim.advance_with(n_steps, _current_loops_steps, *args, fused=_current_loops_held)
+        except StaleCodeError:  # another process rewrote numba's cache since the warm-up
+            _recompile_stale()
+            self.sim.advance_with(n_steps, _current_loops_steps, *args, fused=_current_loops_held)
 
     def _advance_faulted(self, n_steps: int, faults: FaultInjector) -> None:
         """`advance` of the current interface with injected faults in force.
@@ -509,14 +510,10 @@ class CommandedPlant:
         loops[_L_LIMIT_V] = sim.model_array[kernel.P_VOLTAGE_LIMIT_V]
         sense = np.vstack((faults.sensors.gain, faults.sensors.offset))
         noise = faults.sensors.current_noise(n_steps)
-        sim.advance_with(
-            n_steps,
-            _sensed_current_loops_steps,
-            self._volts,
-            loops,
-            self._gains,
-            CODE_VERSION,
-            sense,
-            noise,
-        )
+        args = (self._volts, loops, self._gains, CODE_VERSION, sense, noise)
+        try:
+            sim.advance_with(n_steps, _sensed_current_loops_steps, *args)
+        except StaleCodeError:  # nothing was touched
+            _recompile_stale()
+            sim.advance_with(n_steps, _sensed_current_loops_steps, *args)
         loops[_L_LIMIT_V] = self._voltage_limits

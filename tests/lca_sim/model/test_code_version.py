@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numba import njit
 
 from lca_control import pi as lca_pi
 from lca_control.pi import PIParams
@@ -51,6 +52,9 @@ def test_the_versions_follow_the_code_of_every_file_compiled_in() -> None:
     )
     assert code_version.fingerprint({**kernel_vars, "step": kernel.steps}, kernel.__name__) != own
     assert code_version.fingerprint({**kernel_vars, "OK": 7}, kernel.__name__) != own
+    assert code_version.fingerprint({**kernel_vars, "half": 0.25}, kernel.__name__) != own
+    fast_step = njit(fastmath=True)(kernel.step.py_func)  # the same code, other options
+    assert code_version.fingerprint({**kernel_vars, "step": fast_step}, kernel.__name__) != own
     foreign = {**kernel_vars, "pi_law": lca_pi.pi_law}  # imported, not kernel's: not hashed
     assert code_version.fingerprint(foreign, kernel.__name__) == own
     assert code_version.combined(own, 1) != code_version.combined(own, 2)
@@ -112,7 +116,11 @@ def test_a_plant_on_stale_compiled_code_compiles_it_again(monkeypatch: pytest.Mo
     _plant()  # compiled with the patched version: the same again, no recompile
     assert recompiled == [True]
     monkeypatch.undo()
-    _plant()  # back on the real version: compiled again (and numba's cache rewritten)
+    again = _plant()  # back on the real version: compiled again (and numba's cache rewritten)
+    for each in (again, reference := _plant()):
+        assert each.command([1.0, -2.0, 0.5, 1.5]) is None
+        each.advance(23)
+    assert np.array_equal(again.sim._work, reference.sim._work, equal_nan=True)
 
 
 _PROBE = """
@@ -121,7 +129,7 @@ from lca_control.pi import PIParams
 from lca_sim.config.loader import load_robot
 from lca_sim.model.commanded_plant import CommandedPlant
 from lca_sim.model.simulator import Simulator
-sim = Simulator(load_robot("default"), 1e-4, rigid_body_update_steps=10)
+sim = Simulator(load_robot("default"), 1e-4, rigid_body_update_steps=int(sys.argv[1]))
 plant = CommandedPlant(sim, sim.axis_names, "current", PIParams(31.62, 0.001, -1, 1), 50.0)
 plant.command([2.0, 2.0, 2.0, 2.0])
 plant.advance(200)
@@ -129,12 +137,12 @@ json.dump(plant.current_loop_outputs_v.tolist(), sys.stdout)  # the loops' volts
 """
 
 
-def _probe(tree: Path, cache: Path, jit: bool = True) -> list[float]:
+def _probe(tree: Path, cache: Path, hold_steps: int, jit: bool = True) -> list[float]:
     env = {**os.environ, "PYTHONPATH": str(tree), "NUMBA_CACHE_DIR": str(cache)}
     if not jit:
         env["NUMBA_DISABLE_JIT"] = "1"
     done = subprocess.run(
-        [sys.executable, "-c", _PROBE],
+        [sys.executable, "-c", _PROBE, str(hold_steps)],
         check=False,
         env=env,
         cwd=tree,
@@ -146,13 +154,35 @@ def _probe(tree: Path, cache: Path, jit: bool = True) -> list[float]:
     return volts
 
 
-def test_an_edit_of_kernel_py_reaches_the_cached_current_loops(tmp_path: Path) -> None:
-    """The developer's case: edit kernel.py, run again on numba's cache of before the edit.
+@pytest.mark.parametrize(
+    ("edited", "line", "edit", "holds"),
+    [
+        # kernel.step with the armature resistance tripled, on the same argument layout
+        (
+            "lca_sim/model/kernel.py",
+            "r_ohm = model[P_RESISTANCE_OHM, a]",
+            "r_ohm = 3.0 * model[P_RESISTANCE_OHM, a]",
+            (10, 10),
+        ),
+        # the PI law's proportional part tripled, then a plant whose held terms are laid out
+        # otherwise (terms at every step): its loops are compiled afresh, not loaded
+        (
+            "lca_control/pi.py",
+            "unclamped = kp * error + new_integral",
+            "unclamped = 3.0 * kp * error + new_integral",
+            (10, 1),
+        ),
+    ],
+    ids=["kernel.py", "pi.py"],
+)
+def test_an_edit_reaches_the_cached_current_loops(
+    tmp_path: Path, edited: str, line: str, edit: str, holds: tuple[int, int]
+) -> None:
+    """The developer's case: edit a file the loops compile in, run on the cache of before.
 
     A copy of the packages, its own numba cache: the current loops' voltages after 20 ms at
-    2 A, then the armature resistance tripled in kernel.py's step (the loops push harder). The
-    run on the old cache must give the edited physics (as the interpreted code does), not the
-    old one.
+    2 A, then the edit. The run on the old cache must give the edited physics (as the
+    interpreted code does), not the old one.
     """
     tree = tmp_path / "tree"
     for package in ("lca_sim", "lca_control", "config"):
@@ -160,13 +190,12 @@ def test_an_edit_of_kernel_py_reaches_the_cached_current_loops(tmp_path: Path) -
             REPO / package, tree / package, ignore=shutil.ignore_patterns("__pycache__")
         )
     cache = tmp_path / "numba"
-    before = _probe(tree, cache)
-    kernel_py = tree / "lca_sim" / "model" / "kernel.py"
-    source = kernel_py.read_text()
-    line = "r_ohm = model[P_RESISTANCE_OHM, a]"
+    before, after_hold = _probe(tree, cache, holds[0]), holds[1]
+    path = tree / edited
+    source = path.read_text()
     assert source.count(line) == 1, "the probe's edit no longer applies: update the test"
-    kernel_py.write_text(source.replace(line, "r_ohm = 3.0 * model[P_RESISTANCE_OHM, a]"))
-    after = _probe(tree, cache)
-    interpreted = _probe(tree, cache, jit=False)
-    assert np.abs(np.subtract(after, before)).max() > 0.1, (before, after)  # V
+    path.write_text(source.replace(line, edit))
+    after = _probe(tree, cache, after_hold)
+    interpreted = _probe(tree, cache, after_hold, jit=False)
+    assert np.abs(np.subtract(interpreted, before)).max() > 0.1, (before, interpreted)  # V
     np.testing.assert_allclose(after, interpreted, rtol=1e-9, atol=1e-12)
