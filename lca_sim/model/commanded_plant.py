@@ -184,13 +184,9 @@ def recompile_current_loops() -> None:
     first called. `_run_current_loops` is not cached, and `_pi_law_compiled`'s cache is keyed
     on pi.py itself: both are fresh.
     """
+    logger.info("compiling the current loops again: numba's cache holds code of older files")
     for function in (_current_loops_steps, _current_loops_held, _sensed_current_loops_steps):
         function.recompile()
-
-
-def _recompile_stale() -> None:
-    logger.info("compiling the current loops again: numba's cache holds code of older files")
-    recompile_current_loops()
 
 
 @dataclass
@@ -271,7 +267,7 @@ class CommandedPlant:
         try:
             self._run_each_path()
         except StaleCodeError:
-            _recompile_stale()
+            recompile_current_loops()
             self._run_each_path()
         sim.set_state(snapshot)  # kernel.step itself: set_state evaluates the state with it
         self._volts[:] = 0.0
@@ -489,7 +485,7 @@ class CommandedPlant:
         try:
             self.sim.advance_with(n_steps, _current_loops_steps, *args, fused=_current_loops_held)
         except StaleCodeError:  # another process rewrote numba's cache since the warm-up
-            _recompile_stale()
+            recompile_current_loops()
             self.sim.advance_with(n_steps, _current_loops_steps, *args, fused=_current_loops_held)
 
     def _advance_faulted(self, n_steps: int, faults: FaultInjector) -> None:
@@ -514,6 +510,6 @@ class CommandedPlant:
         try:
             sim.advance_with(n_steps, _sensed_current_loops_steps, *args)
         except StaleCodeError:  # nothing was touched
-            _recompile_stale()
+            recompile_current_loops()
             sim.advance_with(n_steps, _sensed_current_loops_steps, *args)
         loops[_L_LIMIT_V] = self._voltage_limits
